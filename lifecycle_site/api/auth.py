@@ -1,0 +1,79 @@
+"""How API requests are authenticated: a bearer token, or the browser's session (with CSRF)."""
+from __future__ import annotations
+
+from functools import wraps
+from typing import Callable
+
+from django.http import Http404, HttpRequest, JsonResponse
+from django.middleware.csrf import CsrfViewMiddleware
+from django.utils import timezone
+from django.views.decorators.csrf import csrf_exempt
+
+from lifecycle_site.api.models import ApiToken, hash_token
+from lifecycle_site.fleet.gateway_client import GatewayError
+
+UNSAFE_METHODS = {"POST", "PUT", "PATCH", "DELETE"}
+
+
+def error(code: str, message: str, status: int, **details) -> JsonResponse:
+    """The one error shape of the API: {"error": {"code", "message", ...details}}."""
+    return JsonResponse({"error": {"code": code, "message": message, **details}}, status=status)
+
+
+def _token_user(request: HttpRequest):
+    header = request.headers.get("Authorization", "")
+    scheme, _, token = header.partition(" ")
+    if scheme.lower() != "bearer" or not token.strip():
+        return None
+    record = ApiToken.objects.select_related("user").filter(digest=hash_token(token.strip())).first()
+    if record is None or not record.user.is_active:
+        return None
+    # Cheap enough, and tells an admin which tokens are still in use.
+    if record.last_used is None or (timezone.now() - record.last_used).total_seconds() > 60:
+        ApiToken.objects.filter(pk=record.pk).update(last_used=timezone.now())
+    return record.user
+
+
+def _csrf_failure(request: HttpRequest) -> JsonResponse | None:
+    check = CsrfViewMiddleware(lambda req: None)
+    check.process_request(request)
+    rejection = check.process_view(request, None, (), {})
+    if rejection is not None:
+        return error("csrf_failed", "CSRF check failed: send the X-CSRFToken header with session auth.", 403)
+    return None
+
+
+def api_view(methods: tuple[str, ...] = ("GET",), permission: str | None = None) -> Callable:
+    """Authenticate, check method and permission, and turn gateway errors into JSON."""
+
+    def decorate(view: Callable) -> Callable:
+        @csrf_exempt
+        @wraps(view)
+        def wrapper(request: HttpRequest, *args, **kwargs):
+            if request.method not in methods:
+                return error("method_not_allowed", f"Use {' or '.join(methods)} here.", 405)
+            user = _token_user(request)
+            if user is None and "Authorization" in request.headers:
+                return error("unauthorized", "The bearer token is not valid.", 401)
+            if user is None:
+                if not request.user.is_authenticated:
+                    return error("unauthorized", "Log in or send 'Authorization: Bearer TOKEN'.", 401)
+                if request.method in UNSAFE_METHODS:
+                    failure = _csrf_failure(request)
+                    if failure is not None:
+                        return failure
+                user = request.user
+            request.user = user
+            request.api_source = "api"
+            if permission and not user.has_perm(permission):
+                return error("forbidden", "Your role does not allow this (operator or admin needed).", 403)
+            try:
+                return view(request, *args, **kwargs)
+            except Http404 as exc:
+                return error("not_found", str(exc) or "Not found.", 404)
+            except GatewayError as exc:
+                return error(exc.code, exc.message, exc.status, **exc.details)
+
+        return wrapper
+
+    return decorate

@@ -1,0 +1,216 @@
+"""JSON API v1 (docs/api.md). Reads come from the database; lifecycle calls go through
+the ROS gateway and every transition attempt lands in the audit log."""
+from __future__ import annotations
+
+import json
+
+from django.db.models import Count, Q
+from django.http import Http404, HttpRequest, JsonResponse
+from django.utils import timezone
+
+from lifecycle_site.api.auth import api_view, error
+from lifecycle_site.audit.models import TransitionRecord
+from lifecycle_site.fleet.gateway_client import GatewayError, GatewayOffline, call_gateway
+from lifecycle_site.fleet.models import GatewayHeartbeat, LogRecord, ManagedNode, Robot
+from lifecycle_site.fleet.serializers import node_dict
+from ros_gateway import protocol
+from ros_gateway import state_machine as sm
+
+MAX_LIMIT = 1000
+LEVELS = {name: value for value, name in LogRecord.LEVELS}
+
+
+def _limit(request: HttpRequest, default: int) -> int:
+    try:
+        return max(1, min(int(request.GET.get("limit", default)), MAX_LIMIT))
+    except ValueError:
+        return default
+
+
+@api_view()
+def robots(request: HttpRequest) -> JsonResponse:
+    gateway_online = GatewayHeartbeat.online()
+    rows = Robot.objects.annotate(
+        node_count=Count("nodes"), alive_count=Count("nodes", filter=Q(nodes__alive=True))
+    )
+    return JsonResponse(
+        {
+            "gateway_online": gateway_online,
+            "robots": [
+                {
+                    "name": r.name,
+                    "domain_id": r.domain_id,
+                    "namespace": r.namespace,
+                    "description": r.description,
+                    "enabled": r.enabled,
+                    "online": gateway_online and r.enabled and r.alive_count > 0,
+                    "node_count": r.node_count,
+                    "alive_node_count": r.alive_count,
+                }
+                for r in rows
+            ],
+        }
+    )
+
+
+@api_view()
+def nodes(request: HttpRequest) -> JsonResponse:
+    queryset = ManagedNode.objects.select_related("robot")
+    robot = request.GET.get("robot")
+    if robot:
+        if not Robot.objects.filter(name=robot).exists():
+            return error("not_found", f"There is no robot named {robot!r}.", 404)
+        queryset = queryset.filter(robot__name=robot)
+    return JsonResponse({"nodes": [node_dict(n) for n in queryset]})
+
+
+@api_view()
+def node_detail(request: HttpRequest, key: str) -> JsonResponse:
+    node = get_node(key)
+    body = node_dict(node)
+    body["available_states"] = [sm.state_dict(s) for s in sm.STATE_LABELS]
+    body["transition_graph"] = sm.transition_graph()
+    body["described_by"] = "state machine"
+    if node.alive:
+        try:  # the node's own answer, when it can give one
+            states = call_gateway(protocol.GET_AVAILABLE_STATES, robot=node.robot.name, node=node.name)
+            graph = call_gateway(protocol.GET_TRANSITION_GRAPH, robot=node.robot.name, node=node.name)
+            body["available_states"], body["transition_graph"] = states["states"], graph["graph"]
+            body["described_by"] = "node"
+        except GatewayError as exc:
+            body["described_by_error"] = exc.message
+    return JsonResponse(body)
+
+
+def get_node(key: str) -> ManagedNode:
+    node = ManagedNode.objects.select_related("robot").filter(key=key).first()
+    if node is None:
+        raise Http404(f"There is no node with id {key!r}; GET /api/v1/nodes lists them.")
+    return node
+
+
+@api_view(methods=("POST",), permission="fleet.operate_node")
+def transition(request: HttpRequest, key: str) -> JsonResponse:
+    try:
+        body = json.loads(request.body or b"")
+    except (ValueError, UnicodeDecodeError) as exc:
+        return error("malformed_json", f"The request body is not valid JSON: {exc}.", 400)
+    if not isinstance(body, dict) or "transition" not in body:
+        return error("missing_field", 'Send {"transition": "configure"} (a label or a numeric id).', 400)
+    requested = body["transition"]
+    if not isinstance(requested, (str, int)) or isinstance(requested, bool):
+        return error("invalid_field", "'transition' must be a label such as \"activate\" or a numeric id.", 400)
+    try:
+        sm.resolve_transition(requested, sm.UNCONFIGURED)  # checks the name exists at all
+    except sm.UnknownTransition:
+        return error(
+            "unknown_transition",
+            f"{requested!r} is not a lifecycle transition; use one of {', '.join(sm.EXTERNAL_LABELS)} "
+            "or an id 1-7.",
+            400,
+        )
+    timeout = body.get("timeout")
+    if timeout is not None and (not isinstance(timeout, (int, float)) or isinstance(timeout, bool) or timeout <= 0):
+        return error("invalid_field", "'timeout' must be a positive number of seconds.", 400)
+    node = get_node(key)
+    return run_transition(request, node, requested, timeout, source="api")
+
+
+def run_transition(request: HttpRequest, node: ManagedNode, requested, timeout, source: str) -> JsonResponse:
+    """Ask the gateway for one transition and map its outcome to an HTTP answer."""
+    if not node.alive:
+        message = f"{node.name} is not running on {node.robot.name}; it was last seen {_ago(node.last_seen)}."
+        _record_rejection(request, node, requested, source, message)
+        return error("node_offline", message, 409, state=node.state)
+    try:
+        reply = call_gateway(
+            protocol.CHANGE_STATE,
+            timeout=timeout,
+            robot=node.robot.name,
+            node=node.name,
+            transition=requested,
+            user_id=request.user.pk,
+            source=source,
+        )
+    except GatewayOffline as exc:
+        _record_rejection(request, node, requested, source, exc.message)
+        raise
+    except GatewayError as exc:
+        if exc.code == "node_offline":
+            _record_rejection(request, node, requested, source, exc.message)
+            return error(exc.code, exc.message, 409, state=node.state)
+        raise
+    outcome = reply["outcome"]
+    common = {"from": reply["from"], "transition": reply["transition"], "record_id": reply["record_id"]}
+    if outcome == "succeeded":
+        return JsonResponse({"success": True, **common, "to": reply["to"], "duration_ms": reply["duration_ms"]})
+    if outcome == "rejected":
+        return error(
+            "invalid_transition", reply["message"], 409,
+            state=reply["from"], valid_transitions=reply["valid_transitions"], record_id=reply["record_id"],
+        )
+    if outcome == "timed_out":
+        return error("timeout", reply["message"], 504, state=reply["to"], duration_ms=reply["duration_ms"], **common)
+    return error("transition_failed", reply["message"], 422, state=reply["to"], duration_ms=reply["duration_ms"], **common)
+
+
+def _record_rejection(request: HttpRequest, node: ManagedNode, requested, source: str, message: str) -> None:
+    transition = None
+    try:
+        transition = sm.resolve_transition(requested, node.state_id)
+    except sm.UnknownTransition:
+        pass
+    now = timezone.now()
+    TransitionRecord.objects.create(
+        node=node,
+        robot=node.robot,
+        robot_name=node.robot.name,
+        node_name=node.name,
+        transition_id=transition.id if transition else None,
+        transition_label=transition.label if transition else str(requested),
+        start_state_id=node.state_id,
+        start_state_label=node.state_label,
+        outcome=TransitionRecord.Outcome.REJECTED,
+        source=source,
+        requested_by=request.user,
+        requested_at=now,
+        completed_at=now,
+        duration_ms=0.0,
+        error=message,
+    )
+
+
+def _ago(moment) -> str:
+    if moment is None:
+        return "never"
+    seconds = int((timezone.now() - moment).total_seconds())
+    if seconds < 120:
+        return f"{seconds} s ago"
+    if seconds < 7200:
+        return f"{seconds // 60} min ago"
+    return moment.strftime("%Y-%m-%d %H:%M UTC")
+
+
+@api_view()
+def node_logs(request: HttpRequest, key: str) -> JsonResponse:
+    node = get_node(key)
+    records = LogRecord.objects.filter(node=node)
+    level = request.GET.get("level")
+    if level:
+        if level.upper() not in LEVELS:
+            return error("invalid_field", f"level must be one of {', '.join(LEVELS)}.", 400)
+        records = records.filter(level__gte=LEVELS[level.upper()])
+    rows = list(records.order_by("-id")[: _limit(request, 100)])
+    return JsonResponse({"node": node.key, "records": [r.as_dict() for r in reversed(rows)]})
+
+
+@api_view()
+def transitions(request: HttpRequest) -> JsonResponse:
+    records = TransitionRecord.objects.select_related("node")
+    if request.GET.get("robot"):
+        records = records.filter(robot_name=request.GET["robot"])
+    if request.GET.get("node"):
+        wanted = request.GET["node"]
+        # Either the node id (agv-1.joy_to_vel) or its ROS name (/joy_to_vel).
+        records = records.filter(Q(node__key=wanted) | Q(node_name=wanted))
+    return JsonResponse({"transitions": [r.as_dict() for r in records[: _limit(request, 100)]]})

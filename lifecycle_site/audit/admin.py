@@ -1,0 +1,25 @@
+from django.contrib import admin
+
+from lifecycle_site.audit.models import TransitionRecord
+
+
+@admin.register(TransitionRecord)
+class TransitionRecordAdmin(admin.ModelAdmin):
+    """Read-only: the audit log is append-only."""
+
+    list_display = (
+        "requested_at", "robot_name", "node_name", "transition_label", "start_state_label",
+        "result_state_label", "outcome", "source", "requested_by_name", "duration_ms",
+    )
+    list_filter = ("outcome", "source", "robot_name")
+    search_fields = ("node_name", "requested_by_name", "error")
+    date_hierarchy = "requested_at"
+
+    def has_add_permission(self, request) -> bool:
+        return False
+
+    def has_change_permission(self, request, obj=None) -> bool:
+        return False
+
+    def has_delete_permission(self, request, obj=None) -> bool:
+        return False

@@ -1,0 +1,108 @@
+"""The audit log: one append-only record per lifecycle state change or attempt."""
+from __future__ import annotations
+
+from django.conf import settings
+from django.db import models
+
+
+class AppendOnlyError(Exception):
+    """Raised on any attempt to change or delete an audit record."""
+
+
+class TransitionRecordQuerySet(models.QuerySet):
+    def update(self, **kwargs):  # noqa: D102 - guard, see AppendOnlyError
+        raise AppendOnlyError("Audit records cannot be changed.")
+
+    def delete(self):  # noqa: D102
+        raise AppendOnlyError("Audit records cannot be deleted.")
+
+
+class TransitionRecord(models.Model):
+    class Outcome(models.TextChoices):
+        SUCCEEDED = "succeeded", "succeeded"
+        FAILED = "failed", "failed"
+        REJECTED = "rejected", "rejected"
+        TIMED_OUT = "timed_out", "timed out"
+        OBSERVED = "observed", "observed"
+
+    class Source(models.TextChoices):
+        DASHBOARD = "dashboard", "dashboard"
+        API = "api", "API"
+        EXTERNAL = "external", "external tool"
+        RECOVERY = "recovery", "automatic recovery"
+
+    # Kept as plain text too, so the record stays readable after a node or robot is deleted.
+    node = models.ForeignKey(
+        "fleet.ManagedNode", null=True, blank=True, on_delete=models.SET_NULL, related_name="transitions"
+    )
+    robot = models.ForeignKey(
+        "fleet.Robot", null=True, blank=True, on_delete=models.SET_NULL, related_name="transitions"
+    )
+    robot_name = models.CharField(max_length=63)
+    node_name = models.CharField(max_length=255)
+    transition_id = models.PositiveSmallIntegerField(null=True, blank=True)
+    transition_label = models.CharField(max_length=64, blank=True)
+    start_state_id = models.PositiveSmallIntegerField(null=True, blank=True)
+    start_state_label = models.CharField(max_length=32, blank=True)
+    goal_state_id = models.PositiveSmallIntegerField(null=True, blank=True)
+    goal_state_label = models.CharField(max_length=32, blank=True)
+    result_state_id = models.PositiveSmallIntegerField(null=True, blank=True)
+    result_state_label = models.CharField(max_length=32, blank=True)
+    outcome = models.CharField(max_length=16, choices=Outcome.choices)
+    source = models.CharField(max_length=16, choices=Source.choices)
+    requested_by = models.ForeignKey(
+        settings.AUTH_USER_MODEL, null=True, blank=True, on_delete=models.SET_NULL, related_name="+"
+    )
+    requested_by_name = models.CharField(max_length=150, blank=True)
+    requested_at = models.DateTimeField()
+    completed_at = models.DateTimeField(null=True, blank=True)
+    duration_ms = models.FloatField(null=True, blank=True)
+    error = models.TextField(blank=True)
+    run_id = models.CharField(max_length=64, blank=True, help_text="Groups the steps of one group operation.")
+
+    objects = TransitionRecordQuerySet.as_manager()
+
+    class Meta:
+        ordering = ["-requested_at", "-id"]
+        indexes = [
+            models.Index(fields=["robot_name", "-requested_at"], name="audit_robot_recent"),
+            models.Index(fields=["node", "-requested_at"], name="audit_node_recent"),
+        ]
+
+    def __str__(self) -> str:
+        return f"{self.robot_name}:{self.node_name} {self.transition_label} {self.outcome}"
+
+    def save(self, *args, **kwargs) -> None:
+        if self.pk is not None:
+            raise AppendOnlyError("Audit records cannot be changed.")
+        if self.requested_by is not None and not self.requested_by_name:
+            self.requested_by_name = self.requested_by.get_username()
+        super().save(*args, **kwargs)
+
+    def delete(self, *args, **kwargs):
+        raise AppendOnlyError("Audit records cannot be deleted.")
+
+    def as_dict(self) -> dict:
+        def state(state_id, label):
+            return None if state_id is None else {"id": state_id, "label": label}
+
+        return {
+            "id": self.id,
+            "robot": self.robot_name,
+            "node": self.node_name,
+            "node_id": self.node.key if self.node_id and self.node else None,
+            "transition": None
+            if self.transition_id is None
+            else {"id": self.transition_id, "label": self.transition_label},
+            "from": state(self.start_state_id, self.start_state_label),
+            "goal": state(self.goal_state_id, self.goal_state_label),
+            "to": state(self.result_state_id, self.result_state_label),
+            "outcome": self.outcome,
+            "source": self.source,
+            "requested_by": self.requested_by_name or None,
+            "requested_at": self.requested_at.isoformat(),
+            "completed_at": self.completed_at.isoformat() if self.completed_at else None,
+            "duration_ms": self.duration_ms,
+            "error": self.error,
+            "run_id": self.run_id or None,
+        }

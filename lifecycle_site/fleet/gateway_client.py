@@ -1,0 +1,99 @@
+"""The site's side of talking to the ROS gateway: one command, one reply, a bounded wait."""
+from __future__ import annotations
+
+import json
+import time
+import uuid
+from functools import lru_cache
+from typing import Any
+
+import redis
+from django.conf import settings
+
+from lifecycle_site.fleet.models import GatewayHeartbeat
+from ros_gateway import protocol
+
+
+class GatewayError(Exception):
+    """A command could not be carried out; ``code`` and ``message`` are shown to the user."""
+
+    status = 502
+
+    def __init__(self, code: str, message: str, **details: Any) -> None:
+        super().__init__(message)
+        self.code = code
+        self.message = message
+        self.details = details
+
+
+class GatewayOffline(GatewayError):
+    status = 503
+
+    def __init__(self, message: str) -> None:
+        super().__init__("gateway_offline", message)
+
+
+def channel_prefix() -> str:
+    return settings.CHANNEL_LAYERS["default"]["CONFIG"].get("prefix", "lifecycle")
+
+
+# Upper bound of a service timeout a caller may ask for, so every wait stays bounded.
+MAX_SERVICE_TIMEOUT = 25.0
+
+
+@lru_cache(maxsize=1)
+def _redis() -> redis.Redis:
+    # A Redis that is down must show as an error within seconds (connect timeout); the read
+    # timeout only has to outlast the longest blocking wait for a reply.
+    return redis.Redis.from_url(
+        settings.REDIS_URL, socket_connect_timeout=2, socket_timeout=2 * MAX_SERVICE_TIMEOUT + 15
+    )
+
+
+def call_gateway(command: str, timeout: float | None = None, **arguments: Any) -> dict:
+    """Send ``command`` to the gateway and return its reply (``ok`` is True).
+
+    ``timeout`` is the gateway's own bound on the ROS call; the site waits that long plus a
+    grace period. Raises GatewayOffline when no gateway is alive or it does not answer in
+    time, and GatewayError with the gateway's code for any failed reply.
+    """
+    config = settings.LIFECYCLE
+    if not GatewayHeartbeat.online():
+        raise GatewayOffline(
+            "The ROS gateway is offline (no heartbeat for "
+            f"{config['GATEWAY_OFFLINE_AFTER']:.0f} s); nothing was sent to the robot."
+        )
+    service_timeout = float(timeout if timeout is not None else config["SERVICE_TIMEOUT"])
+    service_timeout = min(max(service_timeout, 0.1), MAX_SERVICE_TIMEOUT)
+    # A transition may need a call, a re-read after a timeout and the final read.
+    wait = 2 * service_timeout + config["COMMAND_GRACE"]
+    request_id = uuid.uuid4().hex
+    message = {
+        "command": command,
+        "request_id": request_id,
+        "deadline": time.time() + wait,
+        "timeout": service_timeout,
+        **arguments,
+    }
+    prefix = channel_prefix()
+    queue = protocol.command_queue(prefix)
+    try:
+        client = _redis()
+        with client.pipeline() as pipe:
+            pipe.lpush(queue, json.dumps(message))
+            pipe.ltrim(queue, 0, protocol.COMMAND_QUEUE_LIMIT - 1)
+            pipe.execute()
+        popped = client.blpop([protocol.reply_key(prefix, request_id)], timeout=wait)
+    except redis.RedisError as exc:
+        raise GatewayOffline(f"Redis, which links the site and the ROS gateway, is unreachable: {exc}") from exc
+    if popped is None:
+        raise GatewayOffline(f"The ROS gateway did not answer within {wait:.0f} s.")
+    reply = json.loads(popped[1])
+    if not reply.get("ok"):
+        error = reply.get("error") or {}
+        raise GatewayError(
+            error.get("code", "gateway_error"),
+            error.get("message", "The ROS gateway reported an error."),
+            **{k: v for k, v in reply.items() if k not in ("ok", "error", "request_id")},
+        )
+    return reply

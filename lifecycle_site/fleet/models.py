@@ -1,0 +1,158 @@
+"""Robots, their managed nodes, their /rosout history and the gateway's heartbeat."""
+from __future__ import annotations
+
+from datetime import timedelta
+
+from django.conf import settings
+from django.core.validators import MaxValueValidator, MinValueValidator, RegexValidator
+from django.db import models
+from django.utils import timezone
+
+from ros_gateway import state_machine as sm
+
+ROBOT_NAME_VALIDATOR = RegexValidator(
+    r"^[a-z0-9][a-z0-9_-]{0,62}$",
+    "Use lower-case letters, digits, '-' and '_' (for example agv-1).",
+)
+NAMESPACE_VALIDATOR = RegexValidator(
+    r"^(/[A-Za-z_][A-Za-z0-9_]*)*$",
+    "A ROS namespace such as /agv1 or /plant/agv1, or empty for the whole domain.",
+)
+
+
+class Robot(models.Model):
+    """A robot is a ROS domain, optionally narrowed to a namespace within it."""
+
+    name = models.CharField(max_length=63, unique=True, validators=[ROBOT_NAME_VALIDATOR])
+    domain_id = models.PositiveSmallIntegerField(
+        "ROS domain id",
+        validators=[MinValueValidator(0), MaxValueValidator(232)],
+        help_text="ROS_DOMAIN_ID the robot's nodes use (0-232).",
+    )
+    namespace = models.CharField(
+        max_length=200,
+        blank=True,
+        validators=[NAMESPACE_VALIDATOR],
+        help_text="Only nodes under this namespace belong to the robot; empty for all of the domain.",
+    )
+    description = models.TextField(blank=True)
+    enabled = models.BooleanField(default=True, help_text="The gateway watches enabled robots only.")
+    created = models.DateTimeField(auto_now_add=True)
+
+    class Meta:
+        ordering = ["name"]
+
+    def __str__(self) -> str:
+        return self.name
+
+    def owns(self, node_name: str) -> bool:
+        """Whether a fully qualified node name lies under this robot's namespace."""
+        return not self.namespace or node_name.startswith(self.namespace.rstrip("/") + "/")
+
+
+def node_key(robot_name: str, node_name: str) -> str:
+    """Stable, URL-safe id of a node: ``agv-1.joy_to_vel``, ``agv-1.arm.gripper``.
+
+    ROS names never contain dots and robot names are slugs, so the mapping is unambiguous.
+    """
+    return f"{robot_name}.{node_name.strip('/').replace('/', '.')}"
+
+
+class ManagedNode(models.Model):
+    """A lifecycle node seen on a robot (or pinned by name before it shows up)."""
+
+    robot = models.ForeignKey(Robot, on_delete=models.CASCADE, related_name="nodes")
+    name = models.CharField("fully qualified name", max_length=255)
+    key = models.CharField(max_length=320, unique=True, editable=False)
+    state_id = models.PositiveSmallIntegerField(default=sm.UNKNOWN)
+    state_label = models.CharField(max_length=32, default="unknown")
+    alive = models.BooleanField(default=False)
+    first_seen = models.DateTimeField(null=True, blank=True)
+    last_seen = models.DateTimeField(null=True, blank=True)
+    state_changed = models.DateTimeField(null=True, blank=True)
+
+    class Meta:
+        ordering = ["robot__name", "name"]
+        constraints = [models.UniqueConstraint(fields=["robot", "name"], name="unique_node_per_robot")]
+        permissions = [("operate_node", "Can trigger lifecycle transitions")]
+
+    def __str__(self) -> str:
+        return f"{self.robot.name}:{self.name}"
+
+    def save(self, *args, **kwargs) -> None:
+        self.key = node_key(self.robot.name, self.name)
+        super().save(*args, **kwargs)
+
+    @property
+    def state(self) -> dict:
+        return {"id": self.state_id, "label": self.state_label}
+
+    @property
+    def valid_transitions(self) -> list[dict]:
+        if not self.alive:
+            return []
+        return [t.as_dict() for t in sm.valid_transitions(self.state_id)]
+
+
+class LogRecord(models.Model):
+    """One /rosout message. Pruned by the gateway to a bounded count and age."""
+
+    DEBUG, INFO, WARN, ERROR, FATAL = 10, 20, 30, 40, 50
+    LEVELS = [(DEBUG, "DEBUG"), (INFO, "INFO"), (WARN, "WARN"), (ERROR, "ERROR"), (FATAL, "FATAL")]
+
+    robot = models.ForeignKey(Robot, on_delete=models.CASCADE, related_name="log_records")
+    node = models.ForeignKey(
+        ManagedNode, null=True, blank=True, on_delete=models.SET_NULL, related_name="log_records"
+    )
+    logger = models.CharField(max_length=255)
+    stamp = models.DateTimeField()
+    level = models.PositiveSmallIntegerField(choices=LEVELS)
+    message = models.TextField()
+    file = models.CharField(max_length=255, blank=True)
+    function = models.CharField(max_length=255, blank=True)
+    line = models.PositiveIntegerField(default=0)
+
+    class Meta:
+        ordering = ["-id"]
+        indexes = [
+            models.Index(fields=["robot", "-id"], name="log_robot_recent"),
+            models.Index(fields=["node", "-id"], name="log_node_recent"),
+            models.Index(fields=["robot", "logger", "-id"], name="log_logger_recent"),
+            models.Index(fields=["stamp"], name="log_stamp"),
+        ]
+
+    @property
+    def level_name(self) -> str:
+        return dict(self.LEVELS).get(self.level, str(self.level))
+
+    def as_dict(self) -> dict:
+        return {
+            "id": self.id,
+            "stamp": self.stamp.isoformat(),
+            "level": self.level_name,
+            "logger": self.logger,
+            "message": self.message,
+            "file": self.file,
+            "function": self.function,
+            "line": self.line,
+        }
+
+
+class GatewayHeartbeat(models.Model):
+    """Written by each running ros_gateway every few seconds."""
+
+    name = models.CharField(max_length=100, unique=True)
+    hostname = models.CharField(max_length=255, blank=True)
+    pid = models.PositiveIntegerField(default=0)
+    started = models.DateTimeField()
+    last_beat = models.DateTimeField()
+    watched_domains = models.JSONField(default=list)
+
+    def __str__(self) -> str:
+        return self.name
+
+    @classmethod
+    def online(cls) -> bool:
+        """Whether any gateway beat recently enough to be trusted with commands."""
+        limit = timezone.now() - timedelta(seconds=settings.LIFECYCLE["GATEWAY_OFFLINE_AFTER"])
+        return cls.objects.filter(last_beat__gte=limit).exists()

@@ -1,0 +1,46 @@
+"""The three roles of the product as Django groups: viewer, operator, admin.
+
+Kept in code (re-applied after every migrate) so that a fresh database, a test database
+after a flush and an upgraded installation all have the same roles.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+VIEW = [
+    "fleet.view_robot",
+    "fleet.view_managednode",
+    "fleet.view_logrecord",
+    "audit.view_transitionrecord",
+]
+OPERATE = VIEW + ["fleet.operate_node"]
+ADMINISTER = OPERATE + [
+    "fleet.add_robot",
+    "fleet.change_robot",
+    "fleet.delete_robot",
+    "fleet.add_managednode",
+    "fleet.change_managednode",
+    "fleet.delete_managednode",
+    "auth.view_user",
+    "auth.add_user",
+    "auth.change_user",
+    "api.view_apitoken",
+    "api.delete_apitoken",
+]
+ROLES: dict[str, list[str]] = {"viewer": VIEW, "operator": OPERATE, "admin": ADMINISTER}
+
+
+def ensure_roles(**_: Any) -> None:
+    from django.contrib.auth.models import Group, Permission
+
+    for role, codenames in ROLES.items():
+        group, _created = Group.objects.get_or_create(name=role)
+        wanted = []
+        for dotted in codenames:
+            app_label, codename = dotted.split(".")
+            permission = Permission.objects.filter(
+                content_type__app_label=app_label, codename=codename
+            ).first()
+            if permission is not None:
+                wanted.append(permission)
+        group.permissions.set(wanted)

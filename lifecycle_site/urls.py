@@ -1,0 +1,14 @@
+from django.contrib import admin
+from django.contrib.auth import views as auth_views
+from django.urls import include, path
+
+admin.site.site_header = "ROS 2 lifecycle manager"
+admin.site.site_title = "Lifecycle manager admin"
+
+urlpatterns = [
+    path("login/", auth_views.LoginView.as_view(), name="login"),
+    path("logout/", auth_views.LogoutView.as_view(), name="logout"),
+    path("admin/", admin.site.urls),
+    path("api/v1/", include("lifecycle_site.api.urls")),
+    path("", include("lifecycle_site.dashboard.urls")),
+]

@@ -1,0 +1,1 @@
+"""The ROS side: a worker that owns all rclpy state. Importing this package loads no rclpy."""

@@ -1,0 +1,178 @@
+"""One ROS domain: its own rclpy Context, a gateway node in it, and an executor thread.
+
+Everything rclpy touches lives here. Callbacks run on the executor thread and are handed
+to the gateway's asyncio loop with ``call_soon_threadsafe``; service calls return asyncio
+results with a hard timeout.
+"""
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import threading
+import time
+from typing import Any, Callable
+
+import rclpy
+from lifecycle_msgs.msg import TransitionEvent
+from rcl_interfaces.msg import Log
+from rclpy.context import Context
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+log = logging.getLogger(__name__)
+
+GET_STATE_TYPE = "lifecycle_msgs/srv/GetState"
+
+ROSOUT_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=200,
+    reliability=ReliabilityPolicy.RELIABLE,
+    # Transient local: records a node logged just before we subscribed still arrive.
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+
+
+class ServiceTimeout(Exception):
+    """The service did not answer within the bound."""
+
+
+class ServiceUnavailable(Exception):
+    """No server for the service appeared within the bound."""
+
+
+class RosDomain:
+    """The gateway's presence in one ROS domain."""
+
+    def __init__(
+        self,
+        domain_id: int,
+        loop: asyncio.AbstractEventLoop,
+        on_transition_event: Callable[[int, str, Any], None],
+        on_log: Callable[[int, Any], None],
+    ) -> None:
+        self.domain_id = domain_id
+        self.loop = loop
+        self._on_transition_event = on_transition_event
+        self._on_log = on_log
+        self.context = Context()
+        self.node: rclpy.node.Node | None = None
+        self.executor: SingleThreadedExecutor | None = None
+        self._thread: threading.Thread | None = None
+        self._clients: dict[tuple[str, str], Any] = {}
+        self._event_subscriptions: dict[str, Any] = {}
+        self.started_at = 0.0
+
+    # -- life of the domain ---------------------------------------------------------
+    def start(self) -> None:
+        # Discovery range and static peers come from the environment (ROS_AUTOMATIC_DISCOVERY_RANGE,
+        # ROS_STATIC_PEERS) exactly as for any ROS process; only the domain id is ours to set.
+        rclpy.init(context=self.context, domain_id=self.domain_id)
+        self.node = rclpy.create_node(
+            f"lifecycle_gateway_{os.getpid()}",
+            context=self.context,
+            start_parameter_services=False,
+            enable_rosout=False,
+        )
+        self.node.create_subscription(Log, "/rosout", self._rosout_callback, ROSOUT_QOS)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self._thread = threading.Thread(target=self._spin, name=f"ros-domain-{self.domain_id}", daemon=True)
+        self._thread.start()
+        self.started_at = time.monotonic()
+        log.info("watching ROS domain %d", self.domain_id)
+
+    def _spin(self) -> None:
+        try:
+            self.executor.spin()
+        except (ExternalShutdownException, rclpy.executors.ShutdownException):
+            pass
+        except Exception:  # the thread must not die silently
+            log.exception("executor of ROS domain %d stopped", self.domain_id)
+
+    def stop(self) -> None:
+        try:
+            if self.executor is not None:
+                self.executor.shutdown(timeout_sec=2.0)
+            if self.node is not None:
+                self.node.destroy_node()
+        finally:
+            if self.context.ok():
+                self.context.try_shutdown()
+            if self._thread is not None:
+                self._thread.join(timeout=3.0)
+        log.info("stopped watching ROS domain %d", self.domain_id)
+
+    # -- graph ----------------------------------------------------------------------
+    def lifecycle_node_names(self) -> set[str]:
+        """Fully qualified names of nodes offering lifecycle_msgs/srv/GetState."""
+        names = set()
+        for service, types in self.node.get_service_names_and_types():
+            if GET_STATE_TYPE in types and service.endswith("/get_state"):
+                names.add(service[: -len("/get_state")] or "/")
+        return names
+
+    def watch_node(self, fqn: str) -> None:
+        """Subscribe to the node's transition events."""
+        if fqn in self._event_subscriptions:
+            return
+        self._event_subscriptions[fqn] = self.node.create_subscription(
+            TransitionEvent,
+            f"{fqn}/transition_event",
+            lambda msg, fqn=fqn: self._hand_over(self._on_transition_event, self.domain_id, fqn, msg),
+            10,
+        )
+
+    def forget_node(self, fqn: str) -> None:
+        """Drop the node's subscription and clients (it vanished or left our robots)."""
+        subscription = self._event_subscriptions.pop(fqn, None)
+        if subscription is not None:
+            self.node.destroy_subscription(subscription)
+        for key in [k for k in self._clients if k[0] == fqn]:
+            self.node.destroy_client(self._clients.pop(key))
+
+    # -- service calls --------------------------------------------------------------
+    async def call(self, fqn: str, service: str, srv_type: Any, request: Any, timeout: float) -> Any:
+        """Call ``{fqn}/{service}``; raises ServiceUnavailable or ServiceTimeout within ``timeout``."""
+        deadline = time.monotonic() + timeout
+        client = self._clients.get((fqn, service))
+        if client is None:
+            client = self.node.create_client(srv_type, f"{fqn}/{service}")
+            self._clients[(fqn, service)] = client
+        # A fresh client needs a moment to match the server (about 0.25 s on loopback).
+        while not client.service_is_ready():
+            if time.monotonic() >= deadline:
+                raise ServiceUnavailable(f"{fqn}/{service} is not available")
+            await asyncio.sleep(0.02)
+        result: asyncio.Future = self.loop.create_future()
+
+        def done(ros_future) -> None:
+            self.loop.call_soon_threadsafe(_settle, result, ros_future)
+
+        ros_future = client.call_async(request)
+        ros_future.add_done_callback(done)
+        try:
+            return await asyncio.wait_for(result, max(deadline - time.monotonic(), 0.001))
+        except asyncio.TimeoutError:
+            client.remove_pending_request(ros_future)
+            raise ServiceTimeout(f"{fqn}/{service} did not answer within {timeout:g} s") from None
+
+    # -- callbacks (executor thread) ------------------------------------------------
+    def _rosout_callback(self, msg: Log) -> None:
+        self._on_log(self.domain_id, msg)
+
+    def _hand_over(self, callback: Callable, *args: Any) -> None:
+        try:
+            self.loop.call_soon_threadsafe(callback, *args)
+        except RuntimeError:  # loop closed while shutting down
+            pass
+
+
+def _settle(result: asyncio.Future, ros_future: Any) -> None:
+    if result.done():
+        return
+    exception = ros_future.exception()
+    if exception is not None:
+        result.set_exception(exception)
+    else:
+        result.set_result(ros_future.result())

@@ -1,0 +1,144 @@
+"""Lifecycle service calls on one node, each bounded by a timeout.
+
+``perform_transition`` is the heart of the product's safety promise: it checks the
+transition against the node's real current state, calls it, and after a failure or a
+timeout re-reads the state before it reports, because the node may have moved anyway
+(Nav2's lifecycle manager reports failure without looking).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+from lifecycle_msgs.msg import Transition as TransitionMsg
+from lifecycle_msgs.srv import ChangeState, GetAvailableStates, GetAvailableTransitions, GetState
+
+from ros_gateway import state_machine as sm
+from ros_gateway.domain import RosDomain, ServiceTimeout, ServiceUnavailable
+
+
+class NodeUnreachable(Exception):
+    """The node did not answer before anything was sent to it."""
+
+
+async def read_state(domain: RosDomain, fqn: str, timeout: float) -> int:
+    try:
+        response = await domain.call(fqn, "get_state", GetState, GetState.Request(), timeout)
+    except (ServiceTimeout, ServiceUnavailable) as exc:
+        raise NodeUnreachable(str(exc)) from None
+    return int(response.current_state.id)
+
+
+async def available_states(domain: RosDomain, fqn: str, timeout: float) -> list[dict]:
+    try:
+        response = await domain.call(
+            fqn, "get_available_states", GetAvailableStates, GetAvailableStates.Request(), timeout
+        )
+    except (ServiceTimeout, ServiceUnavailable) as exc:
+        raise NodeUnreachable(str(exc)) from None
+    return [{"id": int(s.id), "label": s.label} for s in response.available_states]
+
+
+async def available_transitions(domain: RosDomain, fqn: str, timeout: float, graph: bool = False) -> list[dict]:
+    """The node's own answer: currently valid transitions, or the whole graph."""
+    service = "get_transition_graph" if graph else "get_available_transitions"
+    try:
+        response = await domain.call(fqn, service, GetAvailableTransitions, GetAvailableTransitions.Request(), timeout)
+    except (ServiceTimeout, ServiceUnavailable) as exc:
+        raise NodeUnreachable(str(exc)) from None
+    return [
+        {
+            "id": int(d.transition.id),
+            "label": d.transition.label,
+            "start": {"id": int(d.start_state.id), "label": d.start_state.label},
+            "goal": {"id": int(d.goal_state.id), "label": d.goal_state.label},
+        }
+        for d in response.available_transitions
+    ]
+
+
+@dataclass
+class TransitionResult:
+    outcome: str  # succeeded | failed | rejected | timed_out
+    transition: sm.Transition | None
+    start_state: int
+    result_state: int | None  # None: could not be read (node still busy or gone)
+    duration_ms: float
+    message: str = ""
+    valid: list[dict] = field(default_factory=list)
+
+
+async def perform_transition(
+    domain: RosDomain,
+    fqn: str,
+    requested: str | int,
+    timeout: float,
+    on_send=None,
+) -> TransitionResult:
+    """Check, call and verify one transition. Raises NodeUnreachable and sm.UnknownTransition.
+
+    ``on_send(transition)`` runs just before the request leaves, so the caller can tell the
+    node's transition events that follow apart from other tools' transitions.
+    """
+    start_state = await read_state(domain, fqn, timeout)
+    transition = sm.resolve_transition(requested, start_state)
+    if transition is None:
+        valid = [t.as_dict() for t in sm.valid_transitions(start_state)]
+        names = ", ".join(t["label"] for t in valid) or "none (the node is busy or finalized)"
+        return TransitionResult(
+            "rejected",
+            None,
+            start_state,
+            start_state,
+            0.0,
+            f"'{requested}' is not possible from state {sm.state_label(start_state)}; valid now: {names}.",
+            valid,
+        )
+    if on_send is not None:
+        on_send(transition)
+    request = ChangeState.Request(transition=TransitionMsg(id=transition.id, label=transition.label))
+    began = time.perf_counter()
+    try:
+        response = await domain.call(fqn, "change_state", ChangeState, request, timeout)
+    except (ServiceTimeout, ServiceUnavailable) as exc:
+        duration = (time.perf_counter() - began) * 1000
+        now_state = await _reread(domain, fqn, timeout)
+        where = (
+            f"it is now {sm.state_label(now_state)}" if now_state is not None
+            else "its state could not be read either (still busy, or gone)"
+        )
+        return TransitionResult(
+            "timed_out", transition, start_state, now_state, duration,
+            f"{transition.label} did not answer within {timeout:g} s; {where}.",
+        )
+    duration = (time.perf_counter() - began) * 1000
+    if response.success:
+        return TransitionResult("succeeded", transition, start_state, sm.SUCCESS_GOAL[transition.id], duration)
+    now_state = await _reread(domain, fqn, timeout)
+    return TransitionResult(
+        "failed", transition, start_state, now_state, duration, _failure_message(transition, start_state, now_state)
+    )
+
+
+async def _reread(domain: RosDomain, fqn: str, timeout: float) -> int | None:
+    try:
+        return await read_state(domain, fqn, timeout)
+    except NodeUnreachable:
+        return None
+
+
+def _failure_message(transition: sm.Transition, start_state: int, now_state: int | None) -> str:
+    callback = f"on_{transition.label}"
+    if now_state == start_state:
+        return (
+            f"The node's {callback} callback returned FAILURE; "
+            f"the node stayed {sm.state_label(start_state)}."
+        )
+    if now_state in (sm.UNCONFIGURED, sm.FINALIZED):
+        return (
+            f"The node's {callback} callback raised an error; error processing "
+            f"brought the node to {sm.state_label(now_state)}."
+        )
+    if now_state is None:
+        return f"The node's {callback} callback did not succeed and its state could not be read afterwards."
+    return f"The node's {callback} callback did not succeed; the node is now {sm.state_label(now_state)}."

@@ -1,0 +1,171 @@
+"""The facts the gateway writes to the database (Django ORM, called from one DB thread)."""
+from __future__ import annotations
+
+import os
+import socket
+from dataclasses import dataclass
+from datetime import datetime, timedelta
+
+from asgiref.sync import sync_to_async
+from django.db import transaction
+from django.db.models import Count
+from django.utils import timezone
+
+from lifecycle_site.audit.models import TransitionRecord
+from lifecycle_site.fleet.models import GatewayHeartbeat, LogRecord, ManagedNode, Robot
+from ros_gateway import state_machine as sm
+
+
+def db(func):
+    """Run an ORM function on the single database thread (one writer: no lock contention)."""
+    return sync_to_async(func, thread_sensitive=True)
+
+
+@dataclass(frozen=True)
+class RobotInfo:
+    id: int
+    name: str
+    domain_id: int
+    namespace: str
+
+    def owns(self, node_name: str) -> bool:
+        return not self.namespace or node_name.startswith(self.namespace.rstrip("/") + "/")
+
+
+@dataclass
+class NodeRow:
+    id: int
+    key: str
+    state_id: int
+    alive: bool
+
+
+def load_robots() -> list[RobotInfo]:
+    return [
+        RobotInfo(r.id, r.name, r.domain_id, r.namespace)
+        for r in Robot.objects.filter(enabled=True).only("id", "name", "domain_id", "namespace")
+    ]
+
+
+def load_nodes(robot_id: int) -> dict[str, NodeRow]:
+    return {
+        n.name: NodeRow(n.id, n.key, n.state_id, n.alive)
+        for n in ManagedNode.objects.filter(robot_id=robot_id).only("id", "name", "key", "state_id", "alive")
+    }
+
+
+def node_seen(robot_id: int, name: str) -> NodeRow:
+    """Mark a node alive (creating it on first sight)."""
+    now = timezone.now()
+    node, created = ManagedNode.objects.select_related("robot").get_or_create(
+        robot_id=robot_id, name=name, defaults={"alive": True, "first_seen": now, "last_seen": now}
+    )
+    if not created:
+        node.alive = True
+        node.last_seen = now
+        if node.first_seen is None:
+            node.first_seen = now
+        node.save(update_fields=["alive", "last_seen", "first_seen"])
+    return NodeRow(node.id, node.key, node.state_id, True)
+
+
+def nodes_lost(node_ids: list[int]) -> None:
+    ManagedNode.objects.filter(id__in=node_ids).update(alive=False, last_seen=timezone.now())
+
+
+def nodes_still_alive(node_ids: list[int]) -> None:
+    ManagedNode.objects.filter(id__in=node_ids).update(last_seen=timezone.now())
+
+
+def save_state(node_id: int, state_id: int) -> None:
+    now = timezone.now()
+    ManagedNode.objects.filter(id=node_id).update(
+        state_id=state_id, state_label=sm.state_label(state_id), state_changed=now, last_seen=now
+    )
+
+
+def record_transition(
+    *,
+    node_id: int | None,
+    robot: RobotInfo,
+    node_name: str,
+    transition: sm.Transition | None,
+    start_state: int | None,
+    result_state: int | None,
+    outcome: str,
+    source: str,
+    requested_at: datetime,
+    completed_at: datetime | None,
+    user_id: int | None = None,
+    error: str = "",
+    run_id: str = "",
+) -> dict:
+    """Append one audit record; returns it as the API shows it."""
+
+    def label(state_id: int | None) -> str:
+        return "" if state_id is None else sm.state_label(state_id)
+
+    goal = sm.SUCCESS_GOAL.get(transition.id) if transition else None
+    duration = (completed_at - requested_at).total_seconds() * 1000 if completed_at else None
+    record = TransitionRecord.objects.create(
+        node_id=node_id,
+        robot_id=robot.id,
+        robot_name=robot.name,
+        node_name=node_name,
+        transition_id=transition.id if transition else None,
+        transition_label=transition.label if transition else "",
+        start_state_id=start_state,
+        start_state_label=label(start_state),
+        goal_state_id=goal,
+        goal_state_label=label(goal),
+        result_state_id=result_state,
+        result_state_label=label(result_state),
+        outcome=outcome,
+        source=source,
+        requested_by_id=user_id,
+        requested_at=requested_at,
+        completed_at=completed_at,
+        duration_ms=duration,
+        error=error,
+        run_id=run_id,
+    )
+    return TransitionRecord.objects.select_related("node").get(pk=record.pk).as_dict()
+
+
+def insert_logs(rows: list[LogRecord]) -> list[LogRecord]:
+    return LogRecord.objects.bulk_create(rows, batch_size=500)
+
+
+def prune_logs(keep_per_logger: int, keep_hours: float) -> int:
+    """Delete records older than the age limit and beyond the per-logger count."""
+    deleted, _ = LogRecord.objects.filter(stamp__lt=timezone.now() - timedelta(hours=keep_hours)).delete()
+    crowded = (
+        LogRecord.objects.values("robot_id", "logger")
+        .annotate(n=Count("id"))
+        .filter(n__gt=keep_per_logger)
+    )
+    for group in crowded:
+        per_logger = LogRecord.objects.filter(robot_id=group["robot_id"], logger=group["logger"])
+        cutoff = per_logger.order_by("-id").values_list("id", flat=True)[keep_per_logger - 1]
+        count, _ = per_logger.filter(id__lt=cutoff).delete()
+        deleted += count
+    return deleted
+
+
+def heartbeat(name: str, started: datetime, domains: list[int]) -> None:
+    with transaction.atomic():
+        GatewayHeartbeat.objects.update_or_create(
+            name=name,
+            defaults={
+                "hostname": socket.gethostname(),
+                "pid": os.getpid(),
+                "started": started,
+                "last_beat": timezone.now(),
+                "watched_domains": sorted(domains),
+            },
+        )
+
+
+def gateway_stopped(name: str) -> None:
+    """A clean stop says so at once instead of letting the heartbeat go stale."""
+    GatewayHeartbeat.objects.filter(name=name).delete()
