@@ -105,11 +105,20 @@ class RosDomain:
 
     # -- graph ----------------------------------------------------------------------
     def lifecycle_node_names(self) -> set[str]:
-        """Fully qualified names of nodes offering lifecycle_msgs/srv/GetState."""
+        """Fully qualified names of running nodes offering lifecycle_msgs/srv/GetState.
+
+        A service name alone is not proof of life: our own clients keep ``X/get_state`` in
+        the graph after X is gone, so the node must also be listed as a running node.
+        """
+        running = {
+            f"{namespace.rstrip('/')}/{name}" for name, namespace in self.node.get_node_names_and_namespaces()
+        }
         names = set()
         for service, types in self.node.get_service_names_and_types():
             if GET_STATE_TYPE in types and service.endswith("/get_state"):
-                names.add(service[: -len("/get_state")] or "/")
+                fqn = service[: -len("/get_state")]
+                if fqn in running:
+                    names.add(fqn)
         return names
 
     def watch_node(self, fqn: str) -> None:

@@ -1,0 +1,32 @@
+# Fresh machine: `make demo` to try the product, `make test` to run the tests.
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV := .venv
+BIN := $(VENV)/bin
+# DDS discovery stays on this machine unless you say otherwise (see README).
+export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
+
+.PHONY: setup demo test test-unit test-integration bench clean
+
+$(BIN)/.installed: requirements.txt requirements-dev.txt
+	@$(PYTHON) -c 'import sys; assert sys.version_info[:2] == (3, 11), "Python 3.11 is needed (the ROS 2 Jazzy wheels are built for it); set PYTHON=/path/to/python3.11"'
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet -r requirements-dev.txt
+	@touch $@
+
+setup: $(BIN)/.installed
+
+demo: setup
+	$(BIN)/python manage.py run_demo
+
+test: setup
+	$(BIN)/python -m pytest
+
+test-unit: setup
+	$(BIN)/python -m pytest -m "not integration and not browser"
+
+test-integration: setup
+	$(BIN)/python -m pytest -m integration
+
+clean:
+	rm -rf $(VENV) .pytest_cache tests/artifacts

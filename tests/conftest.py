@@ -1,0 +1,62 @@
+from __future__ import annotations
+
+import pytest
+from django.contrib.auth import get_user_model
+from django.contrib.auth.models import Group
+from django.test import Client
+
+from tests import stack
+
+
+@pytest.fixture(scope="session")
+def django_db_setup(django_test_environment, django_db_blocker):
+    """Always create the test database file, even when only integration tests run
+    (pytest-django would otherwise set up only databases that marked tests use)."""
+    from django.test.utils import setup_databases, teardown_databases
+
+    with django_db_blocker.unblock():
+        config = setup_databases(verbosity=0, interactive=False, aliases={"default"})
+    yield
+    with django_db_blocker.unblock():
+        teardown_databases(config, verbosity=0)
+
+
+@pytest.fixture(scope="session")
+def redis_server():
+    """A real Redis of this test run's own, on a free loopback port."""
+    process = stack.start_redis()
+    yield process
+    process.terminate()
+    process.wait(5)
+
+
+@pytest.fixture(scope="session")
+def live_db(django_db_setup, django_db_blocker):
+    """Committed database access shared with the gateway process (no rollback, no flush):
+    integration tests keep apart by using robots and domains of their own."""
+    django_db_blocker.unblock()
+    yield
+    django_db_blocker.restore()
+
+
+def make_user(username: str, role: str | None):
+    user = get_user_model().objects.filter(username=username).first()
+    if user is None:
+        user = get_user_model().objects.create_user(username, password="a-test-password-123")
+    if role:
+        user.groups.add(Group.objects.get(name=role))
+    return user
+
+
+@pytest.fixture
+def operator_client(db) -> Client:
+    client = Client()
+    client.force_login(make_user("olga-operator", "operator"))
+    return client
+
+
+@pytest.fixture
+def viewer_client(db) -> Client:
+    client = Client()
+    client.force_login(make_user("victor-viewer", "viewer"))
+    return client

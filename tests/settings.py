@@ -1,0 +1,36 @@
+"""Test settings: the product's settings, pointed at a scratch data dir, a Redis port and a
+range of ROS domains of this test run's own. Subprocesses (gateway, daphne) get the same
+values through ``tests.stack.environment()``."""
+import os
+import random
+import socket
+import tempfile
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+# Set once per run (the values travel to pytest's subprocesses through the environment).
+os.environ.setdefault("LIFECYCLE_DATA_DIR", tempfile.mkdtemp(prefix="lifecycle-test-"))
+os.environ.setdefault("REDIS_URL", f"redis://127.0.0.1:{_free_port()}/0")
+os.environ.setdefault("LIFECYCLE_TEST_DOMAIN_BASE", str(random.randrange(30, 90)))
+os.environ.setdefault("LIFECYCLE_CHANNEL_PREFIX", "lifecycle-test")
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+os.environ.setdefault("ROS_DOMAIN_ID", os.environ["LIFECYCLE_TEST_DOMAIN_BASE"])
+# Quicker loops than in production, so tests wait less.
+os.environ.setdefault("LIFECYCLE_DISCOVERY_INTERVAL", "0.2")
+os.environ.setdefault("LIFECYCLE_ROBOT_REFRESH_INTERVAL", "0.5")
+os.environ.setdefault("LIFECYCLE_HEARTBEAT_INTERVAL", "0.5")
+os.environ.setdefault("LIFECYCLE_GATEWAY_OFFLINE_AFTER", "3")
+os.environ.setdefault("LIFECYCLE_SERVICE_TIMEOUT", "3")
+os.environ.setdefault("DATABASE_URL", f"sqlite:///{os.environ['LIFECYCLE_DATA_DIR']}/test.sqlite3")
+
+from lifecycle_site.settings import *  # noqa: E402,F401,F403
+from lifecycle_site.settings import DATABASES  # noqa: E402
+
+# pytest-django creates this file (not an in-memory DB), so other processes share it.
+DATABASES["default"]["TEST"] = {"NAME": DATABASES["default"]["NAME"]}
+PASSWORD_HASHERS = ["django.contrib.auth.hashers.MD5PasswordHasher"]  # fast logins in tests

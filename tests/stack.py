@@ -1,0 +1,115 @@
+"""Real parts for integration tests: Redis, the gateway process, demo robot processes."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Callable
+from urllib.parse import urlparse
+
+from django.conf import settings
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def environment(**extra: str) -> dict[str, str]:
+    """What a subprocess needs to join this test run (same DB, Redis, ROS discovery range)."""
+    env = dict(os.environ)
+    env.update(
+        DJANGO_SETTINGS_MODULE="lifecycle_site.settings",
+        DATABASE_URL=f"sqlite:///{settings.DATABASES['default']['NAME']}",
+        PYTHONUNBUFFERED="1",
+        ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+    )
+    env.update(extra)
+    return env
+
+
+def domain(offset: int) -> int:
+    """A ROS domain of this test run's own (the base is drawn per run in tests/settings.py)."""
+    return int(os.environ["LIFECYCLE_TEST_DOMAIN_BASE"]) + offset
+
+
+def wait_for(condition: Callable[[], object], timeout: float, what: str, interval: float = 0.1):
+    """Poll ``condition`` until it returns something truthy; fail with ``what`` after ``timeout``."""
+    deadline = time.monotonic() + timeout
+    while True:
+        result = condition()
+        if result:
+            return result
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
+        time.sleep(interval)
+
+
+class Process:
+    """A child process whose output goes to a log file shown when a test fails."""
+
+    def __init__(self, name: str, argv: list[str], env: dict[str, str], log_dir: Path) -> None:
+        self.name = name
+        self.log_path = log_dir / f"{name}.log"
+        log_dir.mkdir(parents=True, exist_ok=True)
+        with open(self.log_path, "ab") as log:
+            self.popen = subprocess.Popen(
+                argv, cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True
+            )
+
+    def output(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+    def alive(self) -> bool:
+        return self.popen.poll() is None
+
+    def stop(self, sig: int = signal.SIGTERM, timeout: float = 10.0) -> int:
+        if self.alive():
+            os.killpg(self.popen.pid, sig)
+            try:
+                self.popen.wait(timeout)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.popen.pid, signal.SIGKILL)
+                self.popen.wait(5)
+        return self.popen.returncode
+
+    def kill(self) -> None:
+        self.stop(signal.SIGKILL)
+
+
+def log_dir() -> Path:
+    return Path(settings.DATA_DIR) / "logs"
+
+
+def start_redis():
+    from lifecycle_site import local_redis
+
+    port = urlparse(settings.REDIS_URL).port
+    return local_redis.start(port, Path(settings.DATA_DIR) / "redis")
+
+
+def start_gateway(name: str = "test-gateway", **env: str) -> Process:
+    return Process(
+        name, [sys.executable, "manage.py", "ros_gateway", "--name", name], environment(**env), log_dir()
+    )
+
+
+def start_robot(
+    name: str,
+    domain_id: int,
+    nodes: str,
+    *params: str,
+    namespace: str = "",
+    extra: tuple[str, ...] = (),
+) -> Process:
+    """Demo robot nodes in their own process; ``params`` are NODE.PARAM:=VALUE."""
+    argv = [sys.executable, "-m", "ros_gateway.demo.robot", "--domain", str(domain_id), "--nodes", nodes]
+    if namespace:
+        argv += ["--namespace", namespace]
+    for param in params:
+        argv += ["--param", param]
+    argv += list(extra)
+    process = Process(name, argv, environment(), log_dir())
+    wait_for(lambda: "demo robot ready" in process.output() or not process.alive(), 30, f"robot {name} to start")
+    assert process.alive(), f"robot {name} died on start:\n{process.output()}"
+    return process

@@ -1,0 +1,175 @@
+"""API validation and error paths that need no ROS: bad input is refused clearly and
+loses nothing; a missing gateway or Redis is reported, not a 500."""
+import json
+from datetime import timedelta
+
+import pytest
+from django.core.management import call_command
+from django.test import Client
+from django.utils import timezone
+
+from lifecycle_site.audit.models import TransitionRecord
+from lifecycle_site.fleet.models import GatewayHeartbeat, ManagedNode, Robot
+from ros_gateway import state_machine as sm
+
+
+@pytest.fixture
+def node(db) -> ManagedNode:
+    robot = Robot.objects.create(name="unit-agv", domain_id=99)
+    return ManagedNode.objects.create(
+        robot=robot, name="/joy_to_vel", alive=True, state_id=sm.UNCONFIGURED, state_label="unconfigured"
+    )
+
+
+def post(client: Client, node: ManagedNode, body, **extra):
+    data = body if isinstance(body, (str, bytes)) else json.dumps(body)
+    return client.post(f"/api/v1/nodes/{node.key}/transition", data, content_type="application/json", **extra)
+
+
+def error_code(response) -> str:
+    return response.json()["error"]["code"]
+
+
+def test_node_ids_are_url_safe_and_distinct_per_robot(db):
+    a = Robot.objects.create(name="agv-a", domain_id=1)
+    b = Robot.objects.create(name="agv-b", domain_id=2)
+    first = ManagedNode.objects.create(robot=a, name="/arm/gripper")
+    second = ManagedNode.objects.create(robot=b, name="/arm/gripper")
+    assert (first.key, second.key) == ("agv-a.arm.gripper", "agv-b.arm.gripper")
+
+
+def test_unauthenticated_requests_get_401(node):
+    for response in (Client().get("/api/v1/nodes"), post(Client(), node, {"transition": "configure"})):
+        assert response.status_code == 401 and error_code(response) == "unauthorized"
+    bad_token = Client().get("/api/v1/robots", HTTP_AUTHORIZATION="Bearer nonsense")
+    assert bad_token.status_code == 401
+
+
+def test_viewer_may_read_but_not_operate(viewer_client, node):
+    assert viewer_client.get("/api/v1/nodes").status_code == 200
+    response = post(viewer_client, node, {"transition": "configure"})
+    assert response.status_code == 403 and error_code(response) == "forbidden"
+
+
+@pytest.mark.parametrize(
+    "body, code",
+    [
+        ('{"transition": ', "malformed_json"),
+        (b"\xff\xfe", "malformed_json"),
+        ("[1, 2]", "missing_field"),
+        ({"transitio": "configure"}, "missing_field"),
+        ({"transition": ["configure"]}, "invalid_field"),
+        ({"transition": True}, "invalid_field"),
+        ({"transition": "explode"}, "unknown_transition"),
+        ({"transition": 42}, "unknown_transition"),
+        ({"transition": "configure", "timeout": -1}, "invalid_field"),
+    ],
+)
+def test_malformed_requests_get_400_with_a_readable_message(operator_client, node, body, code):
+    response = post(operator_client, node, body)
+    assert response.status_code == 400
+    assert error_code(response) == code and response.json()["error"]["message"]
+    assert not TransitionRecord.objects.exists()
+
+
+def test_unknown_node_is_404_in_json(operator_client, db):
+    response = operator_client.post(
+        "/api/v1/nodes/nope.nothing/transition", '{"transition": "configure"}', content_type="application/json"
+    )
+    assert response.status_code == 404 and error_code(response) == "not_found"
+    assert operator_client.get("/api/v1/nodes/nope.nothing/logs").status_code == 404
+    assert operator_client.get("/api/v1/nodes?robot=ghost").status_code == 404
+
+
+def test_gateway_offline_is_503_and_the_attempt_is_audited(operator_client, node):
+    response = post(operator_client, node, {"transition": "configure"})
+    assert response.status_code == 503 and error_code(response) == "gateway_offline"
+    record = TransitionRecord.objects.get()
+    assert (record.outcome, record.source, record.requested_by_name) == ("rejected", "api", "olga-operator")
+    assert "offline" in record.error
+
+
+def test_redis_down_is_503_not_500(operator_client, node, settings):
+    now = timezone.now()
+    GatewayHeartbeat.objects.create(name="gw", started=now, last_beat=now)
+    settings.REDIS_URL = "redis://127.0.0.1:1/0"  # nothing listens there
+    from lifecycle_site.fleet import gateway_client
+
+    gateway_client._redis.cache_clear()
+    try:
+        response = post(operator_client, node, {"transition": "configure"})
+    finally:
+        gateway_client._redis.cache_clear()
+    assert response.status_code == 503 and "Redis" in response.json()["error"]["message"]
+
+
+def test_stale_heartbeat_counts_as_offline(db):
+    old = timezone.now() - timedelta(minutes=5)
+    GatewayHeartbeat.objects.create(name="gw", started=old, last_beat=old)
+    assert not GatewayHeartbeat.online()
+
+
+def test_transition_on_a_node_that_is_gone_is_409_and_audited(operator_client, node):
+    node.alive = False
+    node.save()
+    response = post(operator_client, node, {"transition": "configure"})
+    assert response.status_code == 409 and error_code(response) == "node_offline"
+    assert TransitionRecord.objects.get().outcome == "rejected"
+
+
+def test_audit_records_are_append_only(node):
+    now = timezone.now()
+    record = TransitionRecord.objects.create(
+        robot_name="unit-agv", node_name="/joy_to_vel", outcome="succeeded", source="api", requested_at=now
+    )
+    with pytest.raises(Exception):
+        record.save()
+    with pytest.raises(Exception):
+        record.delete()
+    with pytest.raises(Exception):
+        TransitionRecord.objects.all().delete()
+    with pytest.raises(Exception):
+        TransitionRecord.objects.update(outcome="failed")
+    assert TransitionRecord.objects.get().outcome == "succeeded"
+
+
+def test_session_auth_needs_csrf_for_writes(node):
+    from tests.conftest import make_user
+
+    client = Client(enforce_csrf_checks=True)
+    client.force_login(make_user("csrf-op", "operator"))
+    response = post(client, node, {"transition": "configure"})
+    assert response.status_code == 403 and error_code(response) == "csrf_failed"
+
+
+def test_bearer_token_from_the_command_line_authenticates(db, capsys):
+    from tests.conftest import make_user
+
+    make_user("robot-ci", "viewer")
+    call_command("create_api_token", "robot-ci")
+    token = capsys.readouterr().out.strip()
+    response = Client().get("/api/v1/robots", HTTP_AUTHORIZATION=f"Bearer {token}")
+    assert response.status_code == 200 and "robots" in response.json()
+
+
+def test_add_robot_command_registers_and_validates(db):
+    from django.core.management.base import CommandError
+
+    call_command("add_robot", "agv-9", "--domain", "7", "--namespace", "/agv9/")
+    robot = Robot.objects.get(name="agv-9")
+    assert (robot.domain_id, robot.namespace, robot.enabled) == (7, "/agv9", True)
+    with pytest.raises(CommandError, match="domain_id"):
+        call_command("add_robot", "agv-10", "--domain", "500")
+    with pytest.raises(CommandError, match="lower-case"):
+        call_command("add_robot", "AGV 10", "--domain", "5")
+
+
+def test_logs_endpoint_filters_by_level(operator_client, node):
+    from lifecycle_site.fleet.models import LogRecord
+
+    for level, text in ((20, "hello"), (30, "careful"), (40, "broken")):
+        LogRecord.objects.create(robot=node.robot, node=node, logger="joy_to_vel", stamp=timezone.now(),
+                                 level=level, message=text)
+    records = operator_client.get(f"/api/v1/nodes/{node.key}/logs?level=WARN").json()["records"]
+    assert [r["message"] for r in records] == ["careful", "broken"]
+    assert operator_client.get(f"/api/v1/nodes/{node.key}/logs?level=LOUD").status_code == 400

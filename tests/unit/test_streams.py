@@ -1,0 +1,50 @@
+"""Pairing transition events, and mapping /rosout loggers to nodes (no ROS needed)."""
+from ros_gateway import state_machine as sm
+from ros_gateway.streams import LogBuffer, TransitionTracker, owning_node
+
+
+def test_external_transition_is_reported_once_with_its_outcome():
+    tracker = TransitionTracker()
+    # rclpy publishes id 0 in the event's transition field; the edge tells which one it is.
+    assert tracker.observe(sm.INACTIVE, sm.ACTIVATING, 0) is None
+    done = tracker.observe(sm.ACTIVATING, sm.ACTIVE, 0)
+    assert (done.transition.label, done.start_state, done.result_state, done.outcome) == (
+        "activate", sm.INACTIVE, sm.ACTIVE, "succeeded")
+
+
+def test_error_path_is_one_failed_transition():
+    tracker = TransitionTracker()
+    tracker.observe(sm.INACTIVE, sm.ACTIVATING, 0)
+    assert tracker.observe(sm.ACTIVATING, sm.ERRORPROCESSING, 0) is None
+    done = tracker.observe(sm.ERRORPROCESSING, sm.UNCONFIGURED, 0)
+    assert done.outcome == "failed" and done.result_state == sm.UNCONFIGURED
+
+
+def test_transitions_the_gateway_sent_are_not_reported_as_external():
+    tracker = TransitionTracker(commanded=sm.CONFIGURE)
+    tracker.observe(sm.UNCONFIGURED, sm.CONFIGURING, 0)
+    assert tracker.observe(sm.CONFIGURING, sm.INACTIVE, 0) is None
+    # ... but the next one, by someone else, is.
+    tracker.observe(sm.INACTIVE, sm.ACTIVATING, 0)
+    assert tracker.observe(sm.ACTIVATING, sm.ACTIVE, 0).outcome == "succeeded"
+
+
+def test_missed_beginning_is_recorded_as_observed():
+    done = TransitionTracker().observe(sm.CONFIGURING, sm.INACTIVE, 0)
+    assert done.outcome == "observed" and done.transition is None
+
+
+def test_loggers_map_to_nodes_including_namespaces_and_child_loggers():
+    nodes = {"/joy_to_vel", "/agv1/lidar_driver"}
+    assert owning_node("joy_to_vel", nodes) == "/joy_to_vel"
+    assert owning_node("agv1.lidar_driver", nodes) == "/agv1/lidar_driver"
+    assert owning_node("agv1.lidar_driver.decoder", nodes) == "/agv1/lidar_driver"
+    assert owning_node("joystick", nodes) is None
+
+
+def test_log_buffer_is_bounded_and_counts_what_it_drops():
+    buffer = LogBuffer(limit=3)
+    for i in range(5):
+        buffer.append(i)
+    assert len(buffer) == 3 and buffer.dropped == 2 and buffer.received == 5
+    assert buffer.drain(10) == [2, 3, 4]  # the newest survive
