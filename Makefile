@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 # DDS discovery stays on this machine unless you say otherwise (see README).
 export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 
-.PHONY: setup demo test test-unit test-integration bench clean
+.PHONY: setup demo test test-unit test-integration test-deploy bench clean
 
 $(BIN)/.installed: requirements.txt requirements-dev.txt
 	@$(PYTHON) -c 'import sys; assert sys.version_info[:2] == (3, 11), "Python 3.11 is needed (the ROS 2 Jazzy wheels are built for it); set PYTHON=/path/to/python3.11"'
@@ -20,13 +20,18 @@ demo: setup
 	$(BIN)/python manage.py run_demo
 
 test: setup
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest --ignore=tests/deploy $(PYTEST_ARGS)
 
 test-unit: setup
-	$(BIN)/python -m pytest -m "not integration and not browser"
+	$(BIN)/python -m pytest --ignore=tests/deploy -m "not integration and not browser"
 
 test-integration: setup
-	$(BIN)/python -m pytest -m integration
+	$(BIN)/python -m pytest --ignore=tests/deploy -m integration
+
+# Real Docker engine: builds the images offline, runs the Industrial Edge compose file behind
+# an nginx that serves it under a sub-path, as the device does (see docker/README.md).
+test-deploy: setup
+	$(BIN)/python -m pytest tests/deploy $(PYTEST_ARGS)
 
 clean:
 	rm -rf $(VENV) .pytest_cache tests/artifacts

@@ -47,6 +47,15 @@ SECRET_KEY = _secret_key()
 DEBUG = env_bool("DJANGO_DEBUG", False)
 ALLOWED_HOSTS = env_list("DJANGO_ALLOWED_HOSTS", "127.0.0.1,localhost,[::1]")
 CSRF_TRUSTED_ORIGINS = env_list("DJANGO_CSRF_TRUSTED_ORIGINS", "")
+if env_bool("LIFECYCLE_BEHIND_TLS_PROXY", False):
+    # The proxy terminates TLS and says so; without this, CSRF origin checks fail behind it.
+    SECURE_PROXY_SSL_HEADER = ("HTTP_X_FORWARDED_PROTO", "https")
+    SESSION_COOKIE_SECURE = CSRF_COOKIE_SECURE = True
+
+# Sub-path behind a reverse proxy that strips it (see lifecycle_site/prefix.py).
+URL_PREFIX = os.environ.get("LIFECYCLE_URL_PREFIX", "").rstrip("/")
+FORCE_SCRIPT_NAME = URL_PREFIX or None
+LIFECYCLE_TRUST_FORWARDED_PREFIX = env_bool("LIFECYCLE_TRUST_FORWARDED_PREFIX", False)
 
 INSTALLED_APPS = [
     "daphne",
@@ -68,6 +77,7 @@ INSTALLED_APPS = [
 MIDDLEWARE = [
     "django.middleware.security.SecurityMiddleware",
     "whitenoise.middleware.WhiteNoiseMiddleware",
+    "lifecycle_site.prefix.ForwardedPrefixMiddleware",
     "django.contrib.sessions.middleware.SessionMiddleware",
     "django.middleware.common.CommonMiddleware",
     "django.middleware.csrf.CsrfViewMiddleware",
@@ -138,10 +148,16 @@ TIME_ZONE = os.environ.get("TZ", "UTC")
 USE_I18N = True
 USE_TZ = True
 
-STATIC_URL = "static/"
+STATIC_URL = STATIC_URL_PATH = "static/"
+STORAGES = {
+    "default": {"BACKEND": "django.core.files.storage.FileSystemStorage"},
+    "staticfiles": {"BACKEND": "lifecycle_site.prefix.PrefixedStaticFilesStorage"},
+}
 STATICFILES_DIRS = [BASE_DIR / "static"]
 STATIC_ROOT = DATA_DIR / "staticfiles"
 STATIC_ROOT.mkdir(exist_ok=True)
+# Requests reach us with the proxy's prefix already stripped.
+WHITENOISE_STATIC_PREFIX = "/static/"
 # Serve straight from the source folders unless collectstatic ran (as in the images).
 WHITENOISE_USE_FINDERS = not (STATIC_ROOT / "css").exists()
 
