@@ -19,7 +19,7 @@ def robots(gateway):
     register(AGV_A, stack.domain(1))
     register(AGV_B, stack.domain(2))
     processes = [
-        stack.start_robot("agv-a-nodes", stack.domain(1), "joy_to_vel,lidar_driver,joystick",
+        stack.start_robot("agv-a-nodes", stack.domain(1), "joy_to_vel,lidar_driver,camera_driver,joystick",
                           extra=("--generic", "3")),
         stack.start_robot("agv-b-nodes", stack.domain(2), "joy_to_vel"),
     ]
@@ -135,3 +135,33 @@ def test_node_logs_arrive_from_rosout(api, robots):
     # Plain nodes' logs are kept for their robot too (shown in the robot's log view).
     stack.wait_for(lambda: LogRecord.objects.filter(robot__name=AGV_A, logger="joystick").exists(), 15,
                    "log records of the plain joystick node")
+
+
+def test_state_changes_are_pushed_to_the_channels_groups(api, robots):
+    """What live pages subscribe to: the node's group and its robot's group get the change."""
+    import asyncio
+
+    from asgiref.sync import async_to_sync, sync_to_async
+    from channels.layers import get_channel_layer
+
+    from lifecycle_site.fleet.models import Robot
+    from ros_gateway import protocol
+
+    key = f"{AGV_A}.camera_driver"
+    robot_id = Robot.objects.get(name=AGV_A).id
+
+    async def scenario():
+        layer = get_channel_layer()
+        node_channel, robot_channel = await layer.new_channel(), await layer.new_channel()
+        await layer.group_add(protocol.node_group(key), node_channel)
+        await layer.group_add(protocol.robot_group(robot_id), robot_channel)
+        response = await sync_to_async(transition)(api, key, "configure")
+        assert response.status_code == 200
+        seen = []
+        while not any(m.get("node", {}).get("state", {}).get("label") == "inactive" for m in seen):
+            seen.append(await asyncio.wait_for(layer.receive(node_channel), 10))
+        robot_message = await asyncio.wait_for(layer.receive(robot_channel), 10)
+        assert robot_message["type"] in ("node.state", "node.logs", "audit.record")
+
+    wait_node(api, key, alive=True, state="unconfigured")
+    async_to_sync(scenario)()

@@ -173,3 +173,24 @@ def test_logs_endpoint_filters_by_level(operator_client, node):
     records = operator_client.get(f"/api/v1/nodes/{node.key}/logs?level=WARN").json()["records"]
     assert [r["message"] for r in records] == ["careful", "broken"]
     assert operator_client.get(f"/api/v1/nodes/{node.key}/logs?level=LOUD").status_code == 400
+
+
+def test_log_history_is_pruned_by_count_per_logger_and_by_age(db):
+    from datetime import timedelta
+
+    from lifecycle_site.fleet.models import LogRecord
+    from ros_gateway.store import prune_logs
+
+    robot = Robot.objects.create(name="chatty", domain_id=98)
+    now = timezone.now()
+    LogRecord.objects.bulk_create(
+        [LogRecord(robot=robot, logger="talker", stamp=now, level=20, message=f"m{i}") for i in range(30)]
+        + [LogRecord(robot=robot, logger="quiet", stamp=now, level=20, message="q")]
+        + [LogRecord(robot=robot, logger="old", stamp=now - timedelta(hours=5), level=20, message="o")]
+    )
+    deleted = prune_logs(keep_per_logger=10, keep_hours=1)
+    assert deleted == 21
+    kept = list(LogRecord.objects.filter(logger="talker").order_by("id").values_list("message", flat=True))
+    assert kept == [f"m{i}" for i in range(20, 30)]  # the newest ten
+    assert LogRecord.objects.filter(logger="quiet").count() == 1
+    assert not LogRecord.objects.filter(logger="old").exists()
