@@ -6,13 +6,13 @@ import json
 
 from django.db.models import Count, Q
 from django.http import Http404, HttpRequest, JsonResponse
-from django.utils import timezone
 
 from lifecycle_site.api.auth import api_view, error
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.fleet.gateway_client import GatewayError, GatewayOffline, call_gateway
+from lifecycle_site.fleet.gateway_client import GatewayError, call_gateway
 from lifecycle_site.fleet.models import GatewayHeartbeat, LogRecord, ManagedNode, Robot
 from lifecycle_site.fleet.serializers import node_dict
+from lifecycle_site.fleet.transitions import request_transition
 from ros_gateway import protocol
 from ros_gateway import state_machine as sm
 
@@ -112,83 +112,10 @@ def transition(request: HttpRequest, key: str) -> JsonResponse:
     timeout = body.get("timeout")
     if timeout is not None and (not isinstance(timeout, (int, float)) or isinstance(timeout, bool) or timeout <= 0):
         return error("invalid_field", "'timeout' must be a positive number of seconds.", 400)
-    node = get_node(key)
-    return run_transition(request, node, requested, timeout, source="api")
-
-
-def run_transition(request: HttpRequest, node: ManagedNode, requested, timeout, source: str) -> JsonResponse:
-    """Ask the gateway for one transition and map its outcome to an HTTP answer."""
-    if not node.alive:
-        message = f"{node.name} is not running on {node.robot.name}; it was last seen {_ago(node.last_seen)}."
-        _record_rejection(request, node, requested, source, message)
-        return error("node_offline", message, 409, state=node.state)
-    try:
-        reply = call_gateway(
-            protocol.CHANGE_STATE,
-            timeout=timeout,
-            robot=node.robot.name,
-            node=node.name,
-            transition=requested,
-            user_id=request.user.pk,
-            source=source,
-        )
-    except GatewayOffline as exc:
-        _record_rejection(request, node, requested, source, exc.message)
-        raise
-    except GatewayError as exc:
-        if exc.code == "node_offline":
-            _record_rejection(request, node, requested, source, exc.message)
-            return error(exc.code, exc.message, 409, state=node.state)
-        raise
-    outcome = reply["outcome"]
-    common = {"from": reply["from"], "transition": reply["transition"], "record_id": reply["record_id"]}
-    if outcome == "succeeded":
-        return JsonResponse({"success": True, **common, "to": reply["to"], "duration_ms": reply["duration_ms"]})
-    if outcome == "rejected":
-        return error(
-            "invalid_transition", reply["message"], 409,
-            state=reply["from"], valid_transitions=reply["valid_transitions"], record_id=reply["record_id"],
-        )
-    if outcome == "timed_out":
-        return error("timeout", reply["message"], 504, state=reply["to"], duration_ms=reply["duration_ms"], **common)
-    return error("transition_failed", reply["message"], 422, state=reply["to"], duration_ms=reply["duration_ms"], **common)
-
-
-def _record_rejection(request: HttpRequest, node: ManagedNode, requested, source: str, message: str) -> None:
-    transition = None
-    try:
-        transition = sm.resolve_transition(requested, node.state_id)
-    except sm.UnknownTransition:
-        pass
-    now = timezone.now()
-    TransitionRecord.objects.create(
-        node=node,
-        robot=node.robot,
-        robot_name=node.robot.name,
-        node_name=node.name,
-        transition_id=transition.id if transition else None,
-        transition_label=transition.label if transition else str(requested),
-        start_state_id=node.state_id,
-        start_state_label=node.state_label,
-        outcome=TransitionRecord.Outcome.REJECTED,
-        source=source,
-        requested_by=request.user,
-        requested_at=now,
-        completed_at=now,
-        duration_ms=0.0,
-        error=message,
-    )
-
-
-def _ago(moment) -> str:
-    if moment is None:
-        return "never"
-    seconds = int((timezone.now() - moment).total_seconds())
-    if seconds < 120:
-        return f"{seconds} s ago"
-    if seconds < 7200:
-        return f"{seconds // 60} min ago"
-    return moment.strftime("%Y-%m-%d %H:%M UTC")
+    outcome = request_transition(get_node(key), requested, request.user, "api", timeout)
+    if outcome.succeeded:
+        return JsonResponse(outcome.data)
+    return error(outcome.code, outcome.message, outcome.status, **outcome.data)
 
 
 @api_view()
