@@ -7,6 +7,8 @@ or, when LIFECYCLE_TRUST_FORWARDED_PREFIX is on, the proxy's X-Forwarded-Prefix 
 from __future__ import annotations
 
 import re
+from contextlib import contextmanager
+from typing import Iterator
 
 from django.conf import settings
 from django.contrib.staticfiles.storage import StaticFilesStorage
@@ -16,23 +18,43 @@ from django.urls import get_script_prefix, set_script_prefix
 VALID_PREFIX = re.compile(r"^(/[A-Za-z0-9._~-]+)+$")
 
 
+def forwarded_prefix(header_value: str | None) -> str | None:
+    """The proxy's prefix ('/lifecycle'), if trusted and well-formed."""
+    if not settings.LIFECYCLE_TRUST_FORWARDED_PREFIX or not header_value:
+        return None
+    prefix = header_value.strip().rstrip("/")
+    return prefix if VALID_PREFIX.match(prefix) else None
+
+
+@contextmanager
+def script_prefix(prefix: str | None) -> Iterator[None]:
+    """Render links under ``prefix`` (for WebSocket fragments, rendered outside a request)."""
+    if not prefix:
+        yield
+        return
+    previous = get_script_prefix()
+    set_script_prefix(prefix + "/")
+    try:
+        yield
+    finally:
+        set_script_prefix(previous)
+
+
 class ForwardedPrefixMiddleware:
+    """Puts the prefix into request.path and reversed URLs. Django's FORCE_SCRIPT_NAME alone
+    leaves request.path without it under ASGI, so ?next= links would lose the prefix."""
+
     def __init__(self, get_response) -> None:
         self.get_response = get_response
 
     def __call__(self, request: HttpRequest):
-        if not settings.LIFECYCLE_TRUST_FORWARDED_PREFIX:
+        prefix = forwarded_prefix(request.headers.get("X-Forwarded-Prefix")) or settings.URL_PREFIX
+        if not prefix:
             return self.get_response(request)
-        default = get_script_prefix()
-        prefix = request.headers.get("X-Forwarded-Prefix", "").rstrip("/")
-        if prefix and VALID_PREFIX.match(prefix):
-            request.META["SCRIPT_NAME"] = prefix
-            request.path = prefix + request.path_info
-            set_script_prefix(prefix + "/")
-        try:
+        request.META["SCRIPT_NAME"] = prefix
+        request.path = prefix + request.path_info
+        with script_prefix(prefix):  # never leaks one request's prefix into the next
             return self.get_response(request)
-        finally:
-            set_script_prefix(default)  # never leak one request's prefix into the next
 
 
 class PrefixedStaticFilesStorage(StaticFilesStorage):

@@ -4,6 +4,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
+from collections import deque
 from datetime import datetime, timezone
 from typing import TYPE_CHECKING
 
@@ -11,7 +12,6 @@ from ros_gateway import protocol, store
 from ros_gateway import state_machine as sm
 from ros_gateway.lifecycle import (
     NodeUnreachable,
-    TransitionResult,
     available_states,
     available_transitions,
     perform_transition,
@@ -41,16 +41,31 @@ class CommandHandler:
     def __init__(self, gateway: "Gateway") -> None:
         self.gateway = gateway
         self._slots = asyncio.Semaphore(MAX_CONCURRENT)
+        self._seen: deque[str] = deque(maxlen=1000)
         self.handled = 0
+
+    @staticmethod
+    def _current(command: dict) -> bool:
+        """False (and logged) for a command whose requester has stopped waiting."""
+        try:
+            deadline = float(command.get("deadline", 0))
+        except (TypeError, ValueError):
+            deadline = 0.0
+        if deadline > time.time():  # also False for NaN
+            return True
+        log.warning("dropped command %s: its requester stopped waiting", command.get("command"))
+        return False
 
     async def run(self, stopping: asyncio.Event) -> None:
         while not stopping.is_set():
             command = await self.gateway.relay.next_command(wait=1.0)
             if command is None:
                 continue
-            if command.get("deadline", 0) < time.time():
-                log.warning("dropped command %s: its requester stopped waiting", command.get("command"))
+            if not self._current(command):
                 continue
+            if command["request_id"] in self._seen:
+                continue  # a retried push after a lost connection: carried out once only
+            self._seen.append(command["request_id"])
             await self._slots.acquire()
             self.gateway.spawn(self._serve(command))
 
@@ -110,6 +125,13 @@ class CommandHandler:
                 f"{requested!r} is not a lifecycle transition; use one of {', '.join(sm.EXTERNAL_LABELS)}.",
             ) from None
         domain = self.gateway.domains[node.robot.domain_id]
+        if node.lock.locked():
+            # Queueing behind a running transition would act on a state the requester never saw.
+            raise CommandError(
+                "node_busy",
+                f"Another transition of {node.name} on {node.robot.name} is still in progress; "
+                "try again when it has finished.",
+            )
         async with node.lock:  # one transition per node at a time
             requested_at = datetime.now(timezone.utc)
             try:
@@ -117,9 +139,14 @@ class CommandHandler:
                     domain, node.name, requested, timeout, on_send=lambda t: self._claim(node, t)
                 )
             except NodeUnreachable as exc:
-                result = TransitionResult(
-                    "rejected", None, node.state_id, None, 0.0, f"The node did not answer get_state: {exc}."
+                message = f"{node.name} on {node.robot.name} did not answer ({exc}); nothing was sent to it."
+                await db(store.record_transition)(
+                    node_id=node.row.id, robot=node.robot, node_name=node.name, transition=None,
+                    requested_label=str(requested), start_state=node.state_id, result_state=None,
+                    outcome="rejected", source=command.get("source") or "api", requested_at=requested_at,
+                    completed_at=datetime.now(timezone.utc), user_id=command.get("user_id"), error=message,
                 )
+                raise CommandError("node_unreachable", message) from None
             if result.result_state is not None:
                 await self.gateway.set_state(node, result.result_state)
             if result.outcome == "failed":
@@ -129,6 +156,7 @@ class CommandHandler:
                 robot=node.robot,
                 node_name=node.name,
                 transition=result.transition,
+                requested_label=str(requested),
                 start_state=result.start_state,
                 result_state=result.result_state,
                 outcome=result.outcome,

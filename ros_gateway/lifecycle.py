@@ -52,6 +52,7 @@ async def available_transitions(domain: RosDomain, fqn: str, timeout: float, gra
             "label": d.transition.label,
             "start": {"id": int(d.start_state.id), "label": d.start_state.label},
             "goal": {"id": int(d.goal_state.id), "label": d.goal_state.label},
+            "external": bool(getattr(sm.TRANSITIONS_BY_ID.get(int(d.transition.id)), "external", False)),
         }
         for d in response.available_transitions
     ]
@@ -100,7 +101,7 @@ async def perform_transition(
     began = time.perf_counter()
     try:
         response = await domain.call(fqn, "change_state", ChangeState, request, timeout)
-    except (ServiceTimeout, ServiceUnavailable) as exc:
+    except (ServiceTimeout, ServiceUnavailable):
         duration = (time.perf_counter() - began) * 1000
         now_state = await _reread(domain, fqn, timeout)
         where = (

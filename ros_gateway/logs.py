@@ -98,7 +98,7 @@ class LogPipeline:
 
     async def _push(self, saved: list[LogRecord], nodes: list["LiveNode | None"]) -> None:
         per_group: dict[str, list[dict]] = {}
-        for record, node in zip(saved, nodes):
+        for record, node in zip(saved, nodes, strict=True):
             payload = record.as_dict()
             payload["node_id"] = node.key if node else None
             per_group.setdefault(protocol.robot_group(record.robot_id), []).append(payload)

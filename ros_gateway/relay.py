@@ -11,6 +11,9 @@ import time
 import redis.asyncio as aioredis
 from channels.layers import get_channel_layer
 from django.conf import settings
+from redis.asyncio.retry import Retry
+from redis.backoff import ExponentialBackoff
+from redis.exceptions import ConnectionError, TimeoutError
 
 from ros_gateway import protocol
 
@@ -21,7 +24,15 @@ class Relay:
     def __init__(self, quiet: float = 30.0) -> None:
         self.prefix = settings.CHANNEL_LAYERS["default"]["CONFIG"].get("prefix", "lifecycle")
         self.layer = get_channel_layer()
-        self.redis = aioredis.Redis.from_url(settings.REDIS_URL, socket_connect_timeout=2, socket_timeout=10)
+        self.redis = aioredis.Redis.from_url(
+            settings.REDIS_URL,
+            socket_connect_timeout=2,
+            socket_timeout=10,
+            # After a Redis restart the pooled connections are dead: retry on a fresh one.
+            retry_on_error=[ConnectionError, TimeoutError],
+            retry=Retry(ExponentialBackoff(cap=0.5, base=0.05), 3),
+            health_check_interval=15,
+        )
         self._quiet = quiet
         self._last_complaint = 0.0
         self.published = 0
@@ -63,14 +74,20 @@ class Relay:
             return None
 
     async def reply(self, request_id: str, payload: dict) -> None:
+        """Hand the reply over; tried a few times, since the site is waiting for it."""
         key = protocol.reply_key(self.prefix, request_id)
-        try:
-            async with self.redis.pipeline(transaction=True) as pipe:
-                pipe.lpush(key, json.dumps({"request_id": request_id, **payload}))
-                pipe.expire(key, protocol.REPLY_TTL_S)
-                await pipe.execute()
-        except Exception as exc:
-            self._complain("replying to the site", exc)
+        message = json.dumps({"request_id": request_id, **payload})
+        for attempt in range(3):
+            try:
+                async with self.redis.pipeline(transaction=True) as pipe:
+                    pipe.lpush(key, message)
+                    pipe.expire(key, protocol.REPLY_TTL_S)
+                    await pipe.execute()
+                return
+            except Exception as exc:
+                if attempt == 2:
+                    log.error("could not reply to request %s (Redis at %s): %s", request_id, settings.REDIS_URL, exc)
+                await asyncio.sleep(0.2 * (attempt + 1))
 
     async def close(self) -> None:
         try:

@@ -99,6 +99,7 @@ def record_transition(
     user_id: int | None = None,
     error: str = "",
     run_id: str = "",
+    requested_label: str = "",
 ) -> dict:
     """Append one audit record; returns it as the API shows it."""
 
@@ -106,14 +107,15 @@ def record_transition(
         return "" if state_id is None else sm.state_label(state_id)
 
     goal = sm.SUCCESS_GOAL.get(transition.id) if transition else None
-    duration = (completed_at - requested_at).total_seconds() * 1000 if completed_at else None
+    duration = round((completed_at - requested_at).total_seconds() * 1000, 2) if completed_at else None
     record = TransitionRecord.objects.create(
         node_id=node_id,
         robot_id=robot.id,
         robot_name=robot.name,
         node_name=node_name,
         transition_id=transition.id if transition else None,
-        transition_label=transition.label if transition else "",
+        # What was asked for stays readable even when it named no valid transition.
+        transition_label=transition.label if transition else requested_label,
         start_state_id=start_state,
         start_state_label=label(start_state),
         goal_state_id=goal,
@@ -164,6 +166,15 @@ def heartbeat(name: str, started: datetime, domains: list[int]) -> None:
                 "watched_domains": sorted(domains),
             },
         )
+
+
+def running_twin(name: str, fresh_within: float) -> str | None:
+    """Describe another live gateway of the same name, if any (two would record everything twice)."""
+    limit = timezone.now() - timedelta(seconds=fresh_within)
+    other = GatewayHeartbeat.objects.filter(name=name, last_beat__gte=limit).first()
+    if other is None or (other.pid == os.getpid() and other.hostname == socket.gethostname()):
+        return None
+    return f"pid {other.pid} on {other.hostname}, last heartbeat {other.last_beat:%H:%M:%S}"
 
 
 def gateway_stopped(name: str) -> None:

@@ -43,8 +43,12 @@ def _csrf_failure(request: HttpRequest) -> JsonResponse | None:
     return None
 
 
-def api_view(methods: tuple[str, ...] = ("GET",), permission: str | None = None) -> Callable:
-    """Authenticate, check method and permission, and turn gateway errors into JSON."""
+VIEW_PERMISSION = "fleet.view_managednode"
+
+
+def api_view(methods: tuple[str, ...] = ("GET",), permission: str = VIEW_PERMISSION) -> Callable:
+    """Authenticate, check method and permission (viewing by default), and turn gateway
+    errors into JSON."""
 
     def decorate(view: Callable) -> Callable:
         @csrf_exempt
@@ -65,8 +69,9 @@ def api_view(methods: tuple[str, ...] = ("GET",), permission: str | None = None)
                 user = request.user
             request.user = user
             request.api_source = "api"
-            if permission and not user.has_perm(permission):
-                return error("forbidden", "Your role does not allow this (operator or admin needed).", 403)
+            if not user.has_perm(permission):
+                needed = "viewer" if permission == VIEW_PERMISSION else "operator or admin"
+                return error("forbidden", f"Your account lacks the role for this ({needed} needed).", 403)
             try:
                 return view(request, *args, **kwargs)
             except Http404 as exc:
@@ -77,3 +82,8 @@ def api_view(methods: tuple[str, ...] = ("GET",), permission: str | None = None)
         return wrapper
 
     return decorate
+
+
+def not_found(request: HttpRequest, path: str = "") -> JsonResponse:
+    """Unknown API paths answer in JSON too."""
+    return error("not_found", f"There is no API endpoint /api/v1/{path}; see docs/api.md.", 404)

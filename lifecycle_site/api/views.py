@@ -3,6 +3,7 @@ the ROS gateway and every transition attempt lands in the audit log."""
 from __future__ import annotations
 
 import json
+import math
 
 from django.db.models import Count, Q
 from django.http import Http404, HttpRequest, JsonResponse
@@ -110,8 +111,10 @@ def transition(request: HttpRequest, key: str) -> JsonResponse:
             400,
         )
     timeout = body.get("timeout")
-    if timeout is not None and (not isinstance(timeout, (int, float)) or isinstance(timeout, bool) or timeout <= 0):
-        return error("invalid_field", "'timeout' must be a positive number of seconds.", 400)
+    if timeout is not None and (
+        not isinstance(timeout, (int, float)) or isinstance(timeout, bool) or not math.isfinite(timeout) or timeout <= 0
+    ):
+        return error("invalid_field", "'timeout' must be a positive number of seconds (at most 25).", 400)
     outcome = request_transition(get_node(key), requested, request.user, "api", timeout)
     if outcome.succeeded:
         return JsonResponse(outcome.data)
@@ -134,8 +137,11 @@ def node_logs(request: HttpRequest, key: str) -> JsonResponse:
 @api_view()
 def transitions(request: HttpRequest) -> JsonResponse:
     records = TransitionRecord.objects.select_related("node")
-    if request.GET.get("robot"):
-        records = records.filter(robot_name=request.GET["robot"])
+    robot = request.GET.get("robot")
+    if robot:
+        if not Robot.objects.filter(name=robot).exists() and not records.filter(robot_name=robot).exists():
+            return error("not_found", f"There is no robot named {robot!r}.", 404)
+        records = records.filter(robot_name=robot)
     if request.GET.get("node"):
         wanted = request.GET["node"]
         # Either the node id (agv-1.joy_to_vel) or its ROS name (/joy_to_vel).

@@ -91,9 +91,9 @@ class TransitionRecord(models.Model):
             "robot": self.robot_name,
             "node": self.node_name,
             "node_id": self.node.key if self.node_id and self.node else None,
-            "transition": None
-            if self.transition_id is None
-            else {"id": self.transition_id, "label": self.transition_label},
+            "transition": {"id": self.transition_id, "label": self.transition_label}
+            if self.transition_id is not None or self.transition_label
+            else None,
             "from": state(self.start_state_id, self.start_state_label),
             "goal": state(self.goal_state_id, self.goal_state_label),
             "to": state(self.result_state_id, self.result_state_label),
@@ -102,7 +102,7 @@ class TransitionRecord(models.Model):
             "requested_by": self.requested_by_name or None,
             "requested_at": self.requested_at.isoformat(),
             "completed_at": self.completed_at.isoformat() if self.completed_at else None,
-            "duration_ms": self.duration_ms,
+            "duration_ms": None if self.duration_ms is None else round(self.duration_ms, 2),
             "error": self.error,
             "run_id": self.run_id or None,
         }

@@ -1,2 +1,10 @@
-"""WebSocket routes (live updates are added by the dashboard)."""
-websocket_urlpatterns: list = []
+"""WebSocket routes: live fragments for the fleet and node pages, JSON for log consoles."""
+from django.urls import path
+
+from lifecycle_site.dashboard import consumers
+
+websocket_urlpatterns = [
+    path("ws/fleet/", consumers.FleetConsumer.as_asgi()),
+    path("ws/nodes/<str:key>/", consumers.NodeConsumer.as_asgi()),
+    path("ws/logs/<str:scope>/<str:name>/", consumers.LogConsumer.as_asgi()),
+]

@@ -1,18 +1,124 @@
-"""Server-rendered pages of the dashboard."""
+"""Fleet overview and node page: first renders; live updates come from consumers.py."""
 from __future__ import annotations
 
-from django.contrib.auth.decorators import login_required
-from django.http import HttpRequest, HttpResponse
-from django.shortcuts import render
+import re
 
-from lifecycle_site.fleet.models import GatewayHeartbeat, Robot
+from django.contrib import messages
+from django.contrib.auth.decorators import permission_required
+from django.http import Http404, HttpRequest, HttpResponse
+from django.shortcuts import redirect, render
+from django.views.decorators.http import require_POST
+from django_htmx.http import HttpResponseClientRefresh
+
+from lifecycle_site.audit.models import TransitionRecord
+from lifecycle_site.dashboard import snapshots
+from lifecycle_site.dashboard.access import viewer_required
+from lifecycle_site.fleet.models import GatewayHeartbeat, ManagedNode, Robot
+from lifecycle_site.fleet.serializers import node_dict
+from lifecycle_site.fleet.transitions import request_transition
+from ros_gateway import state_machine as sm
+
+ROS_NAME = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
+FILTER_STATES = ["unconfigured", "inactive", "active", "finalized", "busy", "lost", "waiting"]
 
 
-@login_required
+def _can_operate(request: HttpRequest) -> bool:
+    return request.user.has_perm("fleet.operate_node")
+
+
+@viewer_required
 def fleet(request: HttpRequest) -> HttpResponse:
-    robots = Robot.objects.prefetch_related("nodes").order_by("name")
     return render(
         request,
         "dashboard/fleet.html",
-        {"robots": robots, "gateway_online": GatewayHeartbeat.online()},
+        {
+            "robots": snapshots.fleet(),
+            "gateway_online": GatewayHeartbeat.online(),
+            "can_operate": _can_operate(request),
+            "filter_states": FILTER_STATES,
+            "filters": {k: request.GET.get(k, "") for k in ("robot", "state", "q")},
+        },
     )
+
+
+def _node_or_404(key: str) -> ManagedNode:
+    node = ManagedNode.objects.select_related("robot").filter(key=key).first()
+    if node is None:
+        raise Http404(f"There is no node {key}.")
+    return node
+
+
+@viewer_required
+def node_detail(request: HttpRequest, key: str) -> HttpResponse:
+    node = _node_or_404(key)
+    payload = node_dict(node)
+    records = TransitionRecord.objects.filter(node=node).select_related("node")[:20]
+    return render(
+        request,
+        "dashboard/node.html",
+        {
+            **snapshots.state_panel(payload),
+            "node_obj": node,
+            "records": [r.as_dict() for r in records],
+            "gateway_online": GatewayHeartbeat.online(),
+            "can_operate": _can_operate(request),
+        },
+    )
+
+
+@viewer_required
+@require_POST
+def node_transition(request: HttpRequest, key: str) -> HttpResponse:
+    """A transition button: answers with a status message (and the state panel, in case
+    the WebSocket is down)."""
+    node = _node_or_404(key)
+    if not _can_operate(request):
+        outcome_context = {"ok": False, "message": "Your role may view but not operate nodes (operator needed)."}
+        return render(request, "dashboard/_transition_result.html", outcome_context, status=403)
+    requested = request.POST.get("transition", "")
+    try:
+        sm.resolve_transition(requested, sm.UNCONFIGURED)
+    except sm.UnknownTransition:
+        return render(request, "dashboard/_transition_result.html",
+                      {"ok": False, "message": f"{requested!r} is not a lifecycle transition."}, status=400)
+    outcome = request_transition(node, requested, request.user, "dashboard")
+    node.refresh_from_db()
+    payload = node_dict(node)
+    if outcome.data.get("to"):  # the gateway's answer is fresher than the database write
+        payload = {**payload, "state": outcome.data["to"],
+                   "transitions": [t.as_dict() for t in sm.valid_transitions(outcome.data["to"]["id"])]}
+    context = {
+        "ok": outcome.succeeded,
+        "code": outcome.code,
+        "message": outcome.message,
+        "requested": requested,
+        **snapshots.state_panel(payload),
+        "can_operate": True,
+        "oob": True,
+    }
+    # htmx swaps only 2xx answers by default; the message is the content either way.
+    return render(request, "dashboard/_transition_result.html", context)
+
+
+@viewer_required
+@permission_required("fleet.operate_node", raise_exception=True)
+@require_POST
+def watch_node(request: HttpRequest, robot: str) -> HttpResponse:
+    """Pin a node name to a robot before it exists; it shows as 'waiting' until discovered."""
+    robot_obj = Robot.objects.filter(name=robot).first()
+    if robot_obj is None:
+        raise Http404(f"There is no robot {robot}.")
+    name = request.POST.get("name", "").strip()
+    if name and not name.startswith("/"):
+        name = "/" + name
+    if not ROS_NAME.match(name) or "__" in name:
+        messages.error(request, f"{name or 'An empty name'} is not a ROS node name (e.g. /lidar_driver).")
+    else:
+        node, created = ManagedNode.objects.get_or_create(robot=robot_obj, name=name)
+        if created:
+            messages.success(request, f"Watching {name} on {robot}: it shows as waiting until it appears.")
+        else:
+            messages.info(request, f"{name} on {robot} is already listed.")
+    if request.htmx:
+        return HttpResponseClientRefresh()
+    return redirect("dashboard:fleet")

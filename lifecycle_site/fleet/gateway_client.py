@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import math
 import time
 import uuid
 from functools import lru_cache
@@ -9,6 +10,8 @@ from typing import Any
 
 import redis
 from django.conf import settings
+from redis.backoff import ExponentialBackoff
+from redis.retry import Retry
 
 from lifecycle_site.fleet.models import GatewayHeartbeat
 from ros_gateway import protocol
@@ -46,7 +49,10 @@ def _redis() -> redis.Redis:
     # A Redis that is down must show as an error within seconds (connect timeout); the read
     # timeout only has to outlast the longest blocking wait for a reply.
     return redis.Redis.from_url(
-        settings.REDIS_URL, socket_connect_timeout=2, socket_timeout=2 * MAX_SERVICE_TIMEOUT + 15
+        settings.REDIS_URL, socket_connect_timeout=2, socket_timeout=3 * MAX_SERVICE_TIMEOUT + 15,
+        retry_on_error=[redis.ConnectionError, redis.TimeoutError],
+        retry=Retry(ExponentialBackoff(cap=0.5, base=0.05), 2),
+        health_check_interval=30,
     )
 
 
@@ -64,9 +70,11 @@ def call_gateway(command: str, timeout: float | None = None, **arguments: Any) -
             f"{config['GATEWAY_OFFLINE_AFTER']:.0f} s); nothing was sent to the robot."
         )
     service_timeout = float(timeout if timeout is not None else config["SERVICE_TIMEOUT"])
+    if not math.isfinite(service_timeout):
+        service_timeout = config["SERVICE_TIMEOUT"]
     service_timeout = min(max(service_timeout, 0.1), MAX_SERVICE_TIMEOUT)
-    # A transition may need a call, a re-read after a timeout and the final read.
-    wait = 2 * service_timeout + config["COMMAND_GRACE"]
+    # A transition makes up to three calls in a row: read the state, change it, re-read it.
+    wait = 3 * service_timeout + config["COMMAND_GRACE"]
     request_id = uuid.uuid4().hex
     message = {
         "command": command,

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from django.utils import timezone
 
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.fleet.gateway_client import GatewayError, GatewayOffline, call_gateway
+from lifecycle_site.fleet.gateway_client import GatewayError, call_gateway
 from lifecycle_site.fleet.models import ManagedNode
 from ros_gateway import protocol
 from ros_gateway import state_machine as sm
@@ -31,11 +31,26 @@ class Outcome:
         return self.code is None
 
 
+# HTTP status of each gateway refusal; anything else keeps GatewayError's own status.
+STATUS_BY_CODE = {
+    "node_offline": 409,
+    "node_busy": 409,
+    "robot_not_watched": 409,
+    "unknown_transition": 400,
+    "node_unreachable": 504,
+}
+# Refusals the gateway does not record itself (it never got to the node).
+RECORDED_HERE = {"gateway_offline", "node_offline", "node_busy", "robot_not_watched"}
+
+
 def request_transition(node: ManagedNode, requested, user, source: str, timeout: float | None = None) -> Outcome:
-    if not node.alive:
-        message = f"{node.name} is not running on {node.robot.name}; it was last seen {ago(node.last_seen)}."
-        record_rejection(node, requested, user, source, message)
-        return Outcome(409, "node_offline", message, {"state": node.state})
+    if not node.robot.enabled or not node.alive:
+        if not node.robot.enabled:
+            message = f"Robot {node.robot.name} is disabled: its nodes are not watched. Enable it in the admin."
+        else:
+            message = f"{node.name} is not running on {node.robot.name}; it was last seen {ago(node.last_seen)}."
+        record = record_rejection(node, requested, user, source, message)
+        return Outcome(409, "node_offline", message, {"state": node.state, "record_id": record.id})
     try:
         reply = call_gateway(
             protocol.CHANGE_STATE,
@@ -47,10 +62,10 @@ def request_transition(node: ManagedNode, requested, user, source: str, timeout:
             source=source,
         )
     except GatewayError as exc:
-        if isinstance(exc, GatewayOffline) or exc.code == "node_offline":
-            record_rejection(node, requested, user, source, exc.message)
-        status = 409 if exc.code == "node_offline" else exc.status
-        return Outcome(status, exc.code, exc.message, {"state": node.state, **exc.details})
+        details = {"state": node.state, **exc.details}
+        if exc.code in RECORDED_HERE:
+            details["record_id"] = record_rejection(node, requested, user, source, exc.message).id
+        return Outcome(STATUS_BY_CODE.get(exc.code, exc.status), exc.code, exc.message, details)
     common = {"from": reply["from"], "transition": reply["transition"], "record_id": reply["record_id"]}
     outcome = reply["outcome"]
     if outcome == "succeeded":
@@ -67,14 +82,14 @@ def request_transition(node: ManagedNode, requested, user, source: str, timeout:
     return Outcome(422, "transition_failed", reply["message"], details)
 
 
-def record_rejection(node: ManagedNode, requested, user, source: str, message: str) -> None:
+def record_rejection(node: ManagedNode, requested, user, source: str, message: str) -> TransitionRecord:
     transition = None
     try:
         transition = sm.resolve_transition(requested, node.state_id)
     except sm.UnknownTransition:
         pass
     now = timezone.now()
-    TransitionRecord.objects.create(
+    return TransitionRecord.objects.create(
         node=node,
         robot=node.robot,
         robot_name=node.robot.name,

@@ -21,7 +21,9 @@ ROBOT = "it-flaky"
 @pytest.fixture(scope="module")
 def flaky(gateway):
     register(ROBOT, stack.domain(3))
-    modes = {"/fail": "fail_configure", "/raise": "raise_activate", "/errerr": "error_in_error", "/slow": "slow_configure"}
+    modes = {
+        "/fail": "fail_configure", "/raise": "raise_activate", "/errerr": "error_in_error", "/slow": "slow_configure",
+    }
     processes = {
         ns: stack.start_robot(
             f"flaky{ns.replace('/', '-')}", stack.domain(3), "flaky_node",
@@ -46,7 +48,8 @@ def test_failing_configure_is_422_with_the_nodes_reason(api, flaky):
     assert error["code"] == "transition_failed" and error["state"]["label"] == "unconfigured"
     assert "FAILURE" in error["message"] and "The node said:" in error["message"]
     record = TransitionRecord.objects.get(id=error["record_id"])
-    assert (record.outcome, record.result_state_label, record.goal_state_label) == ("failed", "unconfigured", "inactive")
+    outcome = (record.outcome, record.result_state_label, record.goal_state_label)
+    assert outcome == ("failed", "unconfigured", "inactive")
 
 
 def test_raising_activate_goes_through_error_processing_to_unconfigured(api, flaky):

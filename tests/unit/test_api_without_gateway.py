@@ -8,7 +8,7 @@ from django.core.management import call_command
 from django.test import Client
 from django.utils import timezone
 
-from lifecycle_site.audit.models import TransitionRecord
+from lifecycle_site.audit.models import AppendOnlyError, TransitionRecord
 from lifecycle_site.fleet.models import GatewayHeartbeat, ManagedNode, Robot
 from ros_gateway import state_machine as sm
 
@@ -122,13 +122,13 @@ def test_audit_records_are_append_only(node):
     record = TransitionRecord.objects.create(
         robot_name="unit-agv", node_name="/joy_to_vel", outcome="succeeded", source="api", requested_at=now
     )
-    with pytest.raises(Exception):
+    with pytest.raises(AppendOnlyError):
         record.save()
-    with pytest.raises(Exception):
+    with pytest.raises(AppendOnlyError):
         record.delete()
-    with pytest.raises(Exception):
+    with pytest.raises(AppendOnlyError):
         TransitionRecord.objects.all().delete()
-    with pytest.raises(Exception):
+    with pytest.raises(AppendOnlyError):
         TransitionRecord.objects.update(outcome="failed")
     assert TransitionRecord.objects.get().outcome == "succeeded"
 

@@ -5,7 +5,7 @@ import asyncio
 import os
 import signal
 
-from django.core.management.base import BaseCommand
+from django.core.management.base import BaseCommand, CommandError
 
 
 class Command(BaseCommand):
@@ -20,7 +20,17 @@ class Command(BaseCommand):
 
     def handle(self, *args, name: str, **options) -> None:
         os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+        from django.conf import settings
+
+        from ros_gateway import store
         from ros_gateway.service import Gateway  # imports rclpy: only in this process
+
+        twin = store.running_twin(name, settings.LIFECYCLE["GATEWAY_OFFLINE_AFTER"])
+        if twin:
+            raise CommandError(
+                f"A gateway named {name!r} is already running ({twin}). Stop it, or start this one "
+                "with --name OTHER to watch other robots."
+            )
 
         async def main() -> None:
             gateway = Gateway(name)

@@ -21,4 +21,6 @@ class Command(BaseCommand):
         _, token = ApiToken.issue(user, name)
         # Only the token on stdout, so scripts can capture it: TOKEN=$(manage.py create_api_token ci)
         self.stdout.write(token)
-        self.stderr.write(f"Token for {username} created; it cannot be shown again. Send it as 'Authorization: Bearer <token>'.")
+        self.stderr.write(
+            f"Token for {username} created; it cannot be shown again. Send it as 'Authorization: Bearer <token>'."
+        )

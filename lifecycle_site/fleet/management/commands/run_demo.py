@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import secrets
+import signal
 import socket
 import sys
 import time
@@ -31,6 +32,10 @@ DEMO_ROBOTS = [
 MAIN_NODES = "joy_to_vel,joystick,lidar_driver,camera_driver,planner"
 
 
+def _interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
+
+
 def free_port(preferred: int) -> int:
     for port in range(preferred, preferred + 50):
         with socket.socket() as probe:
@@ -50,9 +55,14 @@ class Command(BaseCommand):
     def handle(self, *args, port: int, no_robots: bool, check: bool, **options) -> None:
         os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
         data = Path(settings.DATA_DIR)
+        self._claim_data_dir(data)
+        # `kill`, a closed terminal or a CI timeout stop the demo as cleanly as Ctrl-C does.
+        for sig in (signal.SIGTERM, signal.SIGHUP):
+            signal.signal(sig, _interrupt)
         supervisor = Supervisor()
-        redis_process = self._ensure_redis(data)
+        redis_process = None
         try:
+            redis_process = self._ensure_redis(data)
             call_command("migrate", verbosity=0)
             user, password = self._ensure_admin(data)
             for name, domain, _ in DEMO_ROBOTS:
@@ -82,7 +92,23 @@ class Command(BaseCommand):
             if redis_process is not None:
                 redis_process.terminate()
                 redis_process.wait(5)
+            (data / "demo.pid").unlink(missing_ok=True)
 
+    def _claim_data_dir(self, data: Path) -> None:
+        """One demo per data dir: a second one would run a second gateway on the same facts."""
+        pid_file = data / "demo.pid"
+        if pid_file.exists():
+            try:
+                other = int(pid_file.read_text().split()[0])
+                os.kill(other, 0)
+            except (ValueError, IndexError, ProcessLookupError, PermissionError):
+                pass  # stale: that demo is gone
+            else:
+                raise CommandError(
+                    f"A demo is already running from {data} (pid {other}); stop it first "
+                    "(Ctrl-C in its terminal, or kill it), or set LIFECYCLE_DATA_DIR to run another."
+                )
+        pid_file.write_text(f"{os.getpid()}\n")
     def _ensure_redis(self, data: Path):
         url = settings.REDIS_URL
         if local_redis.answers(url):
@@ -113,11 +139,11 @@ class Command(BaseCommand):
         if not no_robots:
             for name, domain, autostart in DEMO_ROBOTS:
                 robot = [python, "-m", "ros_gateway.demo.robot", "--domain", str(domain)]
-                supervisor.add(
-                    Child(f"{name} nodes", robot + ["--nodes", MAIN_NODES, "--autostart", autostart], logs / f"{name}.log")
-                )
+                main = robot + ["--nodes", MAIN_NODES, "--autostart", autostart]
+                supervisor.add(Child(f"{name} nodes", main, logs / f"{name}.log"))
                 # The node that can be made to crash runs alone, so a crash takes only it down.
-                supervisor.add(Child(f"{name} flaky_node", robot + ["--nodes", "flaky_node"], logs / f"{name}-flaky.log"))
+                flaky = robot + ["--nodes", "flaky_node"]
+                supervisor.add(Child(f"{name} flaky_node", flaky, logs / f"{name}-flaky.log"))
         supervisor.add(
             Child(
                 "daphne",

@@ -1,0 +1,20 @@
+"""Who may see the pages: any role (viewer, operator, admin); an account without one is told so."""
+from __future__ import annotations
+
+from functools import wraps
+
+from django.contrib.auth.decorators import login_required
+from django.shortcuts import render
+
+VIEW_PERMISSION = "fleet.view_managednode"
+
+
+def viewer_required(view):
+    @login_required
+    @wraps(view)
+    def wrapper(request, *args, **kwargs):
+        if not request.user.has_perm(VIEW_PERMISSION):
+            return render(request, "dashboard/no_role.html", status=403)
+        return view(request, *args, **kwargs)
+
+    return wrapper

@@ -1,0 +1,148 @@
+"""Channels consumers: subscribe a browser to the gateway's groups and forward what matters.
+
+Fleet and node pages get HTML fragments that htmx swaps in by id (hx-swap-oob), rendered
+from the same partial templates as the first page load. Log consoles get JSON, because
+bounding, filtering and pausing a fast stream is the browser's job there.
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+
+from channels.db import database_sync_to_async
+from channels.generic.websocket import AsyncWebsocketConsumer
+from django.template.loader import render_to_string
+
+from lifecycle_site.dashboard import snapshots
+from lifecycle_site.fleet.models import GatewayHeartbeat
+from lifecycle_site.prefix import forwarded_prefix, script_prefix
+from ros_gateway import protocol
+
+GATEWAY_CHECK_S = 3.0
+NOT_LOGGED_IN = 4401
+NO_ROLE = 4403
+NOT_FOUND = 4404
+
+
+class LiveConsumer(AsyncWebsocketConsumer):
+    """Common ground: login required, group membership, gateway banner upkeep."""
+
+    groups_to_join: list[str]
+
+    async def connect(self) -> None:
+        user = self.scope.get("user")
+        if user is None or not user.is_authenticated:
+            await self.close(code=NOT_LOGGED_IN)
+            return
+        if not await database_sync_to_async(user.has_perm)("fleet.view_managednode"):
+            await self.close(code=NO_ROLE)
+            return
+        self.can_operate = await database_sync_to_async(user.has_perm)("fleet.operate_node")
+        headers = dict(self.scope.get("headers", []))
+        self.prefix = forwarded_prefix(headers.get(b"x-forwarded-prefix", b"").decode("latin-1"))
+        if not await self.prepare():
+            await self.close(code=NOT_FOUND)
+            return
+        for group in self.groups_to_join:
+            await self.channel_layer.group_add(group, self.channel_name)
+        await self.accept()
+        self.gateway_online: bool | None = None
+        await self.send_snapshot()
+        self.watcher = asyncio.ensure_future(self.watch_gateway())
+
+    async def disconnect(self, code: int) -> None:
+        watcher = getattr(self, "watcher", None)
+        if watcher is not None:
+            watcher.cancel()
+        for group in getattr(self, "groups_to_join", []):
+            await self.channel_layer.group_discard(group, self.channel_name)
+
+    async def prepare(self) -> bool:
+        return True
+
+    async def send_snapshot(self) -> None:
+        pass
+
+    async def watch_gateway(self) -> None:
+        """Tell the page when the gateway goes offline or comes back."""
+        while True:
+            online = await database_sync_to_async(GatewayHeartbeat.online)()
+            if online != self.gateway_online:
+                self.gateway_online = online
+                await self.send_html("dashboard/_gateway_banner.html", {"gateway_online": online, "oob": True})
+            await asyncio.sleep(GATEWAY_CHECK_S)
+
+    async def send_html(self, template: str, context: dict) -> None:
+        with script_prefix(self.prefix):
+            html = render_to_string(template, context)
+        await self.send(text_data=html)
+
+    # Group messages this consumer does not use are ignored rather than raising.
+    async def node_logs(self, event: dict) -> None:
+        pass
+
+    async def audit_record(self, event: dict) -> None:
+        pass
+
+
+class FleetConsumer(LiveConsumer):
+    groups_to_join = [protocol.FLEET_GROUP]
+
+    async def send_snapshot(self) -> None:
+        """The whole fleet list, so a page that reconnects catches up with what it missed."""
+        robots = await database_sync_to_async(snapshots.fleet)()
+        self.known = {n["id"] for _, nodes in robots for n in nodes}
+        await self.send_html(
+            "dashboard/_robots.html", {"robots": robots, "can_operate": self.can_operate, "oob": True}
+        )
+
+    async def node_state(self, event: dict) -> None:
+        node = event["node"]
+        new = node["id"] not in self.known
+        self.known.add(node["id"])
+        template = "dashboard/_node_row_new.html" if new else "dashboard/_node_row.html"
+        await self.send_html(template, {"node": node, "oob": "true", "can_operate": self.can_operate})
+
+
+class NodeConsumer(LiveConsumer):
+    async def prepare(self) -> bool:
+        self.key = self.scope["url_route"]["kwargs"]["key"]
+        self.groups_to_join = [protocol.node_group(self.key)]
+        return await database_sync_to_async(snapshots.node_exists)(self.key)
+
+    async def send_snapshot(self) -> None:
+        node = await database_sync_to_async(snapshots.one_node)(self.key)
+        await self.node_state({"node": node})
+
+    async def node_state(self, event: dict) -> None:
+        await self.send_html(
+            "dashboard/_node_state.html",
+            {**snapshots.state_panel(event["node"]), "can_operate": self.can_operate, "oob": True},
+        )
+
+    async def audit_record(self, event: dict) -> None:
+        await self.send_html("dashboard/_audit_row_oob.html", {"record": event["record"]})
+
+
+class LogConsumer(LiveConsumer):
+    """``ws/logs/node/<key>/`` or ``ws/logs/robot/<name>/``: records as JSON."""
+
+    async def prepare(self) -> bool:
+        kwargs = self.scope["url_route"]["kwargs"]
+        group = await database_sync_to_async(snapshots.log_group)(kwargs["scope"], kwargs["name"])
+        self.groups_to_join = [group] if group else []
+        return group is not None
+
+    async def node_logs(self, event: dict) -> None:
+        await self.send(text_data=json.dumps({"records": event["records"]}))
+
+    async def node_state(self, event: dict) -> None:
+        pass
+
+    async def watch_gateway(self) -> None:
+        while True:
+            online = await database_sync_to_async(GatewayHeartbeat.online)()
+            if online != self.gateway_online:
+                self.gateway_online = online
+                await self.send(text_data=json.dumps({"gateway_online": online}))
+            await asyncio.sleep(GATEWAY_CHECK_S)

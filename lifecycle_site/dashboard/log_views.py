@@ -1,0 +1,84 @@
+"""Log console pages (per node, per robot) and their text downloads."""
+from __future__ import annotations
+
+from django.db.models import Q, QuerySet
+from django.http import Http404, HttpRequest, HttpResponse, JsonResponse
+from django.shortcuts import render
+from django.utils import timezone
+
+from lifecycle_site.dashboard.access import viewer_required
+from lifecycle_site.fleet.models import GatewayHeartbeat, LogRecord, ManagedNode, Robot
+
+HISTORY_LINES = 500
+LEVELS = [name for _, name in LogRecord.LEVELS]
+LEVEL_VALUES = {name: value for value, name in LogRecord.LEVELS}
+
+
+def _target(scope: str, name: str) -> tuple[str, QuerySet, dict]:
+    """The title, the records and the page context of a node's or a robot's log."""
+    if scope == "node":
+        node = ManagedNode.objects.select_related("robot").filter(key=name).first()
+        if node is None:
+            raise Http404(f"There is no node {name}.")
+        return f"{node.robot.name} {node.name}", LogRecord.objects.filter(node=node), {"node": node}
+    robot = Robot.objects.filter(name=name).first() if scope == "robot" else None
+    if robot is None:
+        raise Http404(f"There is no robot {name}.")
+    return f"{robot.name} (all nodes)", LogRecord.objects.filter(robot=robot), {"robot": robot}
+
+
+def _filtered(records: QuerySet, request: HttpRequest) -> QuerySet:
+    level = request.GET.get("level", "").upper()
+    if level in LEVEL_VALUES:
+        records = records.filter(level__gte=LEVEL_VALUES[level])
+    text = request.GET.get("q", "").strip()
+    if text:
+        records = records.filter(Q(message__icontains=text) | Q(logger__icontains=text))
+    return records
+
+
+@viewer_required
+def log_console(request: HttpRequest, scope: str, name: str) -> HttpResponse:
+    title, records, context = _target(scope, name)
+    history = [r.as_dict() for r in reversed(records.order_by("-id")[:HISTORY_LINES])]
+    return render(
+        request,
+        "dashboard/logs.html",
+        {
+            **context,
+            "title": title,
+            "scope": scope,
+            "name": name,
+            "history": history,
+            "levels": LEVELS,
+            "gateway_online": GatewayHeartbeat.online(),
+        },
+    )
+
+
+@viewer_required
+def log_download(request: HttpRequest, scope: str, name: str) -> HttpResponse:
+    """Everything kept server-side (bounded by the retention settings), oldest first."""
+    title, records, _ = _target(scope, name)
+    records = _filtered(records, request).order_by("id")
+    lines = [f"# /rosout of {title}, downloaded {timezone.now():%Y-%m-%d %H:%M:%S %Z}\n"]
+    lines += [
+        f"{r.stamp:%Y-%m-%d %H:%M:%S.%f} [{r.level_name}] [{r.logger}] {r.message}\n"
+        for r in records.iterator(chunk_size=2000)
+    ]
+    response = HttpResponse("".join(lines), content_type="text/plain; charset=utf-8")
+    safe = name.replace("/", "_")
+    response["Content-Disposition"] = f'attachment; filename="{scope}-{safe}-rosout.log"'
+    return response
+
+
+@viewer_required
+def log_since(request: HttpRequest, scope: str, name: str) -> JsonResponse:
+    """Records after a given id: what a console missed while its WebSocket was down."""
+    _, records, _ = _target(scope, name)
+    try:
+        after = int(request.GET.get("after", 0))
+    except ValueError:
+        after = 0
+    rows = list(records.filter(id__gt=after).order_by("-id")[:HISTORY_LINES])
+    return JsonResponse({"records": [r.as_dict() for r in reversed(rows)]})

@@ -1,0 +1,46 @@
+"""Small template helpers shared by full pages and live fragments."""
+from __future__ import annotations
+
+from django import template
+
+register = template.Library()
+
+
+@register.filter
+def dom_id(node_key: str) -> str:
+    """A CSS-selector-safe element id for a node (htmx looks ids up as '#id' selectors).
+
+    Node keys contain dots; ROS names never contain '__', so it is a safe stand-in.
+    """
+    return "node-" + node_key.replace(".", "__")
+
+
+@register.filter
+def node_status(node: dict) -> str:
+    """What the badge says: the state, or why there is none (lost, waiting)."""
+    if node["alive"]:
+        return node["state"]["label"]
+    return "waiting" if node.get("last_seen") is None else "lost"
+
+
+@register.filter
+def short_time(iso: str | None) -> str:
+    """'14:03:27' for today, '2026-11-20 14:03' otherwise (UTC, as stored)."""
+    if not iso:
+        return ""
+    from datetime import datetime, timezone
+
+    moment = datetime.fromisoformat(iso).astimezone(timezone.utc)
+    if moment.date() == datetime.now(timezone.utc).date():
+        return moment.strftime("%H:%M:%S")
+    return moment.strftime("%Y-%m-%d %H:%M")
+
+
+@register.filter
+def stamp(iso: str | None) -> str:
+    """'2026-11-22 04:10:35' from an ISO timestamp (UTC)."""
+    if not iso:
+        return ""
+    from datetime import datetime, timezone
+
+    return datetime.fromisoformat(iso).astimezone(timezone.utc).strftime("%Y-%m-%d %H:%M:%S")
