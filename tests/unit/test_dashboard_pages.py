@@ -1,0 +1,134 @@
+"""Pages without ROS: they render for each role, stay at a fixed number of queries however
+many nodes there are, filter and export the audit log, and carry a proxy's sub-path."""
+import csv
+import io
+
+import pytest
+from django.test import Client
+from django.utils import timezone
+
+from lifecycle_site.audit.models import TransitionRecord
+from lifecycle_site.fleet.models import LogRecord, ManagedNode, Robot
+from ros_gateway import state_machine as sm
+from tests.conftest import make_user
+
+
+@pytest.fixture
+def fleet(db):
+    robots = [Robot.objects.create(name=f"page-agv-{i}", domain_id=60 + i) for i in range(4)]
+    nodes = ManagedNode.objects.bulk_create(
+        [
+            ManagedNode(robot=robots[i % 4], name=f"/node_{i:03d}", key=f"page-agv-{i % 4}.node_{i:03d}",
+                        alive=i % 7 != 0, state_id=sm.ACTIVE if i % 2 else sm.INACTIVE,
+                        state_label="active" if i % 2 else "inactive", last_seen=timezone.now())
+            for i in range(200)
+        ]
+    )
+    return robots, nodes
+
+
+def test_fleet_overview_renders_200_nodes_in_a_fixed_number_of_queries(viewer_client, fleet,
+                                                                        django_assert_max_num_queries):
+    with django_assert_max_num_queries(8):
+        response = viewer_client.get("/")
+    assert response.status_code == 200
+    page = response.content.decode()
+    assert page.count('class="node-row') == 200
+    assert 'id="node-page-agv-1__node_001"' in page  # selector-safe ids for live swaps
+    assert "ws/fleet/" in page
+
+
+def test_viewer_sees_no_transition_buttons_operator_does(viewer_client, operator_client, fleet):
+    assert "hx-post" not in viewer_client.get("/").content.decode()
+    assert 'hx-post="/nodes/page-agv-1.node_001/transition"' in operator_client.get("/").content.decode()
+
+
+def test_node_page_shows_state_graph_and_history(operator_client, fleet, django_assert_max_num_queries):
+    node = fleet[1][1]
+    TransitionRecord.objects.create(node=node, robot=node.robot, robot_name=node.robot.name, node_name=node.name,
+                                    transition_id=3, transition_label="activate", outcome="succeeded",
+                                    source="api", requested_at=timezone.now())
+    with django_assert_max_num_queries(10):
+        response = operator_client.get(f"/nodes/{node.key}/")
+    page = response.content.decode()
+    assert response.status_code == 200
+    assert "<svg" in page and "▶ active" in page
+    assert ">deactivate</button>" in page and ">activate</button>" not in page
+    assert "activate" in page and "succeeded" in page
+
+
+def test_unknown_node_page_is_404(viewer_client, db):
+    assert viewer_client.get("/nodes/nope.nope/").status_code == 404
+
+
+def test_pages_need_a_login_and_a_role(db):
+    assert Client().get("/").status_code == 302
+    assert Client().get("/audit/").status_code == 302
+    nobody = Client()
+    nobody.force_login(make_user("no-role-nina", None))
+    response = nobody.get("/")
+    assert response.status_code == 403 and b"no role yet" in response.content
+
+
+def test_dashboard_transition_without_gateway_says_so(operator_client, fleet):
+    node = fleet[1][1]
+    response = operator_client.post(f"/nodes/{node.key}/transition", {"transition": "deactivate"})
+    assert b"Gateway offline" in response.content
+    assert TransitionRecord.objects.get(node=node).source == "dashboard"
+
+
+def test_watch_by_name_pins_a_waiting_node(operator_client, fleet):
+    robot = fleet[0][0]
+    operator_client.post(f"/robots/{robot.name}/watch", {"name": "arm_controller"})
+    node = ManagedNode.objects.get(robot=robot, name="/arm_controller")
+    assert not node.alive and node.first_seen is None
+    assert "waiting" in operator_client.get("/").content.decode()
+    operator_client.post(f"/robots/{robot.name}/watch", {"name": "bad name!"})
+    assert not ManagedNode.objects.filter(name__contains="bad").exists()
+
+
+def test_audit_history_filters_pages_and_exports_csv(viewer_client, fleet):
+    node = fleet[1][3]
+    now = timezone.now()
+    for i in range(60):
+        TransitionRecord.objects.create(node=node, robot=node.robot, robot_name=node.robot.name,
+                                        node_name=node.name, transition_label="configure",
+                                        outcome="failed" if i % 3 == 0 else "succeeded",
+                                        source="dashboard", requested_by_name="olga", requested_at=now)
+    page = viewer_client.get("/audit/?outcome=failed").content.decode()
+    assert "20 records" in page
+    assert "page 1 of 2" in viewer_client.get("/audit/").content.decode()
+    rows = list(csv.reader(io.StringIO(viewer_client.get("/audit.csv?outcome=failed&user=olga").content.decode())))
+    assert rows[0][:4] == ["requested_at", "completed_at", "robot", "node"] and len(rows) == 21
+    assert "must be before" in viewer_client.get("/audit/?since=2026-01-02T00:00&until=2026-01-01T00:00").content.decode()
+
+
+def test_log_console_and_download(viewer_client, fleet):
+    node = fleet[1][5]
+    for level, text in ((20, "scan ok"), (40, "scan broken")):
+        LogRecord.objects.create(robot=node.robot, node=node, logger=node.name.strip("/"), stamp=timezone.now(),
+                                 level=level, message=text)
+    page = viewer_client.get(f"/logs/node/{node.key}/").content.decode()
+    assert "scan broken" in page and "ws/logs/node/" in page
+    text = viewer_client.get(f"/logs/node/{node.key}/download?level=ERROR").content.decode()
+    assert "scan broken" in text and "scan ok" not in text
+    assert viewer_client.get(f"/logs/robot/{node.robot.name}/download").status_code == 200
+    assert viewer_client.get("/logs/robot/nobody/").status_code == 404
+    assert viewer_client.get(f"/logs/other/{node.robot.name}/").status_code == 404
+
+
+def test_forwarded_prefix_goes_into_every_link(viewer_client, fleet, settings):
+    settings.LIFECYCLE_TRUST_FORWARDED_PREFIX = True
+    page = viewer_client.get("/", HTTP_X_FORWARDED_PREFIX="/lifecycle").content.decode()
+    assert 'href="/lifecycle/static/css/site.css' in page
+    assert 'ws-connect="/lifecycle/ws/fleet/"' in page
+    assert 'href="/lifecycle/nodes/page-agv-0.node_000/"' in page
+    assert 'href="/static/css/site.css' in viewer_client.get("/").content.decode()  # not leaked
+    settings.LIFECYCLE_TRUST_FORWARDED_PREFIX = False
+    assert "/lifecycle/" not in viewer_client.get("/", HTTP_X_FORWARDED_PREFIX="/lifecycle").content.decode()
+
+
+def test_fixed_prefix_keeps_the_login_redirect_under_it(db, settings):
+    settings.URL_PREFIX = "/edge/lifecycle"
+    response = Client().get("/")
+    assert response["Location"] == "/edge/lifecycle/login/?next=/edge/lifecycle/"
