@@ -33,4 +33,3 @@ from lifecycle_site.settings import DATABASES  # noqa: E402
 
 # pytest-django creates this file (not an in-memory DB), so other processes share it.
 DATABASES["default"]["TEST"] = {"NAME": DATABASES["default"]["NAME"]}
-PASSWORD_HASHERS = ["django.contrib.auth.hashers.MD5PasswordHasher"]  # fast logins in tests

@@ -18,6 +18,7 @@ ROOT = Path(__file__).resolve().parent.parent
 def environment(**extra: str) -> dict[str, str]:
     """What a subprocess needs to join this test run (same DB, Redis, ROS discovery range)."""
     env = dict(os.environ)
+    env.pop("DJANGO_ALLOW_ASYNC_UNSAFE", None)  # set for Playwright in this process only
     env.update(
         DJANGO_SETTINGS_MODULE="lifecycle_site.settings",
         DATABASE_URL=f"sqlite:///{settings.DATABASES['default']['NAME']}",

@@ -87,15 +87,9 @@ def node_transition(request: HttpRequest, key: str) -> HttpResponse:
     if outcome.data.get("to"):  # the gateway's answer is fresher than the database write
         payload = {**payload, "state": outcome.data["to"],
                    "transitions": [t.as_dict() for t in sm.valid_transitions(outcome.data["to"]["id"])]}
-    context = {
-        "ok": outcome.succeeded,
-        "code": outcome.code,
-        "message": outcome.message,
-        "requested": requested,
-        **snapshots.state_panel(payload),
-        "can_operate": True,
-        "oob": True,
-    }
+    context = {"ok": outcome.succeeded, "code": outcome.code, "message": outcome.message}
+    if request.htmx.target == "transition-result":  # the node page: refresh its state panel too
+        context.update(snapshots.state_panel(payload), can_operate=True, oob=True)
     # htmx swaps only 2xx answers by default; the message is the content either way.
     return render(request, "dashboard/_transition_result.html", context)
 

@@ -1,0 +1,142 @@
+"""Browser tests: Debian's Chromium driven by Playwright against the real stack (daphne,
+gateway, Redis, rclpy nodes), once directly and once behind an nginx that serves the app
+under /lifecycle/ the way an Industrial Edge device does."""
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+from django.conf import settings
+
+from tests import stack
+from tests.conftest import make_user
+from tests.integration.conftest import api, gateway, register  # noqa: F401 (fixtures)
+
+# Playwright's sync API keeps an event loop running in this thread; the ORM calls the tests
+# make are plain blocking calls from it, which Django would otherwise refuse.
+os.environ["DJANGO_ALLOW_ASYNC_UNSAFE"] = "true"
+
+ARTIFACTS = stack.ROOT / "tests" / "artifacts"
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = [
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+    "--disable-component-update", "--no-first-run", "--disable-sync", "--disable-quic",
+]
+PASSWORD = "a-test-password-123"
+ROBOT = "br-agv"
+
+
+def pytest_collection_modifyitems(items):
+    for item in items:
+        if "/browser/" in str(item.fspath):
+            item.add_marker(pytest.mark.browser)
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def robot(gateway):  # noqa: F811
+    register(ROBOT, stack.domain(7))
+    processes = [
+        stack.start_robot("br-nodes", stack.domain(7), "lidar_driver,camera_driver,joystick"),
+        stack.start_robot("br-flaky", stack.domain(7), "flaky_node", "flaky_node.failure_mode:=fail_configure"),
+    ]
+    yield processes
+    for process in processes:
+        process.stop()
+
+
+@pytest.fixture(scope="module")
+def site(gateway):  # noqa: F811
+    """daphne serving the site; it trusts X-Forwarded-Prefix (sent only by our nginx)."""
+    port = free_port()
+    process = stack.Process(
+        "daphne",
+        [sys.executable, "-m", "daphne", "-b", "127.0.0.1", "-p", str(port), "lifecycle_site.asgi:application"],
+        stack.environment(LIFECYCLE_TRUST_FORWARDED_PREFIX="1"),
+        stack.log_dir(),
+    )
+    base = f"http://127.0.0.1:{port}/"
+    stack.wait_for(lambda: _answers(port) or not process.alive(), 30, "daphne to listen")
+    assert process.alive(), process.output()
+    yield base
+    process.stop()
+
+
+def _answers(port: int) -> bool:
+    with socket.socket() as probe:
+        return probe.connect_ex(("127.0.0.1", port)) == 0
+
+
+@pytest.fixture(scope="module")
+def proxied_site(site):
+    """A real nginx that strips /lifecycle/ and passes WebSocket upgrades, like the device's."""
+    nginx = shutil.which("nginx") or "/usr/sbin/nginx"
+    assert Path(nginx).exists(), "nginx is not installed (Debian package nginx); .ci/run installs it"
+    port, upstream = free_port(), site.rstrip("/")
+    workdir = Path(settings.DATA_DIR) / "nginx"
+    (workdir / "logs").mkdir(parents=True, exist_ok=True)
+    (workdir / "nginx.conf").write_text(textwrap.dedent(f"""
+        daemon off;
+        worker_processes 1;
+        pid {workdir}/nginx.pid;
+        error_log {workdir}/logs/error.log warn;
+        events {{ worker_connections 256; }}
+        http {{
+            access_log {workdir}/logs/access.log;
+            client_body_temp_path {workdir}/body;
+            proxy_temp_path {workdir}/proxy;
+            fastcgi_temp_path {workdir}/fastcgi;
+            uwsgi_temp_path {workdir}/uwsgi;
+            scgi_temp_path {workdir}/scgi;
+            map $http_upgrade $connection_upgrade {{ default upgrade; '' close; }}
+            server {{
+                listen 127.0.0.1:{port};
+                location = /lifecycle {{ return 301 /lifecycle/; }}
+                location ~* ^/lifecycle/ {{
+                    rewrite ^/lifecycle/(.*)$ /$1 break;
+                    proxy_pass {upstream};
+                    proxy_http_version 1.1;
+                    proxy_set_header Upgrade $http_upgrade;
+                    proxy_set_header Connection $connection_upgrade;
+                    proxy_set_header Host $host:$server_port;
+                    proxy_set_header X-Forwarded-Prefix /lifecycle;
+                    proxy_read_timeout 120s;
+                }}
+            }}
+        }}
+    """))
+    process = subprocess.Popen([nginx, "-p", str(workdir), "-c", str(workdir / "nginx.conf")],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+    stack.wait_for(lambda: _answers(port) or process.poll() is not None, 15, "nginx to listen")
+    assert process.poll() is None, (workdir / "logs" / "error.log").read_text()
+    yield f"http://127.0.0.1:{port}/lifecycle/"
+    process.terminate()
+    process.wait(10)
+
+
+@pytest.fixture(scope="module")
+def browser():
+    from playwright.sync_api import sync_playwright
+
+    assert Path(CHROMIUM).exists(), "Debian's chromium is not installed; .ci/run installs it"
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    with sync_playwright() as playwright:
+        chromium = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        yield chromium
+        chromium.close()
+
+
+@pytest.fixture(scope="module")
+def operator(live_db):
+    return make_user("bruno-operator", "operator")
