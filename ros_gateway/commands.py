@@ -148,6 +148,8 @@ class CommandHandler:
                 )
                 raise CommandError("node_unreachable", message) from None
             if result.result_state is not None:
+                if result.transition is not None and node.tracker.commanded == result.transition.id:
+                    node.tracker.settled = result.transition.id  # its beginning is yet to come
                 await self.gateway.set_state(node, result.result_state)
             if result.outcome == "failed":
                 result.message = await self._with_reason(node, requested_at, result.message)
@@ -188,6 +190,8 @@ class CommandHandler:
         def release() -> None:
             if node.tracker.commanded == transition.id:
                 node.tracker.commanded = None
+            if node.tracker.settled == transition.id:
+                node.tracker.settled = None
 
         loop.call_later(max(2.0, 2 * self.gateway.config["SERVICE_TIMEOUT"]), release)
 

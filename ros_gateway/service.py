@@ -40,7 +40,9 @@ class LiveNode:
     state_id: int = sm.UNKNOWN
     state_read: bool = False  # the state has been read from the node since it appeared
     tracker: TransitionTracker = field(default_factory=TransitionTracker)
-    lock: asyncio.Lock = field(default_factory=asyncio.Lock)
+    lock: asyncio.Lock = field(default_factory=asyncio.Lock)  # one transition at a time
+    # State updates go out (push, then disk) strictly in the order they were made.
+    update_lock: asyncio.Lock = field(default_factory=asyncio.Lock)
     last_seen: datetime | None = None
 
     @property
@@ -218,6 +220,12 @@ class Gateway:
         node.state_read = True
         await self.set_state(node, state_id)
 
+    async def _check_settled(self, node: LiveNode, state_id: int) -> None:
+        await asyncio.sleep(2 * self.config["SERVICE_TIMEOUT"])
+        domain = self.domains.get(node.robot.domain_id)
+        if node.alive and node.state_id == state_id and domain is not None:
+            await self._read_state(domain, node)
+
     async def resync_states(self) -> None:
         """Fallback for lost transition events: re-read every live node's state."""
         for (domain_id, _name), node in list(self.nodes.items()):
@@ -227,14 +235,19 @@ class Gateway:
 
     # -- state ----------------------------------------------------------------------------
     async def set_state(self, node: LiveNode, state_id: int) -> None:
-        if state_id == node.state_id and node.row.state_id == state_id:
-            return
-        node.state_id = state_id
-        node.last_seen = datetime.now(timezone.utc)
-        # Push first: the page should not wait for the disk.
-        await self.relay.publish(node.groups(), {"type": "node.state", "node": node.payload()})
-        node.row.state_id = state_id
-        await db(store.save_state)(node.row.id, state_id)
+        async with node.update_lock:
+            if state_id == node.state_id and node.row.state_id == state_id:
+                return
+            if not sm.is_primary(state_id):
+                # Safety net: a node should not sit in a transition state for long; if it does
+                # (a lost event, a hung callback), find out what it really is.
+                self.spawn(self._check_settled(node, state_id))
+            node.state_id = state_id
+            node.last_seen = datetime.now(timezone.utc)
+            # Push first: the page should not wait for the disk.
+            await self.relay.publish(node.groups(), {"type": "node.state", "node": node.payload()})
+            node.row.state_id = state_id
+            await db(store.save_state)(node.row.id, state_id)
 
     def on_transition_event(self, domain_id: int, name: str, msg) -> None:
         """A node's ~/transition_event (called on the loop, handed over from the executor)."""
@@ -243,14 +256,15 @@ class Gateway:
             return
         try:
             start, goal = int(msg.start_state.id), int(msg.goal_state.id)
-            completed = node.tracker.observe(start, goal, int(msg.transition.id))
+            completed, news = node.tracker.observe(start, goal, int(msg.transition.id))
         except Exception:
             log.exception("ignored a malformed transition event from %s", name)
             return
-        self.spawn(self._after_event(node, goal, completed))
+        self.spawn(self._after_event(node, goal if news else None, completed))
 
-    async def _after_event(self, node: LiveNode, state_id: int, completed: Completed | None) -> None:
-        await self.set_state(node, state_id)
+    async def _after_event(self, node: LiveNode, state_id: int | None, completed: Completed | None) -> None:
+        if state_id is not None:
+            await self.set_state(node, state_id)
         if completed is None:
             return
         log.info("external transition on %s:%s: %s", node.robot.name, node.name, completed.outcome)

@@ -35,31 +35,36 @@ class TransitionTracker:
 
     # Transition id this gateway has requested and not yet seen begin.
     commanded: int | None = None
+    # Transition id of our last request whose reply has already set the node's state.
+    settled: int | None = None
     _begun: tuple[sm.Transition, int, datetime, bool] | None = field(default=None, repr=False)
 
-    def observe(self, start_state: int, goal_state: int, transition_id: int) -> Completed | None:
-        """Feed one event; returns a Completed transition made by someone else, if one ended."""
+    def observe(self, start_state: int, goal_state: int, transition_id: int) -> tuple[Completed | None, bool]:
+        """Feed one event. Returns a Completed transition made by someone else, if one ended,
+        and whether the event's goal state is news (False for the late beginning of a request
+        of ours whose reply already told the end: the event and the reply travel separately)."""
         now = datetime.now(timezone.utc)
         if sm.is_primary(start_state) and not sm.is_primary(goal_state):
             # rclpy leaves the event's transition field empty (id 0), so the transition is
             # known by its edge: unconfigured -> configuring is "configure", and so on.
             transition = sm.TRANSITIONS_BY_ID.get(transition_id) or sm.transition_between(start_state, goal_state)
-            ours = transition is not None and self.commanded == transition.id
+            ours = transition is not None and transition.id in (self.commanded, self.settled)
+            late = ours and self.settled == transition.id
             if ours:
-                self.commanded = None
+                self.commanded = self.settled = None
             self._begun = (transition, start_state, now, ours) if transition else None
-            return None
+            return None, not late
         if not sm.is_primary(goal_state):
-            return None  # e.g. activating -> errorprocessing: still under way
+            return None, True  # e.g. activating -> errorprocessing: still under way
         begun, self._begun = self._begun, None
         if begun is None:
             # We missed the beginning (subscribed mid-transition): record what we know.
-            return Completed(None, None, goal_state, now, now, "observed")
+            return Completed(None, None, goal_state, now, now, "observed"), True
         transition, start, started_at, ours = begun
         if ours:
-            return None
+            return None, True
         outcome = "succeeded" if sm.SUCCESS_GOAL.get(transition.id) == goal_state else "failed"
-        return Completed(transition, start, goal_state, started_at, now, outcome)
+        return Completed(transition, start, goal_state, started_at, now, outcome), True
 
 
 def logger_to_node_name(logger: str) -> str:

@@ -6,8 +6,8 @@ from ros_gateway.streams import LogBuffer, TransitionTracker, owning_node
 def test_external_transition_is_reported_once_with_its_outcome():
     tracker = TransitionTracker()
     # rclpy publishes id 0 in the event's transition field; the edge tells which one it is.
-    assert tracker.observe(sm.INACTIVE, sm.ACTIVATING, 0) is None
-    done = tracker.observe(sm.ACTIVATING, sm.ACTIVE, 0)
+    assert tracker.observe(sm.INACTIVE, sm.ACTIVATING, 0) == (None, True)
+    done, _ = tracker.observe(sm.ACTIVATING, sm.ACTIVE, 0)
     assert (done.transition.label, done.start_state, done.result_state, done.outcome) == (
         "activate", sm.INACTIVE, sm.ACTIVE, "succeeded")
 
@@ -15,23 +15,30 @@ def test_external_transition_is_reported_once_with_its_outcome():
 def test_error_path_is_one_failed_transition():
     tracker = TransitionTracker()
     tracker.observe(sm.INACTIVE, sm.ACTIVATING, 0)
-    assert tracker.observe(sm.ACTIVATING, sm.ERRORPROCESSING, 0) is None
-    done = tracker.observe(sm.ERRORPROCESSING, sm.UNCONFIGURED, 0)
+    assert tracker.observe(sm.ACTIVATING, sm.ERRORPROCESSING, 0)[0] is None
+    done, _ = tracker.observe(sm.ERRORPROCESSING, sm.UNCONFIGURED, 0)
     assert done.outcome == "failed" and done.result_state == sm.UNCONFIGURED
 
 
 def test_transitions_the_gateway_sent_are_not_reported_as_external():
     tracker = TransitionTracker(commanded=sm.CONFIGURE)
     tracker.observe(sm.UNCONFIGURED, sm.CONFIGURING, 0)
-    assert tracker.observe(sm.CONFIGURING, sm.INACTIVE, 0) is None
+    assert tracker.observe(sm.CONFIGURING, sm.INACTIVE, 0) == (None, True)
     # ... but the next one, by someone else, is.
     tracker.observe(sm.INACTIVE, sm.ACTIVATING, 0)
-    assert tracker.observe(sm.ACTIVATING, sm.ACTIVE, 0).outcome == "succeeded"
+    assert tracker.observe(sm.ACTIVATING, sm.ACTIVE, 0)[0].outcome == "succeeded"
 
 
 def test_missed_beginning_is_recorded_as_observed():
-    done = TransitionTracker().observe(sm.CONFIGURING, sm.INACTIVE, 0)
-    assert done.outcome == "observed" and done.transition is None
+    done, news = TransitionTracker().observe(sm.CONFIGURING, sm.INACTIVE, 0)
+    assert done.outcome == "observed" and done.transition is None and news
+
+
+def test_late_beginning_of_our_own_request_does_not_roll_the_state_back():
+    # The reply said "active" already; the event "inactive -> activating" arrives after it.
+    tracker = TransitionTracker(commanded=sm.ACTIVATE, settled=sm.ACTIVATE)
+    assert tracker.observe(sm.INACTIVE, sm.ACTIVATING, 0) == (None, False)
+    assert tracker.observe(sm.ACTIVATING, sm.ACTIVE, 0) == (None, True)
 
 
 def test_loggers_map_to_nodes_including_namespaces_and_child_loggers():
