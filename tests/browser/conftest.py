@@ -16,7 +16,7 @@ from django.conf import settings
 
 from tests import stack
 from tests.conftest import make_user
-from tests.integration.conftest import api, gateway, register  # noqa: F401 (fixtures)
+from tests.integration.conftest import api, gateway, register, wait_node  # noqa: F401 (fixtures)
 
 # Playwright's sync API keeps an event loop running in this thread; the ORM calls the tests
 # make are plain blocking calls from it, which Django would otherwise refuse.
@@ -51,6 +51,8 @@ def robot(gateway):  # noqa: F811
         stack.start_robot("br-nodes", stack.domain(7), "lidar_driver,camera_driver,joystick"),
         stack.start_robot("br-flaky", stack.domain(7), "flaky_node", "flaky_node.failure_mode:=fail_configure"),
     ]
+    for node in ("lidar_driver", "camera_driver", "flaky_node"):  # discovered, state read
+        wait_node(None, f"{ROBOT}.{node}", alive=True, state="unconfigured")
     yield processes
     for process in processes:
         process.stop()
