@@ -33,5 +33,9 @@ test-integration: setup
 test-deploy: setup
 	$(BIN)/python -m pytest tests/deploy $(PYTEST_ARGS)
 
+# Speed and memory, measured side by side in one run (not part of `make test`).
+bench: setup
+	$(BIN)/python -m tests.benchmarks
+
 clean:
 	rm -rf $(VENV) .pytest_cache tests/artifacts
