@@ -36,7 +36,8 @@ class LiveNode:
     robot: store.RobotInfo
     name: str
     row: store.NodeRow
-    alive: bool = False
+    alive: bool = False  # believed running (as the site shows it)
+    seen: bool = False  # found in the ROS graph by this gateway run, and subscribed to
     state_id: int = sm.UNKNOWN
     state_read: bool = False  # the state has been read from the node since it appeared
     tracker: TransitionTracker = field(default_factory=TransitionTracker)
@@ -139,6 +140,9 @@ class Gateway:
         for robot_id, old in list(self.robots.items()):
             if robots.get(robot_id) != old:  # removed, disabled or changed: forget its nodes
                 await self._drop_robot_nodes(old)
+        for robot in robots.values():
+            if self.robots.get(robot.id) != robot:
+                await self._adopt_known_nodes(robot)
         self.robots = robots
         wanted = {r.domain_id for r in robots.values()}
         for domain_id in wanted - set(self.domains):
@@ -148,6 +152,15 @@ class Gateway:
         for domain_id in set(self.domains) - wanted:
             domain = self.domains.pop(domain_id)
             await asyncio.to_thread(domain.stop)
+
+    async def _adopt_known_nodes(self, robot: store.RobotInfo) -> None:
+        """Take over what the database believes of a robot's nodes: those said to be running
+        stay so until discovery has had its chance, then they are seen again or marked lost."""
+        for name, row in (await db(store.load_nodes)(robot.id)).items():
+            if row.alive and (robot.domain_id, name) not in self.nodes:
+                self.nodes[(robot.domain_id, name)] = LiveNode(
+                    robot=robot, name=name, row=row, alive=True, state_id=row.state_id
+                )
 
     async def _drop_robot_nodes(self, robot: store.RobotInfo) -> None:
         gone = [(k, n) for k, n in self.nodes.items() if n.robot.id == robot.id]
@@ -177,7 +190,7 @@ class Gateway:
             present = domain.lifecycle_node_names()
             for name in present:
                 node = self.nodes.get((domain_id, name))
-                if node is None or not node.alive:
+                if node is None or not node.seen:
                     robot = self.robot_for(domain_id, name)
                     if robot is not None:
                         await self._appeared(domain, robot, name)
@@ -195,7 +208,8 @@ class Gateway:
         if node is None:
             node = LiveNode(robot=robot, name=name, row=row, state_id=row.state_id)
             self.nodes[(domain.domain_id, name)] = node
-        node.alive, node.state_read, node.last_seen = True, False, datetime.now(timezone.utc)
+        node.alive, node.seen, node.state_read = True, True, False
+        node.last_seen = datetime.now(timezone.utc)
         node.tracker = TransitionTracker()
         domain.watch_node(name)
         log.info("node %s appeared on %s", name, robot.name)
@@ -203,7 +217,7 @@ class Gateway:
         self.spawn(self._read_state(domain, node))
 
     async def _vanished(self, domain: RosDomain, node: LiveNode) -> None:
-        node.alive, node.last_seen = False, datetime.now(timezone.utc)
+        node.alive, node.seen, node.last_seen = False, False, datetime.now(timezone.utc)
         domain.forget_node(node.name)
         log.info("node %s on %s is gone", node.name, node.robot.name)
         await db(store.nodes_lost)([node.row.id])

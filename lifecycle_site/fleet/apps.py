@@ -6,8 +6,10 @@ class FleetConfig(AppConfig):
     verbose_name = "Fleet"
 
     def ready(self) -> None:
-        from django.db.models.signals import post_migrate
+        from django.contrib.auth import get_user_model
+        from django.db.models.signals import m2m_changed, post_migrate
 
-        from lifecycle_site.fleet.roles import ensure_roles
+        from lifecycle_site.fleet.roles import admins_are_staff, ensure_roles
 
         post_migrate.connect(ensure_roles, sender=self)
+        m2m_changed.connect(admins_are_staff, sender=get_user_model().groups.through)

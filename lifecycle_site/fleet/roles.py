@@ -44,3 +44,17 @@ def ensure_roles(**_: Any) -> None:
             if permission is not None:
                 wanted.append(permission)
         group.permissions.set(wanted)
+
+
+def admins_are_staff(sender, instance, action: str, **_: Any) -> None:
+    """Members of the admin role get Django's staff flag, which opens the admin site to them."""
+    if action not in ("post_add", "post_remove", "post_clear"):
+        return
+    from django.contrib.auth import get_user_model
+
+    if not isinstance(instance, get_user_model()):
+        return
+    is_admin = instance.groups.filter(name="admin").exists()
+    if instance.is_staff != is_admin and not instance.is_superuser:
+        instance.is_staff = is_admin
+        instance.save(update_fields=["is_staff"])

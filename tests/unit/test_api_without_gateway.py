@@ -194,3 +194,16 @@ def test_log_history_is_pruned_by_count_per_logger_and_by_age(db):
     assert kept == [f"m{i}" for i in range(20, 30)]  # the newest ten
     assert LogRecord.objects.filter(logger="quiet").count() == 1
     assert not LogRecord.objects.filter(logger="old").exists()
+
+
+def test_admin_role_opens_the_admin_site(db):
+    from django.contrib.auth.models import Group
+
+    from tests.conftest import make_user
+
+    user = make_user("ada-admin", "admin")
+    user.refresh_from_db()
+    assert user.is_staff and user.has_perm("fleet.change_robot")
+    user.groups.remove(Group.objects.get(name="admin"))
+    user.refresh_from_db()
+    assert not user.is_staff
