@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 # DDS discovery stays on this machine unless you say otherwise (see README).
 export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 
-.PHONY: setup demo test test-unit test-integration test-deploy bench clean
+.PHONY: setup demo test test-unit test-integration test-deploy bench images edge-package clean
 
 $(BIN)/.installed: requirements.txt requirements-dev.txt
 	@$(PYTHON) -c 'import sys; assert sys.version_info[:2] == (3, 11), "Python 3.11 is needed (the ROS 2 Jazzy wheels are built for it); set PYTHON=/path/to/python3.11"'
@@ -32,6 +32,13 @@ test-integration: setup
 # an nginx that serves it under a sub-path, as the device does (see docker/README.md).
 test-deploy: setup
 	$(BIN)/python -m pytest tests/deploy $(PYTEST_ARGS)
+
+# Container images (offline, from a wheelhouse) and the Industrial Edge app package.
+images:
+	docker/build-images.sh
+
+edge-package:
+	docker/edge/package.sh
 
 # Speed and memory, measured side by side in one run (not part of `make test`).
 bench: setup

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Collect the Debian packages the image needs (Python 3.11 when the base image lacks it,
-# tini, redis-server) as .deb files into docker/build/debs/<base>, so that `docker build`
+# tini, redis-server) as .deb files into $LIFECYCLE_BUILD_CACHE/debs/<base> (default under
+# ~/.cache/lifecycle-manager, kept per machine), so that `docker build`
 # itself runs with --network none: the Dockerfile installs them from the build context.
 #
 # The download runs once in a throw-away container of the base image (apt works there;
@@ -14,7 +15,8 @@ BASE_IMAGE="${1:-${BASE_IMAGE:-local/debian:bookworm}}"
 RUNTIME_PACKAGES="tini redis-server"
 id="$(docker image inspect -f '{{.Id}}' "$BASE_IMAGE" | sed 's/^sha256://' | cut -c1-16)"
 key="$(printf '%s\n' "$id" "$RUNTIME_PACKAGES" "v1" | sha256sum | cut -c1-16)"
-OUT="$HERE/build/debs/$key"
+CACHE="${LIFECYCLE_BUILD_CACHE:-${XDG_CACHE_HOME:-$HOME/.cache}/lifecycle-manager}"
+OUT="$CACHE/debs/$key"
 
 if [ -f "$OUT/.complete" ]; then
     echo "$OUT"

@@ -4,7 +4,8 @@
 #   docker/build-images.sh                      # base image local/debian:bookworm (built if absent)
 #   BASE_IMAGE=python:3.11-slim-bookworm docker/build-images.sh   # where a registry is reachable
 #
-# Steps, each cached on this machine (under docker/build/, git-ignored, and Docker's cache):
+# Steps, each cached on this machine (Docker's image store and build cache, and
+# $LIFECYCLE_BUILD_CACHE, default ~/.cache/lifecycle-manager: it outlives a fresh clone):
 #   1. the base image (debootstrap, only for local/debian:bookworm when it is absent)
 #   2. the Python wheelhouse on the host (build-wheelhouse.sh; redone when requirements.txt changes)
 #   3. the Debian packages the base lacks, as .deb files (build-debs.sh; per base image)
@@ -20,6 +21,7 @@ IMAGE_NAME="${IMAGE_NAME:-lifecycle-manager}"
 IMAGE="$IMAGE_NAME:$VERSION"
 BASE_IMAGE="${BASE_IMAGE:-local/debian:bookworm}"
 CONTEXT="$HERE/build/context"
+CACHE="${LIFECYCLE_BUILD_CACHE:-${XDG_CACHE_HOME:-$HOME/.cache}/lifecycle-manager}"
 
 [[ "$VERSION" =~ ^[0-9]+\.[0-9]+\.[0-9]+([.+-][0-9A-Za-z.-]+)?$ ]] || { echo "docker/VERSION must hold a version such as 1.2.3" >&2; exit 1; }
 step() { echo "== $*" >&2; }
@@ -40,8 +42,8 @@ DEBS="$("$HERE/build-debs.sh" "$BASE_IMAGE")"
 step "build context $CONTEXT"
 rm -rf "$CONTEXT"
 mkdir -p "$CONTEXT/app"
-# Hard links: no copying of the ~90 MB wheelhouse (docker/build is one file system).
-cp -al "$HERE/build/wheelhouse" "$CONTEXT/wheelhouse" 2>/dev/null || cp -a "$HERE/build/wheelhouse" "$CONTEXT/wheelhouse"
+# Hard links where the cache is on the same file system (no copying of the ~90 MB wheelhouse).
+cp -al "$CACHE/wheelhouse" "$CONTEXT/wheelhouse" 2>/dev/null || cp -a "$CACHE/wheelhouse" "$CONTEXT/wheelhouse"
 cp -al "$DEBS" "$CONTEXT/debs" 2>/dev/null || cp -a "$DEBS" "$CONTEXT/debs"
 cp -a "$HERE/runtime" "$CONTEXT/runtime"
 cp "$HERE/VERSION" "$CONTEXT/VERSION"

@@ -1,5 +1,7 @@
 #!/usr/bin/env bash
-# Collect every Python wheel the images need into docker/build/wheelhouse, on the host.
+# Collect every Python wheel the images need into a wheelhouse on the host:
+# $LIFECYCLE_BUILD_CACHE/wheelhouse (default ~/.cache/lifecycle-manager/wheelhouse, kept per
+# machine, so that a fresh clone, as in CI, does not collect it again).
 #
 # The Dockerfile installs only from this folder (pip --no-index), so `docker build` needs
 # no access to PyPI; this is also how an image is built in a factory without internet:
@@ -16,7 +18,8 @@ set -euo pipefail
 
 HERE="$(cd "$(dirname "$0")" && pwd)"
 ROOT="$(dirname "$HERE")"
-OUT="$HERE/build/wheelhouse"
+CACHE="${LIFECYCLE_BUILD_CACHE:-${XDG_CACHE_HOME:-$HOME/.cache}/lifecycle-manager}"
+OUT="$CACHE/wheelhouse"
 REQ="$ROOT/requirements.txt"
 STAMP="$OUT/.requirements.sha256"
 
@@ -43,8 +46,8 @@ if [ "${1:-}" != "--force" ] && [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$want"
     exit 0
 fi
 
-mkdir -p "$HERE/build"
-tmp="$(mktemp -d "$HERE/build/wheelhouse.new.XXXXXX")"
+mkdir -p "$CACHE"
+tmp="$(mktemp -d "$CACHE/wheelhouse.new.XXXXXX")"
 trap 'rm -rf "$tmp"' EXIT
 echo "collecting wheels for requirements.txt into $OUT ..."
 quiet() { grep -v "is ignored: it is neither" >&2 || true; }

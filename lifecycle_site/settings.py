@@ -154,7 +154,7 @@ STORAGES = {
     "staticfiles": {"BACKEND": "lifecycle_site.prefix.PrefixedStaticFilesStorage"},
 }
 STATICFILES_DIRS = [BASE_DIR / "static"]
-STATIC_ROOT = DATA_DIR / "staticfiles"
+STATIC_ROOT = Path(os.environ.get("LIFECYCLE_STATIC_ROOT", DATA_DIR / "staticfiles"))
 STATIC_ROOT.mkdir(exist_ok=True)
 # Requests reach us with the proxy's prefix already stripped.
 WHITENOISE_STATIC_PREFIX = "/static/"

