@@ -5,19 +5,16 @@ import asyncio
 import logging
 import time
 from collections import deque
-from datetime import datetime, timezone
 from typing import TYPE_CHECKING
 
-from ros_gateway import protocol, store
+from ros_gateway import protocol
 from ros_gateway import state_machine as sm
 from ros_gateway.lifecycle import (
     NodeUnreachable,
     available_states,
     available_transitions,
-    perform_transition,
     read_state,
 )
-from ros_gateway.store import db
 
 if TYPE_CHECKING:
     from ros_gateway.service import Gateway, LiveNode
@@ -26,8 +23,6 @@ log = logging.getLogger(__name__)
 
 # Commands handled at once; more wait in Redis (whose queue is itself bounded).
 MAX_CONCURRENT = 64
-# How long a failed transition waits for the node's own error lines to arrive on /rosout.
-REASON_WAIT_S = 0.5
 
 
 class CommandError(Exception):
@@ -100,6 +95,16 @@ class CommandHandler:
                 return {"ok": True, "transitions": await available_transitions(domain, node.name, timeout)}
             if name == protocol.GET_TRANSITION_GRAPH:
                 return {"ok": True, "graph": await available_transitions(domain, node.name, timeout, graph=True)}
+            if name == protocol.GET_PARAMETERS:
+                return {"ok": True, "parameters": await self.gateway.params.listing(node, timeout)}
+            if name == protocol.SET_PARAMETERS:
+                values = command.get("values")
+                if not isinstance(values, dict) or not values:
+                    raise CommandError("bad_request", "Give the parameters to set as {name: value}.")
+                results = await self.gateway.params.set(
+                    node, values, timeout, command.get("source") or "api", command.get("user_id")
+                )
+                return {"ok": True, "results": results}
         except NodeUnreachable as exc:
             raise CommandError("node_unreachable", f"{node.name} on {node.robot.name} did not answer: {exc}.")
         if name == protocol.CHANGE_STATE:
@@ -124,7 +129,6 @@ class CommandHandler:
                 "unknown_transition",
                 f"{requested!r} is not a lifecycle transition; use one of {', '.join(sm.EXTERNAL_LABELS)}.",
             ) from None
-        domain = self.gateway.domains[node.robot.domain_id]
         if node.lock.locked():
             # Queueing behind a running transition would act on a state the requester never saw.
             raise CommandError(
@@ -133,43 +137,13 @@ class CommandHandler:
                 "try again when it has finished.",
             )
         async with node.lock:  # one transition per node at a time
-            requested_at = datetime.now(timezone.utc)
             try:
-                result = await perform_transition(
-                    domain, node.name, requested, timeout, on_send=lambda t: self._claim(node, t)
+                result, record = await self.gateway.driver.transition(
+                    node, requested, timeout, source=command.get("source") or "api",
+                    user_id=command.get("user_id"), run_id=command.get("run_id") or "",
                 )
             except NodeUnreachable as exc:
-                message = f"{node.name} on {node.robot.name} did not answer ({exc}); nothing was sent to it."
-                await db(store.record_transition)(
-                    node_id=node.row.id, robot=node.robot, node_name=node.name, transition=None,
-                    requested_label=str(requested), start_state=node.state_id, result_state=None,
-                    outcome="rejected", source=command.get("source") or "api", requested_at=requested_at,
-                    completed_at=datetime.now(timezone.utc), user_id=command.get("user_id"), error=message,
-                )
-                raise CommandError("node_unreachable", message) from None
-            if result.result_state is not None:
-                if result.transition is not None and node.tracker.commanded == result.transition.id:
-                    node.tracker.settled = result.transition.id  # its beginning is yet to come
-                await self.gateway.set_state(node, result.result_state)
-            if result.outcome == "failed":
-                result.message = await self._with_reason(node, requested_at, result.message)
-            record = await db(store.record_transition)(
-                node_id=node.row.id,
-                robot=node.robot,
-                node_name=node.name,
-                transition=result.transition,
-                requested_label=str(requested),
-                start_state=result.start_state,
-                result_state=result.result_state,
-                outcome=result.outcome,
-                source=command.get("source") or "api",
-                requested_at=requested_at,
-                completed_at=datetime.now(timezone.utc),
-                user_id=command.get("user_id"),
-                error=result.message,
-                run_id=command.get("run_id") or "",
-            )
-        await self.gateway.publish_record(node, record)
+                raise CommandError("node_unreachable", str(exc)) from None
         return {
             "ok": True,
             "outcome": result.outcome,
@@ -181,30 +155,3 @@ class CommandHandler:
             "valid_transitions": result.valid,
             "record_id": record["id"],
         }
-
-    def _claim(self, node: "LiveNode", transition: sm.Transition) -> None:
-        """Mark the transition about to be sent as ours, so its events are not 'external'."""
-        node.tracker.commanded = transition.id
-        loop = asyncio.get_running_loop()
-
-        def release() -> None:
-            if node.tracker.commanded == transition.id:
-                node.tracker.commanded = None
-            if node.tracker.settled == transition.id:
-                node.tracker.settled = None
-
-        loop.call_later(max(2.0, 2 * self.gateway.config["SERVICE_TIMEOUT"]), release)
-
-    async def _with_reason(self, node: "LiveNode", since: datetime, message: str) -> str:
-        """Add what the node itself logged at ERROR/FATAL during the transition."""
-        deadline = time.monotonic() + REASON_WAIT_S
-        while True:
-            await self.gateway.logs.flush()
-            errors = self.gateway.logs.errors_since(node.key, since)
-            if errors or time.monotonic() >= deadline:
-                break
-            await asyncio.sleep(0.05)
-        if not errors:
-            return message
-        lines = "; ".join(e.message for e in errors[-3:])
-        return f"{message} The node said: {lines}"

@@ -15,10 +15,16 @@ from typing import Any, Callable
 
 import rclpy
 from lifecycle_msgs.msg import TransitionEvent
-from rcl_interfaces.msg import Log
+from rcl_interfaces.msg import Log, ParameterEvent
 from rclpy.context import Context
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_parameter_events,
+)
 
 log = logging.getLogger(__name__)
 
@@ -50,11 +56,13 @@ class RosDomain:
         loop: asyncio.AbstractEventLoop,
         on_transition_event: Callable[[int, str, Any], None],
         on_log: Callable[[int, Any], None],
+        on_parameter_event: Callable[[int, Any], None] | None = None,
     ) -> None:
         self.domain_id = domain_id
         self.loop = loop
         self._on_transition_event = on_transition_event
         self._on_log = on_log
+        self._on_parameter_event = on_parameter_event
         self.context = Context()
         self.node: rclpy.node.Node | None = None
         self.executor: SingleThreadedExecutor | None = None
@@ -75,6 +83,13 @@ class RosDomain:
             enable_rosout=False,
         )
         self.node.create_subscription(Log, "/rosout", self._rosout_callback, ROSOUT_QOS)
+        if self._on_parameter_event is not None:
+            self.node.create_subscription(
+                ParameterEvent,
+                "/parameter_events",
+                lambda msg: self._hand_over(self._on_parameter_event, self.domain_id, msg),
+                qos_profile_parameter_events,
+            )
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self._thread = threading.Thread(target=self._spin, name=f"ros-domain-{self.domain_id}", daemon=True)

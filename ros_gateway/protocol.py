@@ -37,6 +37,9 @@ GET_AVAILABLE_STATES = "get_available_states"
 GET_AVAILABLE_TRANSITIONS = "get_available_transitions"
 GET_TRANSITION_GRAPH = "get_transition_graph"
 CHANGE_STATE = "change_state"
+GET_PARAMETERS = "get_parameters"
+SET_PARAMETERS = "set_parameters"
+START_RUN = "start_run"
 PING = "ping"
 
 

@@ -78,10 +78,14 @@ class Gateway:
         self._stopping = asyncio.Event()
         self._background: set[asyncio.Task] = set()
         from ros_gateway.commands import CommandHandler
+        from ros_gateway.driver import NodeDriver
         from ros_gateway.logs import LogPipeline
+        from ros_gateway.param_keeper import ParameterKeeper
 
         self.logs = LogPipeline(self)
         self.commands = CommandHandler(self)
+        self.params = ParameterKeeper(self)
+        self.driver = NodeDriver(self)
 
     # -- running ----------------------------------------------------------------------
     async def run(self) -> None:
@@ -146,7 +150,9 @@ class Gateway:
         self.robots = robots
         wanted = {r.domain_id for r in robots.values()}
         for domain_id in wanted - set(self.domains):
-            domain = RosDomain(domain_id, self.loop, self.on_transition_event, self.logs.on_log)
+            domain = RosDomain(
+                domain_id, self.loop, self.on_transition_event, self.logs.on_log, self.params.on_event
+            )
             await asyncio.to_thread(domain.start)
             self.domains[domain_id] = domain
         for domain_id in set(self.domains) - wanted:
@@ -211,6 +217,7 @@ class Gateway:
         node.alive, node.seen, node.state_read = True, True, False
         node.last_seen = datetime.now(timezone.utc)
         node.tracker = TransitionTracker()
+        self.params.forget(node.key)  # possibly a new process: its parameters are read afresh
         domain.watch_node(name)
         log.info("node %s appeared on %s", name, robot.name)
         await self.relay.publish(node.groups(), {"type": "node.state", "node": node.payload()})

@@ -173,3 +173,25 @@ def transition_graph() -> list[dict]:
         }
         for t in TRANSITIONS
     ]
+
+
+# Shortest ways between primary states, as sequences of external transition labels.
+_PATHS: dict[tuple[int, int], list[str]] = {
+    (UNCONFIGURED, INACTIVE): ["configure"],
+    (UNCONFIGURED, ACTIVE): ["configure", "activate"],
+    (UNCONFIGURED, FINALIZED): ["shutdown"],
+    (INACTIVE, UNCONFIGURED): ["cleanup"],
+    (INACTIVE, ACTIVE): ["activate"],
+    (INACTIVE, FINALIZED): ["shutdown"],
+    (ACTIVE, INACTIVE): ["deactivate"],
+    (ACTIVE, UNCONFIGURED): ["deactivate", "cleanup"],
+    (ACTIVE, FINALIZED): ["shutdown"],
+}
+
+
+def path(start: int, goal: int) -> list[str] | None:
+    """Transitions leading from one primary state to another ([] if already there);
+    None when there is no way (out of finalized, or from a transition state)."""
+    if start == goal:
+        return []
+    return _PATHS.get((start, goal))

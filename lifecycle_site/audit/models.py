@@ -30,6 +30,7 @@ class TransitionRecord(models.Model):
         API = "api", "API"
         EXTERNAL = "external", "external tool"
         RECOVERY = "recovery", "automatic recovery"
+        CLI = "cli", "command line"
 
     # Kept as plain text too, so the record stays readable after a node or robot is deleted.
     node = models.ForeignKey(
@@ -105,4 +106,61 @@ class TransitionRecord(models.Model):
             "duration_ms": None if self.duration_ms is None else round(self.duration_ms, 2),
             "error": self.error,
             "run_id": self.run_id or None,
+        }
+
+
+class ParameterRecordQuerySet(TransitionRecordQuerySet):
+    pass
+
+
+class ParameterRecord(models.Model):
+    """One parameter change (or refused attempt), append-only like TransitionRecord."""
+
+    node = models.ForeignKey(
+        "fleet.ManagedNode", null=True, blank=True, on_delete=models.SET_NULL, related_name="parameter_changes"
+    )
+    robot_name = models.CharField(max_length=63)
+    node_name = models.CharField(max_length=255)
+    name = models.CharField("parameter", max_length=255)
+    old_value = models.JSONField(null=True, blank=True)
+    new_value = models.JSONField(null=True, blank=True)
+    outcome = models.CharField(max_length=16, choices=[("succeeded", "succeeded"), ("rejected", "rejected"),
+                                                        ("observed", "observed")])
+    reason = models.TextField(blank=True)
+    source = models.CharField(max_length=16, choices=TransitionRecord.Source.choices)
+    requested_by = models.ForeignKey(
+        settings.AUTH_USER_MODEL, null=True, blank=True, on_delete=models.SET_NULL, related_name="+"
+    )
+    requested_by_name = models.CharField(max_length=150, blank=True)
+    at = models.DateTimeField()
+
+    objects = ParameterRecordQuerySet.as_manager()
+
+    class Meta:
+        ordering = ["-at", "-id"]
+        indexes = [models.Index(fields=["node", "-at"], name="param_node_recent")]
+
+    def save(self, *args, **kwargs) -> None:
+        if self.pk is not None:
+            raise AppendOnlyError("Audit records cannot be changed.")
+        if self.requested_by is not None and not self.requested_by_name:
+            self.requested_by_name = self.requested_by.get_username()
+        super().save(*args, **kwargs)
+
+    def delete(self, *args, **kwargs):
+        raise AppendOnlyError("Audit records cannot be deleted.")
+
+    def as_dict(self) -> dict:
+        return {
+            "id": self.id,
+            "robot": self.robot_name,
+            "node": self.node_name,
+            "parameter": self.name,
+            "old": self.old_value,
+            "new": self.new_value,
+            "outcome": self.outcome,
+            "reason": self.reason,
+            "source": self.source,
+            "requested_by": self.requested_by_name or None,
+            "at": self.at.isoformat(),
         }

@@ -37,6 +37,10 @@ class Robot(models.Model):
     )
     description = models.TextField(blank=True)
     enabled = models.BooleanField(default=True, help_text="The gateway watches enabled robots only.")
+    auto_recover = models.BooleanField(
+        default=False,
+        help_text="When a node comes back after its process was restarted, drive it to its desired state.",
+    )
     created = models.DateTimeField(auto_now_add=True)
 
     class Meta:
@@ -70,6 +74,15 @@ class ManagedNode(models.Model):
     first_seen = models.DateTimeField(null=True, blank=True)
     last_seen = models.DateTimeField(null=True, blank=True)
     state_changed = models.DateTimeField(null=True, blank=True)
+    order = models.PositiveIntegerField(
+        null=True, blank=True, help_text="Position in the robot's bring-up order (lowest first); empty: after the others."
+    )
+    desired_state = models.CharField(
+        max_length=16,
+        blank=True,
+        choices=[("", "none"), ("unconfigured", "unconfigured"), ("inactive", "inactive"), ("active", "active")],
+        help_text="The state automatic recovery brings this node back to after a restart of its process.",
+    )
 
     class Meta:
         ordering = ["robot__name", "name"]
@@ -156,3 +169,72 @@ class GatewayHeartbeat(models.Model):
         """Whether any gateway beat recently enough to be trusted with commands."""
         limit = timezone.now() - timedelta(seconds=settings.LIFECYCLE["GATEWAY_OFFLINE_AFTER"])
         return cls.objects.filter(last_beat__gte=limit).exists()
+
+
+class GroupRun(models.Model):
+    """One ordered group operation on a robot's nodes (bring up, pause, ..., restart)."""
+
+    class Operation(models.TextChoices):
+        BRINGUP = "bringup", "bring up"
+        PAUSE = "pause", "pause"
+        RESUME = "resume", "resume"
+        RESET = "reset", "reset"
+        SHUTDOWN = "shutdown", "shut down"
+        RESTART = "restart", "restart"
+        RECOVER = "recover", "recover"
+
+    class Policy(models.TextChoices):
+        STOP = "stop", "stop at the first failure"
+        CONTINUE = "continue", "continue and report"
+
+    class Status(models.TextChoices):
+        QUEUED = "queued", "queued"
+        RUNNING = "running", "running"
+        SUCCEEDED = "succeeded", "succeeded"
+        FAILED = "failed", "failed"
+        PARTIAL = "partial", "partly failed"
+
+    id = models.CharField(primary_key=True, max_length=32, editable=False)
+    robot = models.ForeignKey(Robot, on_delete=models.CASCADE, related_name="runs")
+    operation = models.CharField(max_length=16, choices=Operation.choices)
+    policy = models.CharField(max_length=16, choices=Policy.choices, default=Policy.STOP)
+    node_timeout = models.FloatField(default=5.0)
+    only_nodes = models.JSONField(default=list, blank=True, help_text="Node names; empty for all of the robot's.")
+    status = models.CharField(max_length=16, choices=Status.choices, default=Status.QUEUED)
+    message = models.TextField(blank=True)
+    results = models.JSONField(default=list, blank=True)
+    source = models.CharField(max_length=16, default="api")
+    requested_by = models.ForeignKey(
+        settings.AUTH_USER_MODEL, null=True, blank=True, on_delete=models.SET_NULL, related_name="+"
+    )
+    created = models.DateTimeField(auto_now_add=True)
+    started = models.DateTimeField(null=True, blank=True)
+    finished = models.DateTimeField(null=True, blank=True)
+
+    class Meta:
+        ordering = ["-created"]
+
+    def __str__(self) -> str:
+        return f"{self.get_operation_display()} {self.robot.name} ({self.status})"
+
+    @property
+    def done(self) -> bool:
+        return self.status in (self.Status.SUCCEEDED, self.Status.FAILED, self.Status.PARTIAL)
+
+    def as_dict(self) -> dict:
+        return {
+            "id": self.id,
+            "robot": self.robot.name,
+            "operation": self.operation,
+            "policy": self.policy,
+            "node_timeout": self.node_timeout,
+            "nodes": self.only_nodes,
+            "status": self.status,
+            "message": self.message,
+            "results": self.results,
+            "source": self.source,
+            "requested_by": self.requested_by.get_username() if self.requested_by else None,
+            "created": self.created.isoformat(),
+            "started": self.started.isoformat() if self.started else None,
+            "finished": self.finished.isoformat() if self.finished else None,
+        }

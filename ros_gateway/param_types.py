@@ -1,0 +1,110 @@
+"""ROS 2 parameter types and the checks made before a value is sent. No rclpy: the site
+validates with it too (rcl_interfaces/msg/ParameterType, ParameterDescriptor)."""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+NOT_SET, BOOL, INTEGER, DOUBLE, STRING = 0, 1, 2, 3, 4
+BYTE_ARRAY, BOOL_ARRAY, INTEGER_ARRAY, DOUBLE_ARRAY, STRING_ARRAY = 5, 6, 7, 8, 9
+
+TYPE_NAMES = {
+    NOT_SET: "not set",
+    BOOL: "bool",
+    INTEGER: "integer",
+    DOUBLE: "double",
+    STRING: "string",
+    BYTE_ARRAY: "byte_array",
+    BOOL_ARRAY: "bool_array",
+    INTEGER_ARRAY: "integer_array",
+    DOUBLE_ARRAY: "double_array",
+    STRING_ARRAY: "string_array",
+}
+TYPE_IDS = {name: type_id for type_id, name in TYPE_NAMES.items()}
+
+
+class InvalidValue(ValueError):
+    """The value does not fit the parameter; the message says why, for the operator."""
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_number(value: Any) -> bool:
+    return (_is_int(value) or isinstance(value, float)) and math.isfinite(value)
+
+
+def coerce(value: Any, type_name: str) -> Any:
+    """``value`` as the parameter type wants it (an int is fine for a double), or InvalidValue."""
+    if type_name == "bool":
+        if isinstance(value, bool):
+            return value
+        raise InvalidValue("must be true or false")
+    if type_name == "integer":
+        if _is_int(value):
+            return value
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+        raise InvalidValue("must be a whole number")
+    if type_name == "double":
+        if _is_number(value):
+            return float(value)
+        raise InvalidValue("must be a number")
+    if type_name == "string":
+        if isinstance(value, str):
+            return value
+        raise InvalidValue("must be text")
+    if type_name.endswith("_array"):
+        if not isinstance(value, list):
+            raise InvalidValue("must be a list")
+        item_type = {"byte_array": "integer", "bool_array": "bool", "integer_array": "integer",
+                     "double_array": "double", "string_array": "string"}[type_name]
+        items = []
+        for index, item in enumerate(value):
+            try:
+                items.append(coerce(item, item_type))
+            except InvalidValue as exc:
+                raise InvalidValue(f"item {index} {exc}") from None
+        if type_name == "byte_array" and any(not 0 <= b <= 255 for b in items):
+            raise InvalidValue("items must be bytes (0-255)")
+        return items
+    raise InvalidValue(f"has type {type_name!r}, which cannot be set")
+
+
+def _in_range(value: float, low: float, high: float, step: float) -> bool:
+    if not low <= value <= high:
+        return False
+    if not step:
+        return True
+    if value == high:
+        return True  # ROS accepts the upper bound even off the step grid
+    steps = (value - low) / step
+    return math.isclose(steps, round(steps), abs_tol=1e-9)
+
+
+def check(value: Any, descriptor: dict) -> Any:
+    """Check one new value against the parameter's descriptor (as listed by the gateway).
+
+    Returns the value coerced to the parameter's type; raises InvalidValue with the reason.
+    """
+    if descriptor.get("read_only"):
+        raise InvalidValue("is read-only")
+    type_name = descriptor.get("type", "not set")
+    if type_name == "not set" or descriptor.get("dynamic_typing"):
+        return value
+    value = coerce(value, type_name)
+    for bound in descriptor.get("integer_range") or []:
+        if not _in_range(value, bound["from_value"], bound["to_value"], bound.get("step", 0)):
+            raise InvalidValue(_range_text(bound))
+    for bound in descriptor.get("floating_point_range") or []:
+        if not _in_range(value, bound["from_value"], bound["to_value"], bound.get("step", 0.0)):
+            raise InvalidValue(_range_text(bound))
+    return value
+
+
+def _range_text(bound: dict) -> str:
+    text = f"must be between {bound['from_value']:g} and {bound['to_value']:g}"
+    if bound.get("step"):
+        text += f" in steps of {bound['step']:g}"
+    return text
