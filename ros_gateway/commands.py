@@ -82,6 +82,8 @@ class CommandHandler:
         timeout = float(command.get("timeout") or self.gateway.config["SERVICE_TIMEOUT"])
         if name == protocol.PING:
             return {"ok": True, "domains": sorted(self.gateway.domains), "nodes": len(self.gateway.nodes)}
+        if name == protocol.START_RUN:
+            return await self.gateway.groups.start(str(command.get("run_id", "")))
         node = self._node(command)
         domain = self.gateway.domains[node.robot.domain_id]
         try:

@@ -147,6 +147,12 @@ class RosDomain:
             10,
         )
 
+    def incarnation(self, fqn: str) -> frozenset:
+        """Ids of the endpoints publishing the node's transition events: a process that
+        restarts under the same name gets new ones, even while the old are still listed."""
+        infos = self.node.get_publishers_info_by_topic(f"{fqn}/transition_event")
+        return frozenset(bytes(info.endpoint_gid) for info in infos)
+
     def forget_node(self, fqn: str) -> None:
         """Drop the node's subscription and clients (it vanished or left our robots)."""
         subscription = self._event_subscriptions.pop(fqn, None)

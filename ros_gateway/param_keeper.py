@@ -56,6 +56,8 @@ class ParameterKeeper:
         """Check each value against the node's descriptors, send the good ones together, and
         record every outcome. Returns one result per requested name, in request order."""
         known = self.cache.get(node.key) or {p["name"]: p for p in await self.listing(node, timeout)}
+        # Taken now: the node's /parameter_events echo may update the cache before it answers.
+        olds = {name: known.get(name, {}).get("value") for name in values}
         results: dict[str, dict] = {}
         to_send: dict[str, tuple[Any, str]] = {}
         for name, value in values.items():
@@ -84,7 +86,7 @@ class ParameterKeeper:
         changes = []
         for name, value in values.items():
             result = results[name]
-            old = known.get(name, {}).get("value")
+            old = olds[name]
             new = to_send[name][0] if name in to_send else value
             if result["successful"]:
                 known[name] = {**known[name], "value": new}

@@ -17,8 +17,13 @@ from django.conf import settings
 
 from ros_gateway import protocol, store
 from ros_gateway import state_machine as sm
+from ros_gateway.commands import CommandHandler
 from ros_gateway.domain import RosDomain
+from ros_gateway.driver import NodeDriver
+from ros_gateway.groups import GroupRunner
 from ros_gateway.lifecycle import NodeUnreachable, read_state
+from ros_gateway.logs import LogPipeline
+from ros_gateway.param_keeper import ParameterKeeper
 from ros_gateway.relay import Relay
 from ros_gateway.store import db
 from ros_gateway.streams import Completed, TransitionTracker
@@ -38,6 +43,9 @@ class LiveNode:
     row: store.NodeRow
     alive: bool = False  # believed running (as the site shows it)
     seen: bool = False  # found in the ROS graph by this gateway run, and subscribed to
+    # Set when this run saw the node go and come back, or its process replaced: worth recovering.
+    respawned: bool = False
+    incarnation: frozenset = frozenset()
     state_id: int = sm.UNKNOWN
     state_read: bool = False  # the state has been read from the node since it appeared
     tracker: TransitionTracker = field(default_factory=TransitionTracker)
@@ -77,15 +85,12 @@ class Gateway:
         self.started = datetime.now(timezone.utc)
         self._stopping = asyncio.Event()
         self._background: set[asyncio.Task] = set()
-        from ros_gateway.commands import CommandHandler
-        from ros_gateway.driver import NodeDriver
-        from ros_gateway.logs import LogPipeline
-        from ros_gateway.param_keeper import ParameterKeeper
-
         self.logs = LogPipeline(self)
         self.commands = CommandHandler(self)
         self.params = ParameterKeeper(self)
         self.driver = NodeDriver(self)
+        self.groups = GroupRunner(self)
+        self._passes = 0
 
     # -- running ----------------------------------------------------------------------
     async def run(self) -> None:
@@ -192,6 +197,8 @@ class Gateway:
 
     # -- discovery ------------------------------------------------------------------------
     async def discover(self) -> None:
+        self._passes += 1
+        check_incarnations = self._passes % 4 == 0
         for domain_id, domain in list(self.domains.items()):
             present = domain.lifecycle_node_names()
             for name in present:
@@ -202,6 +209,8 @@ class Gateway:
                         await self._appeared(domain, robot, name)
                 elif not node.state_read:
                     self.spawn(self._read_state(domain, node))
+                elif check_incarnations:
+                    self._check_incarnation(domain, node)
             if time.monotonic() - domain.started_at < DISCOVERY_SETTLE_S:
                 continue
             for (node_domain, name), node in list(self.nodes.items()):
@@ -217,6 +226,8 @@ class Gateway:
         node.alive, node.seen, node.state_read = True, True, False
         node.last_seen = datetime.now(timezone.utc)
         node.tracker = TransitionTracker()
+        node.respawned = node.incarnation != frozenset()  # seen before in this run: it came back
+        node.incarnation = domain.incarnation(name)
         self.params.forget(node.key)  # possibly a new process: its parameters are read afresh
         domain.watch_node(name)
         log.info("node %s appeared on %s", name, robot.name)
@@ -230,6 +241,15 @@ class Gateway:
         await db(store.nodes_lost)([node.row.id])
         await self.relay.publish(node.groups(), {"type": "node.state", "node": node.payload()})
 
+    def _check_incarnation(self, domain: RosDomain, node: LiveNode) -> None:
+        current = domain.incarnation(node.name)
+        if current - node.incarnation and node.incarnation:
+            log.info("%s on %s was restarted (new process under the same name)", node.name, node.robot.name)
+            node.respawned, node.state_read = True, False
+            node.tracker = TransitionTracker()
+            self.params.forget(node.key)
+        node.incarnation = current
+
     async def _read_state(self, domain: RosDomain, node: LiveNode) -> None:
         if node.lock.locked():
             return  # a command is running; it reads the state itself
@@ -240,6 +260,19 @@ class Gateway:
             return
         node.state_read = True
         await self.set_state(node, state_id)
+        if node.respawned:
+            node.respawned = False
+            await self._maybe_recover(node, state_id)
+
+    async def _maybe_recover(self, node: LiveNode, state_id: int) -> None:
+        """A node whose process was restarted comes back unconfigured: if its robot wants it,
+        bring it back to the state an operator asked for."""
+        robot = self.robots.get(node.robot.id)
+        if robot is None or not robot.auto_recover:
+            return
+        desired = await db(store.desired_state)(node.row.id)
+        if desired and sm.is_primary(state_id) and state_id != sm.FINALIZED and sm.state_label(state_id) != desired:
+            self.spawn(self.groups.recover(node, desired))
 
     async def _check_settled(self, node: LiveNode, state_id: int) -> None:
         await asyncio.sleep(2 * self.config["SERVICE_TIMEOUT"])

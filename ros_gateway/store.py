@@ -27,6 +27,7 @@ class RobotInfo:
     name: str
     domain_id: int
     namespace: str
+    auto_recover: bool = False
 
     def owns(self, node_name: str) -> bool:
         return not self.namespace or node_name.startswith(self.namespace.rstrip("/") + "/")
@@ -42,8 +43,8 @@ class NodeRow:
 
 def load_robots() -> list[RobotInfo]:
     return [
-        RobotInfo(r.id, r.name, r.domain_id, r.namespace)
-        for r in Robot.objects.filter(enabled=True).only("id", "name", "domain_id", "namespace")
+        RobotInfo(r.id, r.name, r.domain_id, r.namespace, r.auto_recover)
+        for r in Robot.objects.filter(enabled=True).only("id", "name", "domain_id", "namespace", "auto_recover")
     ]
 
 
@@ -67,6 +68,10 @@ def node_seen(robot_id: int, name: str) -> NodeRow:
             node.first_seen = now
         node.save(update_fields=["alive", "last_seen", "first_seen"])
     return NodeRow(node.id, node.key, node.state_id, True)
+
+
+def desired_state(node_id: int) -> str:
+    return ManagedNode.objects.filter(id=node_id).values_list("desired_state", flat=True).first() or ""
 
 
 def nodes_lost(node_ids: list[int]) -> None:

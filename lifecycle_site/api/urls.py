@@ -1,6 +1,6 @@
 from django.urls import path, re_path
 
-from lifecycle_site.api import views
+from lifecycle_site.api import operations, parameters, views
 from lifecycle_site.api.auth import not_found
 
 app_name = "api"
@@ -11,5 +11,12 @@ urlpatterns = [
     path("nodes/<str:key>/transition", views.transition, name="transition"),
     path("nodes/<str:key>/logs", views.node_logs, name="node-logs"),
     path("transitions", views.transitions, name="transitions"),
+    path("robots/<str:name>/operations", operations.robot_operation, name="robot-operation"),
+    path("robots/<str:name>/runs", operations.robot_runs, name="robot-runs"),
+    path("runs/<str:run_id>", operations.run_detail, name="run"),
+    path("nodes/<str:key>/restart", operations.node_restart, name="node-restart"),
+    path("nodes/<str:key>/desired-state", operations.desired_state, name="node-desired-state"),
+    path("nodes/<str:key>/parameters", parameters.node_parameters, name="node-parameters"),
+    path("nodes/<str:key>/parameters.yaml", parameters.parameters_yaml, name="node-parameters-yaml"),
     re_path(r"^(?P<path>.*)$", not_found),
 ]

@@ -75,7 +75,9 @@ class ManagedNode(models.Model):
     last_seen = models.DateTimeField(null=True, blank=True)
     state_changed = models.DateTimeField(null=True, blank=True)
     order = models.PositiveIntegerField(
-        null=True, blank=True, help_text="Position in the robot's bring-up order (lowest first); empty: after the others."
+        null=True,
+        blank=True,
+        help_text="Position in the robot's bring-up order (lowest first); empty: after the others.",
     )
     desired_state = models.CharField(
         max_length=16,

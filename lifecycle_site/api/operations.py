@@ -1,0 +1,113 @@
+"""JSON API for group operations, soft restart and desired state (docs/api.md)."""
+from __future__ import annotations
+
+import json
+import math
+
+from django.http import Http404, HttpRequest, JsonResponse
+
+from lifecycle_site.api.auth import api_view, error
+from lifecycle_site.api.views import get_node
+from lifecycle_site.fleet.models import GroupRun, Robot
+from lifecycle_site.fleet.runs import RunRefused, start_run, wait_for
+
+OPERATE = "fleet.operate_node"
+
+
+def _body(request: HttpRequest) -> dict | JsonResponse:
+    try:
+        body = json.loads(request.body or b"{}")
+    except (ValueError, UnicodeDecodeError) as exc:
+        return error("malformed_json", f"The request body is not valid JSON: {exc}.", 400)
+    if not isinstance(body, dict):
+        return error("malformed_json", "The request body must be a JSON object.", 400)
+    return body
+
+
+def _positive(value, name: str, default: float) -> float:
+    if value is None:
+        return default
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+        raise RunRefused("invalid_field", f"'{name}' must be a positive number of seconds.")
+    return float(value)
+
+
+def _answer(request: HttpRequest, run: GroupRun) -> JsonResponse:
+    """202 while the run goes on; with ?wait=S, wait (bounded) and answer 200 once it is done."""
+    try:
+        wait = float(request.GET.get("wait", 0))
+    except ValueError:
+        wait = 0.0
+    if wait > 0 and math.isfinite(wait):
+        run = wait_for(run, wait)
+    return JsonResponse({"run": run.as_dict()}, status=200 if run.done else 202)
+
+
+@api_view(methods=("POST",), permission=OPERATE)
+def robot_operation(request: HttpRequest, name: str) -> JsonResponse:
+    robot = Robot.objects.filter(name=name).first()
+    if robot is None:
+        raise Http404(f"There is no robot named {name!r}.")
+    body = _body(request)
+    if isinstance(body, JsonResponse):
+        return body
+    if "operation" not in body:
+        return error("missing_field", 'Send {"operation": "bringup"} (bringup, pause, resume, reset, shutdown).', 400)
+    nodes = body.get("nodes") or []
+    if not isinstance(nodes, list) or not all(isinstance(n, str) for n in nodes):
+        return error("invalid_field", "'nodes' must be a list of ROS node names.", 400)
+    try:
+        run = start_run(
+            robot, str(body["operation"]), user=request.user, source="api",
+            policy=str(body.get("policy", GroupRun.Policy.STOP)),
+            node_timeout=_positive(body.get("timeout"), "timeout", 5.0), nodes=nodes,
+        )
+    except RunRefused as exc:
+        return error(exc.code, exc.message, exc.status)
+    return _answer(request, run)
+
+
+@api_view(methods=("POST",), permission=OPERATE)
+def node_restart(request: HttpRequest, key: str) -> JsonResponse:
+    node = get_node(key)
+    body = _body(request)
+    if isinstance(body, JsonResponse):
+        return body
+    try:
+        run = start_run(node.robot, "restart", user=request.user, source="api", nodes=[node.name],
+                        node_timeout=_positive(body.get("timeout"), "timeout", 5.0))
+    except RunRefused as exc:
+        return error(exc.code, exc.message, exc.status)
+    return _answer(request, run)
+
+
+@api_view()
+def run_detail(request: HttpRequest, run_id: str) -> JsonResponse:
+    run = GroupRun.objects.select_related("robot", "requested_by").filter(pk=run_id).first()
+    if run is None:
+        raise Http404(f"There is no run {run_id!r}.")
+    return _answer(request, run)
+
+
+@api_view()
+def robot_runs(request: HttpRequest, name: str) -> JsonResponse:
+    runs = GroupRun.objects.select_related("robot", "requested_by").filter(robot__name=name)[:50]
+    return JsonResponse({"runs": [r.as_dict() for r in runs]})
+
+
+@api_view(methods=("PUT",), permission=OPERATE)
+def desired_state(request: HttpRequest, key: str) -> JsonResponse:
+    node = get_node(key)
+    body = _body(request)
+    if isinstance(body, JsonResponse):
+        return body
+    if "desired_state" not in body:
+        return error("missing_field", 'Send {"desired_state": "active"} (or null to clear it).', 400)
+    wanted = body["desired_state"] or ""
+    allowed = [value for value, _ in node._meta.get_field("desired_state").choices]
+    if wanted not in allowed:
+        return error("invalid_field", "desired_state must be unconfigured, inactive, active or null.", 400)
+    node.desired_state = wanted
+    node.save(update_fields=["desired_state"])
+    return JsonResponse({"id": node.key, "desired_state": wanted or None,
+                         "auto_recover": node.robot.auto_recover})

@@ -1,0 +1,207 @@
+"""Ordered group operations on a robot's nodes, soft restart and automatic recovery.
+
+What Nav2's lifecycle manager does, without its surprises: nodes already where they should
+be are skipped, not failed; after a timeout the real state is read again before a node is
+called failed; a failure stops the run or not, as the operator chose; every step lands in
+the audit log under the run's id, and progress is pushed after every node.
+"""
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+import uuid
+from datetime import datetime, timezone
+from typing import TYPE_CHECKING
+
+from django.db.models import F
+
+from lifecycle_site.fleet.models import GroupRun, ManagedNode
+from ros_gateway import protocol
+from ros_gateway import state_machine as sm
+from ros_gateway.lifecycle import NodeUnreachable, read_state
+from ros_gateway.store import db
+
+if TYPE_CHECKING:
+    from ros_gateway.service import Gateway, LiveNode
+
+log = logging.getLogger(__name__)
+
+# Operation -> (target state, nodes in reverse order?, states the operation leaves alone)
+PLANS: dict[str, tuple[int, bool, tuple[int, ...]]] = {
+    "bringup": (sm.ACTIVE, False, ()),
+    "pause": (sm.INACTIVE, True, (sm.UNCONFIGURED,)),
+    "resume": (sm.ACTIVE, False, (sm.UNCONFIGURED,)),
+    "reset": (sm.UNCONFIGURED, True, ()),
+    "shutdown": (sm.FINALIZED, True, ()),
+    "restart": (sm.ACTIVE, False, ()),
+}
+DESIRED = {"unconfigured": sm.UNCONFIGURED, "inactive": sm.INACTIVE, "active": sm.ACTIVE}
+# After a step timed out with the node still inside the transition, how many more timeouts
+# to give it to finish before calling it failed.
+SETTLE_TIMEOUTS = 3
+
+
+def _load(run_id: str) -> GroupRun | None:
+    return GroupRun.objects.select_related("robot").filter(pk=run_id).first()
+
+
+def _ordered_names(robot_id: int) -> list[str]:
+    """The robot's bring-up order: listed nodes by position, then the others by name."""
+    nodes = ManagedNode.objects.filter(robot_id=robot_id).order_by(F("order").asc(nulls_last=True), "name")
+    return list(nodes.values_list("name", flat=True))
+
+
+def _save(run_id: str, **fields) -> None:
+    GroupRun.objects.filter(pk=run_id).update(**fields)
+
+
+def _create_recovery(robot_id: int, node_name: str, target: str) -> str:
+    run = GroupRun.objects.create(
+        id=uuid.uuid4().hex, robot_id=robot_id, operation=GroupRun.Operation.RECOVER, only_nodes=[node_name],
+        source="recovery", status=GroupRun.Status.QUEUED, message=f"back to {target}",
+    )
+    return run.id
+
+
+class GroupRunner:
+    def __init__(self, gateway: "Gateway") -> None:
+        self.gateway = gateway
+        self.recovering: set[str] = set()  # node keys with a recovery under way
+
+    async def start(self, run_id: str) -> dict:
+        """Accept a recorded run and carry it out in the background."""
+        run = await db(_load)(run_id)
+        if run is None:
+            return {"ok": False, "error": {"code": "not_found", "message": f"There is no run {run_id}."}}
+        if run.robot_id not in self.gateway.robots:
+            message = f"Robot {run.robot.name} is not watched (disabled or just added); try again in a moment."
+            await db(_save)(run_id, status=GroupRun.Status.FAILED, message=message)
+            return {"ok": False, "error": {"code": "robot_not_watched", "message": message}}
+        self.gateway.spawn(self._execute(run))
+        return {"ok": True, "run_id": run_id}
+
+    async def recover(self, node: "LiveNode", desired: str) -> None:
+        """Drive a node that came back (after its process was restarted) to its desired state."""
+        if node.key in self.recovering:
+            return
+        self.recovering.add(node.key)
+        try:
+            log.info("recovering %s:%s to %s", node.robot.name, node.name, desired)
+            run_id = await db(_create_recovery)(node.robot.id, node.name, desired)
+            run = await db(_load)(run_id)
+            await self._execute(run, target_override=DESIRED[desired])
+        finally:
+            self.recovering.discard(node.key)
+
+    async def _execute(self, run: GroupRun, target_override: int | None = None) -> None:
+        started = datetime.now(timezone.utc)
+        await db(_save)(run.id, status=GroupRun.Status.RUNNING, started=started)
+        plan = PLANS.get(run.operation)
+        target, reverse, leave_alone = plan if plan else (target_override, False, ())
+        if target_override is not None:
+            target = target_override
+        names = run.only_nodes or await db(_ordered_names)(run.robot_id)
+        if reverse:
+            names = list(reversed(names))
+        results: list[dict] = []
+        stopped_by: str | None = None
+        for name in names:
+            if stopped_by:
+                results.append({"node": name, "outcome": "not_run", "steps": [],
+                                "message": f"not run: the run stopped after {stopped_by} failed"})
+                continue
+            node = self.gateway.find_node(run.robot.name, name)
+            result = await self._drive_node(run, node, name, target, leave_alone)
+            results.append(result)
+            await self._progress(run, results)
+            if result["outcome"] == "failed" and run.policy == GroupRun.Policy.STOP:
+                stopped_by = name
+        failed = sum(r["outcome"] == "failed" for r in results)
+        if not failed:
+            status = GroupRun.Status.SUCCEEDED
+        elif stopped_by or failed == len(results):
+            status = GroupRun.Status.FAILED
+        else:
+            status = GroupRun.Status.PARTIAL
+        summary = ", ".join(f"{sum(r['outcome'] == o for r in results)} {o.replace('_', ' ')}"
+                            for o in ("succeeded", "skipped", "failed", "not_run")
+                            if any(r["outcome"] == o for r in results))
+        await db(_save)(run.id, status=status, results=results, finished=datetime.now(timezone.utc),
+                        message=summary or "no nodes")
+        await self._progress(run, results, status=status, message=summary)
+        log.info("run %s (%s of %s): %s", run.id, run.operation, run.robot.name, summary)
+
+    async def _drive_node(self, run: GroupRun, node: "LiveNode | None", name: str, target: int,
+                          leave_alone: tuple[int, ...]) -> dict:
+        result = {"node": name, "node_id": node.key if node else None, "steps": [], "outcome": "succeeded",
+                  "message": ""}
+        if node is None or not node.alive:
+            return {**result, "outcome": "failed", "message": f"{name} is not running"}
+        began = time.perf_counter()
+        try:
+            # Bound everything, waiting for a busy node included: per step a call, re-reads, settling.
+            async with asyncio.timeout(run.node_timeout * (4 + SETTLE_TIMEOUTS) * 4 + 5):
+                async with node.lock:
+                    state = await self._settled_state(node, run.node_timeout)
+                    if run.operation == "restart" and state in (sm.INACTIVE, sm.ACTIVE):
+                        steps = sm.path(state, sm.UNCONFIGURED) + ["configure", "activate"]
+                    elif state in leave_alone:
+                        return {**result, "outcome": "skipped", "state": sm.state_dict(state),
+                                "message": f"left alone ({sm.state_label(state)})"}
+                    else:
+                        steps = sm.path(state, target)
+                    if steps is None:
+                        return {**result, "outcome": "failed", "state": sm.state_dict(state),
+                                "message": f"cannot go from {sm.state_label(state)} to {sm.state_label(target)}"
+                                + (" (restart its process)" if state == sm.FINALIZED else "")}
+                    if not steps:
+                        return {**result, "outcome": "skipped", "state": sm.state_dict(state),
+                                "message": f"already {sm.state_label(state)}"}
+                    for label in steps:
+                        step = await self._step(run, node, label)
+                        result["steps"].append(step)
+                        if step["outcome"] != "succeeded":
+                            result.update(outcome="failed", message=step["message"])
+                            break
+        except NodeUnreachable as exc:
+            result.update(outcome="failed", message=str(exc))
+        except TimeoutError:
+            result.update(outcome="failed", message="gave up waiting for the node (busy or hung)")
+        result["state"] = sm.state_dict(node.state_id)
+        result["duration_ms"] = round((time.perf_counter() - began) * 1000, 1)
+        return result
+
+    async def _step(self, run: GroupRun, node: "LiveNode", label: str) -> dict:
+        outcome, record = await self.gateway.driver.transition(
+            node, label, run.node_timeout, source=run.source, user_id=run.requested_by_id, run_id=run.id
+        )
+        status, message = outcome.outcome, outcome.message
+        if status == "timed_out":
+            # Nav2 calls this a failure without looking; the node may just have been slow.
+            state = await self._settled_state(node, SETTLE_TIMEOUTS * run.node_timeout)
+            goal = sm.SUCCESS_GOAL.get(outcome.transition.id) if outcome.transition else None
+            if state == goal:
+                status, message = "succeeded", f"slow: answered after the timeout, but reached {sm.state_label(state)}"
+        return {"transition": label, "outcome": status, "message": message,
+                "duration_ms": round(outcome.duration_ms, 1), "record_id": record["id"],
+                "to": sm.state_dict(node.state_id)}
+
+    async def _settled_state(self, node: "LiveNode", timeout: float) -> int:
+        """The node's real state, waiting (bounded) while it is inside a transition."""
+        domain = self.gateway.domains[node.robot.domain_id]
+        deadline = time.monotonic() + timeout
+        while True:
+            state = await read_state(domain, node.name, timeout)
+            if sm.is_primary(state) or time.monotonic() >= deadline:
+                await self.gateway.set_state(node, state)
+                return state
+            await asyncio.sleep(0.1)
+
+    async def _progress(self, run: GroupRun, results: list[dict], status: str = "running", message: str = "") -> None:
+        await db(_save)(run.id, results=results)
+        await self.gateway.relay.publish(
+            [protocol.robot_group(run.robot_id)],
+            {"type": "run.progress", "run": {"id": run.id, "robot": run.robot.name, "operation": run.operation,
+                                             "status": status, "message": message, "results": results}},
+        )

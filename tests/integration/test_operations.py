@@ -1,0 +1,214 @@
+"""Parameters, ordered group operations, soft restart and recovery, on real nodes."""
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+
+import pytest
+import yaml
+
+from lifecycle_site.audit.models import ParameterRecord, TransitionRecord
+from lifecycle_site.fleet.models import ManagedNode, Robot
+from lifecycle_site.fleet.param_files import diff, load
+from tests import stack
+from tests.integration.conftest import register, wait_node
+
+ROBOT = "it-ops"
+
+
+@pytest.fixture(scope="module")
+def ops(gateway):
+    register(ROBOT, stack.domain(8))
+    processes = {
+        "main": stack.start_robot("ops-main", stack.domain(8), "lidar_driver,camera_driver,planner",
+                                  extra=("--generic", "3", "--generic-prefix", "spare")),
+        "bad": stack.start_robot("ops-bad", stack.domain(8), "flaky_node", "flaky_node.failure_mode:=fail_configure",
+                                 namespace="/bad"),
+        "slow": stack.start_robot("ops-slow", stack.domain(8), "flaky_node", "flaky_node.failure_mode:=slow_configure",
+                                  "flaky_node.slow_seconds:=2.5", namespace="/slow"),
+    }
+    for name in ("lidar_driver", "camera_driver", "planner", "bad.flaky_node", "slow.flaky_node", "spare_002"):
+        wait_node(None, f"{ROBOT}.{name}", alive=True, state="unconfigured")
+    yield processes
+    for process in processes.values():
+        process.stop()
+
+
+def patch(api, key, values):
+    return api.patch(f"/api/v1/nodes/{key}/parameters", values, content_type="application/json")
+
+
+def operation(api, body, wait=30):
+    return api.post(f"/api/v1/robots/{ROBOT}/operations?wait={wait}", body, content_type="application/json")
+
+
+def test_parameters_are_listed_with_types_and_descriptors(api, ops):
+    response = api.get(f"/api/v1/nodes/{ROBOT}.lidar_driver/parameters")
+    assert response.status_code == 200
+    parameters = {p["name"]: p for p in response.json()["parameters"]}
+    rate = parameters["scan_rate_hz"]
+    assert rate["type"] in ("integer", "double") and rate["description"]
+    assert rate["integer_range"] or rate["floating_point_range"]
+    assert parameters["use_sim_time"]["type"] == "bool"
+
+
+def test_setting_parameters_is_checked_answered_per_parameter_and_audited(api, ops):
+    key = f"{ROBOT}.lidar_driver"
+    current = {p["name"]: p for p in api.get(f"/api/v1/nodes/{key}/parameters").json()["parameters"]}
+    too_high = current["scan_rate_hz"]["floating_point_range"][0]["to_value"] + 100
+    response = patch(api, key, {"scan_rate_hz": too_high, "frame_id": "laser_front", "num_points": "many"})
+    assert response.status_code == 422
+    results = {r["name"]: r for r in response.json()["error"]["results"]}
+    assert "must be between" in results["scan_rate_hz"]["reason"]
+    assert "read-only" in results["frame_id"]["reason"]
+    assert "whole number" in results["num_points"]["reason"]
+    new_rate = 7.0
+    response = patch(api, key, {"scan_rate_hz": new_rate, "num_points": 720})
+    assert response.status_code == 200, response.json()
+    assert all(r["successful"] for r in response.json()["results"])
+    listed = {p["name"]: p["value"] for p in api.get(f"/api/v1/nodes/{key}/parameters").json()["parameters"]}
+    assert listed["num_points"] == 720 and listed["scan_rate_hz"] == new_rate
+    record = ParameterRecord.objects.filter(node__key=key, name="num_points", outcome="succeeded").first()
+    assert (record.old_value, record.new_value, record.source, record.requested_by_name) == (
+        current["num_points"]["value"], 720, "api", "ivan-operator")
+    assert ParameterRecord.objects.filter(node__key=key, name="scan_rate_hz", outcome="rejected").exists()
+    # The echo of our own change on /parameter_events is not recorded a second time.
+    assert not ParameterRecord.objects.filter(node__key=key, source="external").exists()
+
+
+def test_the_nodes_own_refusal_is_returned(api, ops):
+    response = patch(api, f"{ROBOT}.bad.flaky_node", {"failure_mode": "explode"})
+    assert response.status_code == 422
+    reason = response.json()["error"]["results"][0]["reason"]
+    assert "explode" in reason or "failure_mode" in reason
+
+
+def test_parameter_change_by_another_tool_is_recorded_with_old_and_new(api, ops):
+    key = f"{ROBOT}.camera_driver"
+    before = {p["name"]: p["value"] for p in api.get(f"/api/v1/nodes/{key}/parameters").json()["parameters"]}
+    script = (
+        "import rclpy, sys\n"
+        "from rcl_interfaces.srv import SetParameters\n"
+        "from rclpy.parameter import Parameter\n"
+        f"ctx = rclpy.context.Context(); rclpy.init(context=ctx, domain_id={stack.domain(8)})\n"
+        "n = rclpy.create_node('param_tool', context=ctx)\n"
+        "c = n.create_client(SetParameters, '/camera_driver/set_parameters')\n"
+        "assert c.wait_for_service(10)\n"
+        "f = c.call_async(SetParameters.Request(parameters=[Parameter('exposure_ms', value=7.5).to_parameter_msg()]))\n"
+        "ex = rclpy.executors.SingleThreadedExecutor(context=ctx); ex.add_node(n)\n"
+        "ex.spin_until_future_complete(f, timeout_sec=10)\n"
+        "print(f.result().results[0].successful)\n"
+    )
+    result = subprocess.run([sys.executable, "-c", script], env=stack.environment(), capture_output=True,
+                            text=True, timeout=60)
+    assert result.stdout.strip() == "True", result.stderr
+    record = stack.wait_for(
+        lambda: ParameterRecord.objects.filter(node__key=key, name="exposure_ms", source="external").first(),
+        10, "the external parameter change in the audit log")
+    assert (record.old_value, record.new_value) == (before["exposure_ms"], 7.5)
+
+
+def test_parameter_file_round_trip(api, ops):
+    key = f"{ROBOT}.planner"
+    text = api.get(f"/api/v1/nodes/{key}/parameters.yaml").content.decode()
+    assert text.startswith("/planner:") and "ros__parameters" in text
+    current = api.get(f"/api/v1/nodes/{key}/parameters").json()["parameters"]
+    wanted = load(text, "/planner")
+    assert diff(current, wanted) == []
+    document = yaml.safe_load(text)
+    document["/planner"]["ros__parameters"]["tolerance_m"] = 0.3
+    wanted = load(yaml.safe_dump(document), "/planner")
+    changes = diff(current, wanted)
+    assert [c["name"] for c in changes] == ["tolerance_m"]
+    assert patch(api, key, {c["name"]: c["new"] for c in changes}).status_code == 200
+    assert diff(api.get(f"/api/v1/nodes/{key}/parameters").json()["parameters"], wanted) == []
+
+
+def _order(*names: str) -> None:
+    for position, name in enumerate(names, start=1):
+        ManagedNode.objects.filter(robot__name=ROBOT, name=name).update(order=position)
+
+
+def test_bringup_stops_at_the_first_failure_or_continues_as_asked(api, ops):
+    _order("/lidar_driver", "/bad/flaky_node", "/camera_driver")
+    nodes = ["/lidar_driver", "/bad/flaky_node", "/camera_driver"]
+    response = operation(api, {"operation": "bringup", "policy": "stop", "nodes": nodes})
+    run = response.json()["run"]
+    assert response.status_code == 200 and run["status"] == "failed"
+    assert [(r["node"], r["outcome"]) for r in run["results"]] == [
+        ("/lidar_driver", "succeeded"), ("/bad/flaky_node", "failed"), ("/camera_driver", "not_run")]
+    assert [s["transition"] for s in run["results"][0]["steps"]] == ["configure", "activate"]
+    assert "FAILURE" in run["results"][1]["message"]
+    assert TransitionRecord.objects.filter(run_id=run["id"]).count() == 3  # 2 for lidar, 1 for flaky
+
+    response = operation(api, {"operation": "bringup", "policy": "continue", "nodes": nodes})
+    run = response.json()["run"]
+    assert run["status"] == "partial"
+    outcomes = [(r["node"], r["outcome"]) for r in run["results"]]
+    assert outcomes == [("/lidar_driver", "skipped"), ("/bad/flaky_node", "failed"), ("/camera_driver", "succeeded")]
+    assert run["results"][0]["message"] == "already active"
+
+
+def test_pause_and_reset_go_in_reverse_order(api, ops):
+    _order("/lidar_driver", "/bad/flaky_node", "/camera_driver")
+    nodes = ["/lidar_driver", "/camera_driver"]
+    run = operation(api, {"operation": "bringup", "nodes": nodes}).json()["run"]
+    assert run["status"] == "succeeded"
+    run = operation(api, {"operation": "pause", "nodes": nodes}).json()["run"]
+    assert [r["node"] for r in run["results"]] == ["/camera_driver", "/lidar_driver"]
+    assert {r["state"]["label"] for r in run["results"]} == {"inactive"}
+    run = operation(api, {"operation": "reset", "nodes": nodes}).json()["run"]
+    assert run["status"] == "succeeded" and {r["state"]["label"] for r in run["results"]} == {"unconfigured"}
+
+
+def test_a_slow_node_that_gets_there_late_is_not_called_failed(api, ops):
+    response = operation(api, {"operation": "bringup", "timeout": 1, "nodes": ["/slow/flaky_node"]}, wait=40)
+    run = response.json()["run"]
+    result = run["results"][0]
+    assert result["outcome"] == "succeeded", result
+    assert result["steps"][0]["message"].startswith("slow:")
+    assert result["state"]["label"] == "active"
+
+
+@pytest.mark.parametrize("start", [[], ["configure"], ["configure", "activate"]])
+def test_restart_from_every_primary_state_ends_active(api, ops, start):
+    key = f"{ROBOT}.spare_{len(start):03d}"
+    for name in start:
+        api.post(f"/api/v1/nodes/{key}/transition", {"transition": name}, content_type="application/json")
+    response = api.post(f"/api/v1/nodes/{key}/restart?wait=30", {}, content_type="application/json")
+    run = response.json()["run"]
+    assert run["status"] == "succeeded", run
+    steps = [s["transition"] for s in run["results"][0]["steps"]]
+    expected = {0: ["configure", "activate"], 1: ["cleanup", "configure", "activate"],
+                2: ["deactivate", "cleanup", "configure", "activate"]}[len(start)]
+    assert steps == expected
+    assert ManagedNode.objects.get(key=key).state_label == "active"
+
+
+def test_unknown_operation_and_node_are_refused(api, ops):
+    assert operation(api, {"operation": "explode"}).json()["error"]["code"] == "unknown_operation"
+    assert operation(api, {"operation": "bringup", "nodes": ["/nope"]}).status_code == 404
+    assert operation(api, {}).status_code == 400
+
+
+def test_node_comes_back_to_its_desired_state_after_its_process_is_killed(api, gateway):
+    register("it-recover", stack.domain(9))
+    Robot.objects.filter(name="it-recover").update(auto_recover=True)
+    key = "it-recover.camera_driver"
+    process = stack.start_robot("recover-1", stack.domain(9), "camera_driver", extra=("--autostart", "activate"))
+    wait_node(None, key, alive=True, state="active")
+    response = api.put(f"/api/v1/nodes/{key}/desired-state", {"desired_state": "active"},
+                       content_type="application/json")
+    assert response.status_code == 200
+    process.stop(signal.SIGKILL)  # a crash; its supervisor starts it again at once
+    process = stack.start_robot("recover-2", stack.domain(9), "camera_driver")
+    try:
+        record = stack.wait_for(
+            lambda: TransitionRecord.objects.filter(node__key=key, source="recovery", transition_label="activate",
+                                                    outcome="succeeded").first(),
+            30, "the recovery to bring the node back to active")
+        assert record.run_id
+        wait_node(None, key, state="active", timeout=10)
+    finally:
+        process.stop()
