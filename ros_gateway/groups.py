@@ -200,8 +200,9 @@ class GroupRunner:
 
     async def _progress(self, run: GroupRun, results: list[dict], status: str = "running", message: str = "") -> None:
         await db(_save)(run.id, results=results)
+        node_groups = [protocol.node_group(r["node_id"]) for r in results if r.get("node_id")]
         await self.gateway.relay.publish(
-            [protocol.robot_group(run.robot_id)],
+            [protocol.robot_group(run.robot_id), protocol.FLEET_GROUP, *node_groups],
             {"type": "run.progress", "run": {"id": run.id, "robot": run.robot.name, "operation": run.operation,
                                              "status": status, "message": message, "results": results}},
         )

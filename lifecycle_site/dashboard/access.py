@@ -4,6 +4,7 @@ from __future__ import annotations
 from functools import wraps
 
 from django.contrib.auth.decorators import login_required
+from django.http import HttpResponse
 from django.shortcuts import render
 
 VIEW_PERMISSION = "fleet.view_managednode"
@@ -15,6 +16,22 @@ def viewer_required(view):
     def wrapper(request, *args, **kwargs):
         if not request.user.has_perm(VIEW_PERMISSION):
             return render(request, "dashboard/no_role.html", status=403)
+        return view(request, *args, **kwargs)
+
+    return wrapper
+
+
+def operator_required(view):
+    """For changes: the operator role (or admin); others get a readable refusal."""
+
+    @viewer_required
+    @wraps(view)
+    def wrapper(request, *args, **kwargs):
+        if not request.user.has_perm("fleet.operate_node"):
+            return HttpResponse(
+                '<p class="result fail" role="alert">Your role may view but not operate nodes (operator needed).</p>',
+                status=403,
+            )
         return view(request, *args, **kwargs)
 
     return wrapper

@@ -84,8 +84,17 @@ class LiveConsumer(AsyncWebsocketConsumer):
     async def audit_record(self, event: dict) -> None:
         pass
 
+    async def node_parameters(self, event: dict) -> None:
+        pass
 
-class FleetConsumer(LiveConsumer):
+
+class RunProgressMixin:
+    async def run_progress(self, event: dict) -> None:
+        """Live progress of a group run, swapped into its panel (if this page shows it)."""
+        await self.send_html("dashboard/_run.html", {"run": event["run"], "oob": True})
+
+
+class FleetConsumer(RunProgressMixin, LiveConsumer):
     groups_to_join = [protocol.FLEET_GROUP]
 
     async def send_snapshot(self) -> None:
@@ -104,7 +113,7 @@ class FleetConsumer(LiveConsumer):
         await self.send_html(template, {"node": node, "oob": "true", "can_operate": self.can_operate})
 
 
-class NodeConsumer(LiveConsumer):
+class NodeConsumer(RunProgressMixin, LiveConsumer):
     async def prepare(self) -> bool:
         self.key = self.scope["url_route"]["kwargs"]["key"]
         self.groups_to_join = [protocol.node_group(self.key)]
@@ -123,6 +132,10 @@ class NodeConsumer(LiveConsumer):
     async def audit_record(self, event: dict) -> None:
         await self.send_html("dashboard/_audit_row_oob.html", {"record": event["record"]})
 
+    async def node_parameters(self, event: dict) -> None:
+        """Values changed by anyone: the 'current value' cells follow."""
+        await self.send_html("dashboard/_parameter_values_oob.html", {"changes": event["changes"]})
+
 
 class LogConsumer(LiveConsumer):
     """``ws/logs/node/<key>/`` or ``ws/logs/robot/<name>/``: records as JSON."""
@@ -137,6 +150,12 @@ class LogConsumer(LiveConsumer):
         await self.send(text_data=json.dumps({"records": event["records"]}))
 
     async def node_state(self, event: dict) -> None:
+        pass
+
+    async def node_parameters(self, event: dict) -> None:
+        pass
+
+    async def run_progress(self, event: dict) -> None:
         pass
 
     async def watch_gateway(self) -> None:

@@ -1,6 +1,6 @@
 from django.urls import path
 
-from lifecycle_site.dashboard import audit_views, log_views, views
+from lifecycle_site.dashboard import audit_views, log_views, operation_views, parameter_views, views
 
 app_name = "dashboard"
 urlpatterns = [
@@ -8,6 +8,12 @@ urlpatterns = [
     path("nodes/<str:key>/", views.node_detail, name="node"),
     path("nodes/<str:key>/transition", views.node_transition, name="node-transition"),
     path("robots/<str:robot>/watch", views.watch_node, name="watch-node"),
+    path("robots/<str:robot>/operations", operation_views.robot_operation, name="robot-operation"),
+    path("nodes/<str:key>/restart", operation_views.node_restart, name="node-restart"),
+    path("nodes/<str:key>/desired-state", operation_views.desired_state, name="node-desired-state"),
+    path("nodes/<str:key>/parameters", parameter_views.parameters, name="node-parameters"),
+    path("nodes/<str:key>/parameters/import", parameter_views.import_file, name="node-parameters-import"),
+    path("nodes/<str:key>/parameters/apply", parameter_views.apply_file, name="node-parameters-apply"),
     path("logs/<str:scope>/<str:name>/", log_views.log_console, name="logs"),
     path("logs/<str:scope>/<str:name>/download", log_views.log_download, name="logs-download"),
     path("logs/<str:scope>/<str:name>/since", log_views.log_since, name="logs-since"),

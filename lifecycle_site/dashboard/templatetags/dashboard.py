@@ -44,3 +44,44 @@ def stamp(iso: str | None) -> str:
     from datetime import datetime, timezone
 
     return datetime.fromisoformat(iso).astimezone(timezone.utc).strftime("%Y-%m-%d %H:%M:%S")
+
+
+@register.filter
+def make_list_words(text: str) -> list[str]:
+    return text.split()
+
+
+@register.filter
+def param_dom(name: str) -> str:
+    """A selector-safe id part: parameter names may hold dots and slashes (QoS overrides)."""
+    import re
+
+    return re.sub(r"[^A-Za-z0-9_]", "-", name)
+
+
+@register.filter
+def json_value(value) -> str:
+    import json
+
+    if isinstance(value, str):
+        return value
+    return json.dumps(value)
+
+
+@register.filter
+def get_item(mapping, key):
+    return (mapping or {}).get(key)
+
+
+@register.filter
+def all_successful(results: dict) -> bool:
+    return all(r.get("successful") for r in results.values())
+
+
+OPERATION_LABELS = {"bringup": "Bring-up", "pause": "Pause", "resume": "Resume", "reset": "Reset",
+                    "shutdown": "Shut-down", "restart": "Restart", "recover": "Recovery"}
+
+
+@register.filter
+def operation_label(operation: str) -> str:
+    return OPERATION_LABELS.get(operation, operation)

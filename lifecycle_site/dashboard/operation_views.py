@@ -1,0 +1,59 @@
+"""Group operations, restart and desired state from the pages (the API has the same in JSON)."""
+from __future__ import annotations
+
+from django.http import Http404, HttpRequest, HttpResponse
+from django.shortcuts import render
+from django.views.decorators.http import require_POST
+
+from lifecycle_site.dashboard.access import operator_required
+from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
+from lifecycle_site.fleet.runs import RunRefused, start_run
+
+
+def _run_panel(request: HttpRequest, run: GroupRun | None, error: str = "", status: int = 200) -> HttpResponse:
+    return render(request, "dashboard/_run.html", {"run": run.as_dict() if run else None, "error": error},
+                  status=status)
+
+
+@operator_required
+@require_POST
+def robot_operation(request: HttpRequest, robot: str) -> HttpResponse:
+    robot_obj = Robot.objects.filter(name=robot).first()
+    if robot_obj is None:
+        raise Http404(f"There is no robot {robot}.")
+    try:
+        timeout = float(request.POST.get("timeout") or 5)
+        run = start_run(robot_obj, request.POST.get("operation", ""), user=request.user, source="dashboard",
+                        policy=request.POST.get("policy", "stop"), node_timeout=max(0.5, min(timeout, 25.0)))
+    except ValueError:
+        return _run_panel(request, None, "The timeout must be a number of seconds.")
+    except RunRefused as exc:
+        return _run_panel(request, None, exc.message)
+    return _run_panel(request, run)
+
+
+@operator_required
+@require_POST
+def node_restart(request: HttpRequest, key: str) -> HttpResponse:
+    node = ManagedNode.objects.select_related("robot").filter(key=key).first()
+    if node is None:
+        raise Http404(f"There is no node {key}.")
+    try:
+        run = start_run(node.robot, "restart", user=request.user, source="dashboard", nodes=[node.name])
+    except RunRefused as exc:
+        return _run_panel(request, None, exc.message)
+    return _run_panel(request, run)
+
+
+@operator_required
+@require_POST
+def desired_state(request: HttpRequest, key: str) -> HttpResponse:
+    node = ManagedNode.objects.select_related("robot").filter(key=key).first()
+    if node is None:
+        raise Http404(f"There is no node {key}.")
+    wanted = request.POST.get("desired_state", "")
+    if wanted not in ("", "unconfigured", "inactive", "active"):
+        wanted = ""
+    node.desired_state = wanted
+    node.save(update_fields=["desired_state"])
+    return render(request, "dashboard/_desired_state.html", {"node_obj": node, "can_operate": True, "saved": True})

@@ -1,0 +1,141 @@
+"""The node page's parameter section: view, edit (checked before sending), import/export."""
+from __future__ import annotations
+
+import json
+from typing import Any
+
+from django.http import Http404, HttpRequest, HttpResponse
+from django.shortcuts import render
+from django.views.decorators.http import require_POST
+
+from lifecycle_site.api.parameters import apply, fetch
+from lifecycle_site.dashboard.access import operator_required, viewer_required
+from lifecycle_site.fleet.gateway_client import GatewayError
+from lifecycle_site.fleet.models import ManagedNode
+from lifecycle_site.fleet.param_files import ParameterFileError, diff, load
+from ros_gateway import param_types as pt
+
+MAX_FILE_BYTES = 256 * 1024
+
+
+def _node(key: str) -> ManagedNode:
+    node = ManagedNode.objects.select_related("robot").filter(key=key).first()
+    if node is None:
+        raise Http404(f"There is no node {key}.")
+    return node
+
+
+def _section(request: HttpRequest, node: ManagedNode, **extra) -> HttpResponse:
+    context = {"node_obj": node, "can_operate": request.user.has_perm("fleet.operate_node"), **extra}
+    if "parameters" not in context and "error" not in context:
+        try:
+            context["parameters"] = fetch(node) if node.alive else []
+        except GatewayError as exc:
+            context["error"] = exc.message
+    if not node.alive and "error" not in context:
+        context["error"] = "The node is not running: its parameters cannot be read."
+    return render(request, "dashboard/_parameters.html", context)
+
+
+def _parse(raw: str, entry: dict) -> Any:
+    """A form field as the parameter's type (the gateway checks ranges again)."""
+    kind = entry["type"]
+    try:
+        if kind == "integer":
+            return int(raw)
+        if kind == "double":
+            return float(raw)
+        if kind.endswith("_array"):
+            return json.loads(raw)
+    except ValueError:
+        raise pt.InvalidValue(f"{raw!r} is not a valid {kind.replace('_', ' ')}") from None
+    return raw
+
+
+@viewer_required
+def parameters(request: HttpRequest, key: str) -> HttpResponse:
+    node = _node(key)
+    if request.method != "POST":
+        return _section(request, node)
+    return _edit(request, node)
+
+
+@operator_required
+@require_POST
+def _edit(request: HttpRequest, node: ManagedNode) -> HttpResponse:
+    try:
+        listing = fetch(node)
+    except GatewayError as exc:
+        return _section(request, node, error=exc.message)
+    values, problems = {}, {}
+    for entry in listing:
+        name = entry["name"]
+        if f"seen:{name}" not in request.POST or entry["read_only"]:
+            continue
+        if entry["type"] == "bool":
+            value = f"value:{name}" in request.POST
+        else:
+            raw = request.POST.get(f"value:{name}", "")
+            if raw == _shown(entry["value"]):
+                continue
+            try:
+                value = _parse(raw, entry)
+            except pt.InvalidValue as exc:
+                problems[name] = {"name": name, "successful": False, "reason": str(exc)}
+                continue
+        if value != entry["value"]:
+            values[name] = value
+    results = {}
+    if values:
+        try:
+            results = {r["name"]: r for r in apply(node, values, request.user, "dashboard")}
+        except GatewayError as exc:
+            return _section(request, node, parameters=listing, error=exc.message)
+    results.update(problems)
+    return _section(request, node, results=results, nothing_changed=not results)
+
+
+def _shown(value: Any) -> str:
+    return json.dumps(value) if isinstance(value, list) else ("" if value is None else str(value))
+
+
+@operator_required
+@require_POST
+def import_file(request: HttpRequest, key: str) -> HttpResponse:
+    """Step 1: read an uploaded parameter file and show what it would change."""
+    node = _node(key)
+    upload = request.FILES.get("file")
+    if upload is None:
+        return _section(request, node, import_error="Choose a parameter file (.yaml) first.")
+    if upload.size > MAX_FILE_BYTES:
+        return _section(request, node, import_error=f"The file is larger than {MAX_FILE_BYTES // 1024} KiB.")
+    try:
+        wanted = load(upload.read().decode("utf-8", errors="replace"), node.name)
+        current = fetch(node)
+    except ParameterFileError as exc:
+        return _section(request, node, import_error=f"{upload.name}: {exc}")
+    except GatewayError as exc:
+        return _section(request, node, error=exc.message)
+    changes = diff(current, wanted)
+    applicable = {c["name"]: c["new"] for c in changes if not c["note"]}
+    return _section(request, node, parameters=current, preview=changes, file_name=upload.name,
+                    preview_values=json.dumps(applicable))
+
+
+@operator_required
+@require_POST
+def apply_file(request: HttpRequest, key: str) -> HttpResponse:
+    """Step 2: apply what the preview showed."""
+    node = _node(key)
+    try:
+        values = json.loads(request.POST.get("values", "{}"))
+        assert isinstance(values, dict)
+    except (ValueError, AssertionError):
+        return _section(request, node, import_error="The preview was damaged; import the file again.")
+    if not values:
+        return _section(request, node, nothing_changed=True)
+    try:
+        results = {r["name"]: r for r in apply(node, values, request.user, "dashboard")}
+    except GatewayError as exc:
+        return _section(request, node, error=exc.message)
+    return _section(request, node, results=results)
