@@ -46,13 +46,16 @@ def free_port() -> int:
 
 @pytest.fixture(scope="module")
 def robot(gateway):  # noqa: F811
+    from django.utils import timezone
+
+    started = timezone.now()
     register(ROBOT, stack.domain(7))
     processes = [
         stack.start_robot("br-nodes", stack.domain(7), "lidar_driver,camera_driver,joystick"),
         stack.start_robot("br-flaky", stack.domain(7), "flaky_node", "flaky_node.failure_mode:=fail_configure"),
     ]
-    for node in ("lidar_driver", "camera_driver", "flaky_node"):  # discovered, state read
-        wait_node(None, f"{ROBOT}.{node}", alive=True, state="unconfigured")
+    for node in ("lidar_driver", "camera_driver", "flaky_node"):  # found by this gateway, state read
+        wait_node(None, f"{ROBOT}.{node}", alive=True, state="unconfigured", seen_since=started)
     yield processes
     for process in processes:
         process.stop()

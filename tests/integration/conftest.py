@@ -55,6 +55,8 @@ def wait_node(api: Client, key: str, timeout: float = 20, **expect) -> dict:
             return None
         if "state" in expect and node.state_label != expect["state"]:
             return None
+        if "seen_since" in expect and (node.last_seen is None or node.last_seen < expect["seen_since"]):
+            return None
         return node
 
     return stack.wait_for(matches, timeout, f"{key} with {expect}")
