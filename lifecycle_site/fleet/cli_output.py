@@ -1,0 +1,249 @@
+"""The face of ``manage.py lifecycle``: its verbs, arguments and help, and what it prints (the
+shapes of ``ros2 lifecycle`` where the verbs overlap, the API's JSON shapes for ``--json``, one
+line per node of a group run). The command itself is fleet/management/commands/lifecycle.py."""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from collections.abc import Iterable
+from typing import Any
+
+from django.core.management.base import DjangoHelpFormatter
+
+from lifecycle_site.fleet.gateway_client import MAX_SERVICE_TIMEOUT
+from lifecycle_site.fleet.models import GroupRun, ManagedNode
+from lifecycle_site.fleet.runs import MAX_WAIT_S
+from ros_gateway import protocol
+from ros_gateway import state_machine as sm
+
+RUN_DETAILS = "One line per node as it is done, then a summary; exit 0 only if the run succeeded."
+ROBOT_RUNS = {
+    "bringup": "bring the robot's nodes up: configure, then activate, in order",
+    "shutdown": "shut the robot's nodes down, in reverse order",
+    "pause": "deactivate the robot's nodes, in reverse order",
+    "resume": "activate the robot's nodes, in order",
+    "reset": "deactivate and clean up the robot's nodes, in reverse order",
+}
+RUN_VERBS = (*ROBOT_RUNS, "restart")
+# Verb -> (one-line summary, details) for --help.
+VERBS: dict[str, tuple[str, str]] = {
+    "nodes": ("list the lifecycle nodes", "One line per node: '/joy_to_vel' with --robot, else 'agv-1 /joy_to_vel'."),
+    "get": ("print the state of a node, or of every node",
+            "'unconfigured [1]' for NODE; without NODE 'agv-1 /joy_to_vel: unconfigured [1]' per node.\n"
+            "Live from the node; the last known state (with a note on stderr) when the gateway is offline."),
+    "set": ("trigger a lifecycle transition",
+            "Prints 'Transitioning successful' (exit 0) or 'Transitioning failed' (exit 1, reason on stderr)."),
+    "list": ("list the transitions available from the node's current state",
+             "'- configure [1]', then its start and goal states; -a: the node's whole transition graph."),
+    **{name: (summary, RUN_DETAILS) for name, summary in ROBOT_RUNS.items()},
+    "restart": ("bring a node back to active from whatever state it is in",
+                "Deactivate, clean up, configure, activate, as its state needs.\n" + RUN_DETAILS),
+}
+DESCRIPTION = """\
+Like 'ros2 lifecycle', but against the site: every call goes through the ROS gateway (no DDS
+discovery per call) and every change lands in the audit log with source "cli" and the user.
+
+NODE is a node id as the API uses it, ROBOT.NAME (agv-1.joy_to_vel, agv-1.arm.gripper), or,
+with --robot R, the node's ROS name (/joy_to_vel or joy_to_vel). Several robots may run nodes
+of the same name, so lines about nodes of all robots start with the robot ("agv-1 /joy_to_vel");
+with --robot they show the ROS name only ("/joy_to_vel"), as ros2 does.
+
+Changing verbs (set, bringup, shutdown, pause, resume, reset, restart) act as --user USERNAME,
+else $LIFECYCLE_USER, else the site user named like your login; that user must be active and
+allowed to operate nodes. Read-only verbs (nodes, get, list) need no user."""
+EPILOG = """\
+exit status: 0 success; 1 the transition or run failed (or was still running after --wait);
+2 usage error, unknown node, robot or transition, no usable user; 3 gateway offline or Redis
+unreachable; 130 interrupted (Ctrl-C).
+
+examples:
+  manage.py lifecycle nodes --robot agv-1
+  manage.py lifecycle get agv-1.joy_to_vel
+  manage.py lifecycle set --robot agv-1 /joy_to_vel configure
+  manage.py lifecycle list agv-1.joy_to_vel -a
+  manage.py lifecycle bringup agv-1 --policy continue --timeout 10 --json"""
+
+NODE_HELP = "node id (agv-1.joy_to_vel), or with --robot its ROS name (/joy_to_vel)"
+# How many known names an "unknown node/robot" message lists.
+SAMPLE = 10
+
+
+# --- arguments and help ----------------------------------------------------------------
+
+
+class HelpFormatter(DjangoHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """Django's option order, with the description's paragraphs kept as written."""
+
+
+def seconds(limit: float):
+    """An argparse type: a positive number of seconds up to ``limit``."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+        if not math.isfinite(value) or value <= 0 or value > limit:
+            raise argparse.ArgumentTypeError(f"give a number of seconds above 0 and at most {limit:g}")
+        return value
+
+    return parse
+
+
+def option_sets() -> tuple[argparse.ArgumentParser, ...]:
+    """Options of every verb; of the verbs that call nodes; of the group runs."""
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--json", action="store_true", help="machine-readable output (the API's JSON shapes)")
+    common.add_argument("--robot", metavar="R", help="the robot; NODE may then be a ROS name such as /joy_to_vel")
+    common.add_argument("--user", metavar="USERNAME",
+                        help="who makes changes, for the audit log (default: $LIFECYCLE_USER, else your login)")
+    service = argparse.ArgumentParser(add_help=False)
+    service.add_argument("--timeout", metavar="S", type=seconds(MAX_SERVICE_TIMEOUT),
+                         help=f"bound (s) on each call to a node, sent to the gateway (<= {MAX_SERVICE_TIMEOUT:g})")
+    run = argparse.ArgumentParser(add_help=False)
+    run.add_argument("--policy", choices=GroupRun.Policy.values, default=GroupRun.Policy.STOP,
+                     help="stop at the first failing node (default) or continue and report")
+    run.add_argument("--timeout", metavar="S", type=seconds(MAX_WAIT_S), help="per-node timeout (s), default 5")
+    run.add_argument("--wait", metavar="S", type=seconds(MAX_WAIT_S), default=120.0,
+                     help="how long to follow the run (s, default 120); it goes on in the gateway anyway")
+    return common, service, run
+
+
+def add_verbs(parser: argparse.ArgumentParser) -> None:
+    """The verbs and their arguments."""
+    common, service, run = option_sets()
+    verbs = parser.add_subparsers(dest="verb", required=True, metavar="VERB", title="verbs")
+    sub = {
+        name: verbs.add_parser(name, parents=[common, run if name in RUN_VERBS else service], help=summary,
+                               description=f"{summary}\n\n{details}", formatter_class=HelpFormatter)
+        for name, (summary, details) in VERBS.items()
+    }
+    sub["nodes"].add_argument("-a", "--all", action="store_true", help="also nodes not running now, marked (lost)")
+    sub["nodes"].add_argument("-c", "--count-nodes", action="store_true", help="only print the number of nodes")
+    sub["get"].add_argument("node", nargs="?", metavar="NODE", help=NODE_HELP)
+    sub["get"].add_argument("-a", "--all", action="store_true", help="without NODE: also nodes not running, (lost)")
+    for name in ("set", "list", "restart"):
+        sub[name].add_argument("node", metavar="NODE", help=NODE_HELP)
+    sub["set"].add_argument("transition", metavar="TRANSITION", help="label (configure) or numeric id (1)")
+    sub["list"].add_argument("-a", "--all", action="store_true", help="the node's whole transition graph")
+    for name in ROBOT_RUNS:
+        sub[name].add_argument("robot_name", nargs="?", metavar="ROBOT", help="the robot (or --robot R)")
+
+
+# --- output --------------------------------------------------------------------------
+
+
+def to_json(data: Any) -> str:
+    return json.dumps(data, indent=2, ensure_ascii=False)
+
+
+def state_text(state: dict) -> str:
+    """``unconfigured [1]``, as ``ros2 lifecycle get`` prints a state."""
+    return f"{state['label']} [{state['id']}]"
+
+
+def node_label(node: ManagedNode, with_robot: bool) -> str:
+    """``/joy_to_vel`` when the robot is implied (--robot), else ``agv-1 /joy_to_vel``."""
+    return f"{node.robot.name} {node.name}" if with_robot else node.name
+
+
+def lost_mark(node: ManagedNode) -> str:
+    return "" if node.alive else " (lost)"
+
+
+def node_json(node: ManagedNode, state: dict | None = None, **extra: Any) -> dict:
+    """The API's node shape (GET /api/v1/nodes), optionally with a freshly read state."""
+    payload = protocol.node_payload(
+        key=node.key,
+        robot=node.robot.name,
+        name=node.name,
+        state_id=(state or node.state)["id"],
+        alive=node.alive,
+        last_seen=node.last_seen.isoformat() if node.last_seen else None,
+    )
+    return {**payload, **extra}
+
+
+def transition_lines(transitions: Iterable[dict]) -> list[str]:
+    """``ros2 lifecycle list``: ``- configure [1]``, then its start and goal states."""
+    lines = []
+    for t in transitions:
+        lines += [f"- {t['label']} [{t['id']}]", f"\tStart: {t['start']['label']}", f"\tGoal: {t['goal']['label']}"]
+    return lines
+
+
+def available_lines(state_id: int, valid: list[dict] | None = None) -> list[str]:
+    """The transitions valid from a state, as ``ros2 lifecycle set`` lists them."""
+    valid = valid if valid is not None else [t.as_dict() for t in sm.valid_transitions(state_id)]
+    if not valid:
+        return [f"No transition is possible from {sm.state_label(state_id)}."]
+    return [f"Available transitions from {sm.state_label(state_id)}:"] + [
+        f"- {t['label']} [{t['id']}]" for t in valid
+    ]
+
+
+def sample(names: list[str], everything_hint: str) -> str:
+    """``a, b, c`` or ``a, ..., j and 5 more (HINT)``."""
+    if not names:
+        return "none"
+    if len(names) <= SAMPLE:
+        return ", ".join(names)
+    return f"{', '.join(names[:SAMPLE])} and {len(names) - SAMPLE} more ({everything_hint})"
+
+
+# --- group runs (results as ros_gateway/groups.py writes them) ---------------------------
+
+
+def _step_text(step: dict) -> str:
+    """``configure ok``, ``activate FAILED: reason``, ``configure TIMED OUT: reason``."""
+    if step["outcome"] == "succeeded":
+        return f"{step['transition']} ok"
+    word = "TIMED OUT" if step["outcome"] == "timed_out" else "FAILED"
+    return f"{step['transition']} {word}" + (f": {step['message']}" if step.get("message") else "")
+
+
+def result_line(result: dict) -> str:
+    """``/lidar_driver: configure ok, activate ok (12 ms)``, ``... FAILED: reason``, ``skipped (...)``."""
+    name, outcome, message = result["node"], result["outcome"], result.get("message") or ""
+    if outcome == "skipped":
+        return f"{name}: skipped ({message})" if message else f"{name}: skipped"
+    if outcome == "not_run":
+        return f"{name}: not run ({message.removeprefix('not run: ')})"
+    parts = [_step_text(step) for step in result.get("steps", [])]
+    if outcome == "failed" and not any(step["outcome"] != "succeeded" for step in result.get("steps", [])):
+        parts.append(f"FAILED: {message}" if message else "FAILED")
+    took = f" ({result['duration_ms']:.0f} ms)" if outcome == "succeeded" and "duration_ms" in result else ""
+    return f"{name}: {', '.join(parts) or outcome}{took}"
+
+
+def summary_line(run: GroupRun) -> str:
+    """``bringup agv-1: succeeded (2 succeeded, 1 skipped) in 1.2 s``."""
+    line = f"{run.operation} {run.robot.name}: {run.get_status_display()}"
+    if run.message:
+        line += f" ({run.message})"
+    if run.started and run.finished:
+        line += f" in {(run.finished - run.started).total_seconds():.1f} s"
+    return line
+
+
+def no_user(name: str, chosen: bool) -> str:
+    if chosen:
+        return f"There is no site user {name!r} to record in the audit log."
+    return ("No site user to record in the audit log: give --user USERNAME or set LIFECYCLE_USER "
+            f"(your login name {name!r} is not a user of the site).")
+
+
+def unknown_robot(name: str, known: list[str]) -> str:
+    return f"There is no robot {name!r}. Known robots: {sample(known, 'see the admin')}."
+
+
+def unknown_node(ref: str, robot: str | None, known: list[str], same_name: list[str]) -> str:
+    """Why ``ref`` names no node; ``known``: the robot's node names, or every node id without a
+    robot; ``same_name``: ids of nodes whose ROS name is ``ref`` (a ROS name given without --robot)."""
+    if robot is not None:
+        return f"Robot {robot} has no node {ref!r}. Its nodes: {sample(known, 'lifecycle nodes -a --robot ' + robot)}."
+    if same_name:
+        return (f"There is no node id {ref!r}; a ROS name needs --robot R. Node ids of that name: "
+                f"{sample(same_name, 'lifecycle nodes -a')}.")
+    return f"There is no node {ref!r}. Node ids look like ROBOT.NAME; known: {sample(known, 'lifecycle nodes -a')}."

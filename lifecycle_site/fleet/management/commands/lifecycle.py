@@ -1,0 +1,275 @@
+"""``manage.py lifecycle VERB ...``: ``ros2 lifecycle`` against the site, through the gateway.
+
+``manage.py lifecycle --help`` describes the verbs, the node names and the exit statuses.
+"""
+from __future__ import annotations
+
+import getpass
+import os
+import sys
+from types import SimpleNamespace
+from typing import Any
+
+from django.contrib.auth import get_user_model
+from django.core.management.base import BaseCommand, CommandError
+from django.db import DatabaseError
+from django.db.models import Q
+
+from lifecycle_site.fleet import cli_output as out
+from lifecycle_site.fleet.gateway_client import GatewayError, GatewayOffline, call_gateway
+from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
+from lifecycle_site.fleet.runs import RunRefused, start_run, wait_for
+from lifecycle_site.fleet.transitions import ago, request_transition
+from ros_gateway import protocol
+from ros_gateway import state_machine as sm
+
+EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_OFFLINE, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
+
+
+class CliExit(CommandError):
+    """End the command with ``returncode``; ``message`` goes to stderr (and as JSON with --json)."""
+
+    def __init__(self, returncode: int, message: str = "", code: str | None = None, **details: Any) -> None:
+        super().__init__(message, returncode=returncode)
+        self.message, self.code, self.details = message, code, details
+
+
+class Command(BaseCommand):
+    help = out.DESCRIPTION
+    requires_system_checks: list[str] = []  # a quick CLI: the site and the gateway run the checks
+
+    def create_parser(self, prog_name: str, subcommand: str, **kwargs: Any):
+        parser = super().create_parser(prog_name, subcommand, formatter_class=out.HelpFormatter, **kwargs)
+        parser.epilog = out.EPILOG
+        return parser
+
+    def add_arguments(self, parser) -> None:
+        out.add_verbs(parser)
+
+    def execute(self, *args: Any, **options: Any) -> None:
+        try:
+            super().execute(*args, **options)
+            return
+        except CliExit as exc:
+            error = exc
+        except (GatewayOffline, DatabaseError, KeyboardInterrupt) as exc:
+            if options.get("traceback"):
+                raise
+            error = as_exit(exc)
+        if error.message:
+            if options.get("json") and error.code:
+                body = {"error": {"code": error.code, "message": error.message, **error.details}}
+                self.stdout.write(out.to_json(body))
+            self.stderr.write(error.message)
+        if getattr(self, "_called_from_command_line", False):  # set by run_from_argv (not by call_command)
+            sys.exit(error.returncode)  # Django would print the message again, after "CommandError: "
+        raise error
+
+    def handle(self, *args: Any, verb: str, **options: Any) -> None:
+        opts = SimpleNamespace(verb=verb, **options)
+        handlers = {"nodes": self.do_nodes, "get": self.do_get, "set": self.do_set, "list": self.do_list}
+        code = handlers.get(verb, self.do_group)(opts)
+        if code:
+            raise CliExit(code)
+
+    def emit(self, opts: SimpleNamespace, data: Any, lines: list[str]) -> None:
+        self.stdout.write(out.to_json(data) if opts.json else "\n".join(lines))
+
+    # --- read-only verbs -------------------------------------------------------------------
+
+    def do_nodes(self, opts: SimpleNamespace) -> int:
+        robot = self.robot(opts.robot)
+        listed = self.listed(robot, opts.all)
+        if opts.count_nodes:
+            self.emit(opts, {"count": len(listed)}, [str(len(listed))])
+        else:
+            lines = [out.node_label(n, robot is None) + out.lost_mark(n) for n in listed]
+            self.emit(opts, {"nodes": [out.node_json(n) for n in listed]}, lines)
+        return EXIT_OK
+
+    def do_get(self, opts: SimpleNamespace) -> int:
+        robot = self.robot(opts.robot)
+        if opts.node:
+            node = self.node(opts.node, robot)
+            state, live = self.read_states([node], opts.timeout)[0]
+            self.emit(opts, out.node_json(node, state, live=live), [out.state_text(state)])
+            return EXIT_OK
+        listed = self.listed(robot, opts.all)
+        readings = list(zip(listed, self.read_states(listed, opts.timeout), strict=True))
+        lines = [f"{out.node_label(n, robot is None)}: {out.state_text(s)}{out.lost_mark(n)}" for n, (s, _) in readings]
+        self.emit(opts, {"nodes": [out.node_json(n, s, live=live) for n, (s, live) in readings]}, lines)
+        return EXIT_OK
+
+    def read_states(self, nodes: list[ManagedNode], timeout: float | None) -> list[tuple[dict, bool]]:
+        """Each node's live state from the gateway, else its last known state (noted on stderr)."""
+        readings: list[tuple[dict, bool]] = []
+        offline = False
+        for node in nodes:
+            if node.alive and not offline:
+                try:
+                    reply = call_gateway(protocol.GET_STATE, timeout=timeout, robot=node.robot.name, node=node.name)
+                    readings.append((reply["state"], True))
+                    continue
+                except GatewayOffline as exc:
+                    offline = True
+                    self.stderr.write(f"{exc.message} Showing the last known state instead.")
+                except GatewayError as exc:
+                    self.stderr.write(f"{node.key}: {exc.message} Showing its last known state.")
+            elif not node.alive and len(nodes) == 1:
+                self.stderr.write(f"{node.key} is not running (last seen {ago(node.last_seen)}); "
+                                  "showing its last known state.")
+            readings.append((node.state, False))
+        return readings
+
+    def do_list(self, opts: SimpleNamespace) -> int:
+        node = self.node(opts.node, self.robot(opts.robot))
+        command, field = (protocol.GET_TRANSITION_GRAPH, "graph") if opts.all else (
+            protocol.GET_AVAILABLE_TRANSITIONS, "transitions")
+        try:
+            reply = call_gateway(command, timeout=opts.timeout, robot=node.robot.name, node=node.name)
+        except GatewayOffline:
+            raise
+        except GatewayError as exc:
+            raise CliExit(EXIT_FAILED, f"{node.key}: {exc.message}", exc.code) from None
+        key = "transition_graph" if opts.all else "transitions"
+        self.emit(opts, {"node": node.key, key: reply[field]}, out.transition_lines(reply[field]))
+        return EXIT_OK
+
+    # --- changing verbs --------------------------------------------------------------------
+
+    def do_set(self, opts: SimpleNamespace) -> int:
+        node = self.node(opts.node, self.robot(opts.robot))
+        requested = self.transition(opts.transition)
+        outcome = request_transition(node, requested, self.user(opts.user), "cli", opts.timeout)
+        if outcome.code == "gateway_offline":
+            raise CliExit(EXIT_OFFLINE, outcome.message, outcome.code, **outcome.data)
+        if outcome.succeeded:
+            self.emit(opts, outcome.data, ["Transitioning successful"])
+            return EXIT_OK
+        self.emit(opts, {"error": {"code": outcome.code, "message": outcome.message, **outcome.data}},
+                  ["Transitioning failed"])
+        self.stderr.write(outcome.message)
+        if outcome.code == "invalid_transition" and not opts.json:
+            state_id = outcome.data["state"]["id"]
+            self.stderr.write("\n".join(out.available_lines(state_id, outcome.data.get("valid_transitions"))))
+        return EXIT_FAILED
+
+    def do_group(self, opts: SimpleNamespace) -> int:
+        """bringup, shutdown, pause, resume, reset (a robot) and restart (a node): one GroupRun."""
+        if opts.verb == "restart":
+            node = self.node(opts.node, self.robot(opts.robot))
+            robot, only = node.robot, [node.name]
+        else:
+            robot, only = self.robot(self.robot_name(opts)), None
+        user = self.user(opts.user)
+        extra = {"node_timeout": opts.timeout} if opts.timeout else {}
+        try:
+            run = start_run(robot, opts.verb, user=user, source="cli", policy=opts.policy, nodes=only, **extra)
+        except RunRefused as exc:
+            code = {"gateway_offline": EXIT_OFFLINE, "not_found": EXIT_USAGE}.get(exc.code, EXIT_FAILED)
+            raise CliExit(code, exc.message, exc.code) from None
+        shown = [0]
+
+        def progress(current: GroupRun) -> None:
+            """Print each node's line as its result arrives (the gateway adds a node once done)."""
+            for result in current.results[shown[0]:]:
+                self.stdout.write(out.result_line(result))
+            shown[0] = len(current.results)
+
+        try:
+            run = wait_for(run, opts.wait, None if opts.json else progress)
+        except KeyboardInterrupt:
+            raise CliExit(EXIT_INTERRUPTED, f"Interrupted: stopped following run {run.id}; "
+                                            "it goes on in the gateway.") from None
+        if opts.json:
+            self.stdout.write(out.to_json({"run": run.as_dict()}))
+        else:
+            progress(run)
+            self.stdout.write(out.summary_line(run))
+        if not run.done:
+            self.stderr.write(f"Run {run.id} was still {run.status} after {opts.wait:g} s; it goes on in the gateway.")
+        return EXIT_OK if run.status == GroupRun.Status.SUCCEEDED else EXIT_FAILED
+
+    # --- what the arguments name -----------------------------------------------------------
+
+    def robot(self, name: str | None) -> Robot | None:
+        if not name:
+            return None
+        robot = Robot.objects.filter(name=name).first()
+        if robot is None:
+            known = list(Robot.objects.values_list("name", flat=True))
+            raise CliExit(EXIT_USAGE, out.unknown_robot(name, known), "not_found")
+        return robot
+
+    def robot_name(self, opts: SimpleNamespace) -> str:
+        if opts.robot_name and opts.robot and opts.robot_name != opts.robot:
+            raise CliExit(EXIT_USAGE, f"ROBOT {opts.robot_name!r} and --robot {opts.robot!r} differ; give one.")
+        if not (opts.robot_name or opts.robot):
+            known = list(Robot.objects.values_list("name", flat=True))
+            raise CliExit(EXIT_USAGE, f"Which robot? Give ROBOT, one of: {out.sample(known, 'see the admin')}.")
+        return opts.robot_name or opts.robot
+
+    def listed(self, robot: Robot | None, include_lost: bool) -> list[ManagedNode]:
+        nodes = ManagedNode.objects.select_related("robot")
+        if robot is not None:
+            nodes = nodes.filter(robot=robot)
+        return list(nodes if include_lost else nodes.filter(alive=True))
+
+    def node(self, ref: str, robot: Robot | None) -> ManagedNode:
+        """A node id (agv-1.joy_to_vel) or, on ``robot``, a ROS name (/joy_to_vel, joy_to_vel)."""
+        nodes = ManagedNode.objects.select_related("robot")
+        if robot is None:
+            found = nodes.filter(key=ref).first()
+        else:
+            names = {"/" + ref.strip("/")}
+            if robot.namespace and not ref.startswith("/"):
+                names.add(f"{robot.namespace.rstrip('/')}/{ref}")
+            found = nodes.filter(robot=robot).filter(Q(key=ref) | Q(name__in=names)).first()
+        if found is not None:
+            return found
+        if robot is None and "." in ref:  # agv-1.nope: say which nodes agv-1 has
+            robot = Robot.objects.filter(name=ref.split(".", 1)[0]).first()
+        if robot is not None:
+            known, same_name = list(robot.nodes.values_list("name", flat=True)), []
+        else:
+            known = list(ManagedNode.objects.values_list("key", flat=True))
+            same_name = list(nodes.filter(name="/" + ref.strip("/")).values_list("key", flat=True))
+        message = out.unknown_node(ref, robot.name if robot else None, known, same_name)
+        raise CliExit(EXIT_USAGE, message, "not_found")
+
+    def transition(self, requested: str) -> str | int:
+        try:
+            sm.resolve_transition(requested, sm.UNCONFIGURED)  # only checks that it names a transition
+        except sm.UnknownTransition:
+            raise CliExit(EXIT_USAGE, f"{requested!r} is not a lifecycle transition; use one of "
+                          f"{', '.join(sm.EXTERNAL_LABELS)} or an id 1-7.", "unknown_transition") from None
+        return int(requested) if requested.strip().isdigit() else requested.strip().lower()
+
+    def user(self, username: str | None):
+        """The site user a change is made as, who must be allowed to operate nodes."""
+        chosen = username or os.environ.get("LIFECYCLE_USER")
+        name = chosen or login_name()
+        model = get_user_model()
+        user = model.objects.filter(**{model.USERNAME_FIELD: name}).first() if name else None
+        if user is None:
+            raise CliExit(EXIT_USAGE, out.no_user(name, chosen is not None), "no_user")
+        if not user.is_active or not user.has_perm("fleet.operate_node"):
+            raise CliExit(EXIT_USAGE, f"Site user {name!r} may not operate nodes (inactive, or without the operator "
+                          "role).", "forbidden")
+        return user
+
+
+def as_exit(exc: BaseException) -> CliExit:
+    """One line and an exit status for what can go wrong beyond the verbs' own checks."""
+    if isinstance(exc, GatewayOffline):
+        return CliExit(EXIT_OFFLINE, exc.message, exc.code)
+    if isinstance(exc, DatabaseError):
+        return CliExit(EXIT_OFFLINE, f"The site's database is unreachable: {exc}", "database_error")
+    return CliExit(EXIT_INTERRUPTED, "Interrupted.")
+
+
+def login_name() -> str:
+    try:
+        return getpass.getuser()
+    except (OSError, KeyError):
+        return ""
