@@ -46,6 +46,7 @@ def start(port: int, workdir: Path, wait: float = 10.0) -> subprocess.Popen:
         ],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
+        start_new_session=True,  # Ctrl-C reaches whoever started it, who then stops it in order
     )
     url = f"redis://127.0.0.1:{port}/0"
     deadline = time.monotonic() + wait

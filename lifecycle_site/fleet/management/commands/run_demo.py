@@ -56,8 +56,9 @@ class Command(BaseCommand):
         os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
         data = Path(settings.DATA_DIR)
         self._claim_data_dir(data)
-        # `kill`, a closed terminal or a CI timeout stop the demo as cleanly as Ctrl-C does.
-        for sig in (signal.SIGTERM, signal.SIGHUP):
+        # Ctrl-C, `kill`, a closed terminal or a CI timeout all stop the demo cleanly (SIGINT
+        # included: a shell that starts us in the background would have it ignored).
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
             signal.signal(sig, _interrupt)
         supervisor = Supervisor()
         redis_process = None
