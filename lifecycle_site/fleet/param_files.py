@@ -21,7 +21,7 @@ def dump(node_name: str, parameters: list[dict]) -> str:
         for part in parents:
             branch = branch.setdefault(part, {})
         branch[leaf] = parameter["value"]
-    return yaml.safe_dump({node_name: {"ros__parameters": tree}}, sort_keys=True, default_flow_style=None)
+    return yaml.safe_dump({node_name: {"ros__parameters": tree}}, sort_keys=True, default_flow_style=False)
 
 
 def _flatten(tree: dict, prefix: str = "") -> dict[str, Any]:

@@ -67,7 +67,7 @@ class Command(BaseCommand):
             call_command("migrate", verbosity=0)
             user, password = self._ensure_admin(data)
             for name, domain, _ in DEMO_ROBOTS:
-                robot, _ = Robot.objects.get_or_create(name=name, defaults={"domain_id": domain})
+                robot, _ = Robot.objects.get_or_create(name=name, defaults={"domain_id": domain, "auto_recover": True})
                 if robot.domain_id != domain or not robot.enabled:
                     robot.domain_id, robot.enabled = domain, True
                     robot.save()
