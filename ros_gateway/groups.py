@@ -40,6 +40,8 @@ DESIRED = {"unconfigured": sm.UNCONFIGURED, "inactive": sm.INACTIVE, "active": s
 # After a step timed out with the node still inside the transition, how many more timeouts
 # to give it to finish before calling it failed.
 SETTLE_TIMEOUTS = 3
+# Crash-loop guard: at most this many recoveries of one node within the window.
+RECOVERY_LIMIT, RECOVERY_WINDOW_S = 3, 300.0
 
 
 def _load(run_id: str) -> GroupRun | None:
@@ -56,10 +58,11 @@ def _save(run_id: str, **fields) -> None:
     GroupRun.objects.filter(pk=run_id).update(**fields)
 
 
-def _create_recovery(robot_id: int, node_name: str, target: str) -> str:
+def _create_recovery(robot_id: int, node_name: str, target: str, gave_up: str = "") -> str:
     run = GroupRun.objects.create(
         id=uuid.uuid4().hex, robot_id=robot_id, operation=GroupRun.Operation.RECOVER, only_nodes=[node_name],
-        source="recovery", status=GroupRun.Status.QUEUED, message=f"back to {target}",
+        source="recovery", status=GroupRun.Status.FAILED if gave_up else GroupRun.Status.QUEUED,
+        message=gave_up or f"back to {target}",
     )
     return run.id
 
@@ -68,6 +71,7 @@ class GroupRunner:
     def __init__(self, gateway: "Gateway") -> None:
         self.gateway = gateway
         self.recovering: set[str] = set()  # node keys with a recovery under way
+        self.recent_recoveries: dict[str, list[float]] = {}
 
     async def start(self, run_id: str) -> dict:
         """Accept a recorded run and carry it out in the background."""
@@ -85,6 +89,15 @@ class GroupRunner:
         """Drive a node that came back (after its process was restarted) to its desired state."""
         if node.key in self.recovering:
             return
+        now = time.monotonic()
+        recent = [t for t in self.recent_recoveries.get(node.key, []) if now - t < RECOVERY_WINDOW_S]
+        if len(recent) >= RECOVERY_LIMIT:
+            message = (f"gave up: {len(recent)} recoveries in the last {RECOVERY_WINDOW_S / 60:.0f} min "
+                       "(the node keeps dying); bring it up by hand once the cause is fixed")
+            log.error("not recovering %s:%s: %s", node.robot.name, node.name, message)
+            await db(_create_recovery)(node.robot.id, node.name, desired, gave_up=message)
+            return
+        self.recent_recoveries[node.key] = [*recent, now]
         self.recovering.add(node.key)
         try:
             log.info("recovering %s:%s to %s", node.robot.name, node.name, desired)
