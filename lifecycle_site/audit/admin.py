@@ -1,6 +1,6 @@
 from django.contrib import admin
 
-from lifecycle_site.audit.models import TransitionRecord
+from lifecycle_site.audit.models import ParameterRecord, TransitionRecord
 
 
 @admin.register(TransitionRecord)
@@ -14,6 +14,26 @@ class TransitionRecordAdmin(admin.ModelAdmin):
     list_filter = ("outcome", "source", "robot_name")
     search_fields = ("node_name", "requested_by_name", "error")
     date_hierarchy = "requested_at"
+
+    def has_add_permission(self, request) -> bool:
+        return False
+
+    def has_change_permission(self, request, obj=None) -> bool:
+        return False
+
+    def has_delete_permission(self, request, obj=None) -> bool:
+        return False
+
+
+@admin.register(ParameterRecord)
+class ParameterRecordAdmin(admin.ModelAdmin):
+    """Read-only: parameter changes are part of the append-only audit log."""
+
+    list_display = ("at", "robot_name", "node_name", "name", "old_value", "new_value", "outcome", "source",
+                    "requested_by_name")
+    list_filter = ("outcome", "source", "robot_name")
+    search_fields = ("node_name", "name", "requested_by_name", "reason")
+    date_hierarchy = "at"
 
     def has_add_permission(self, request) -> bool:
         return False

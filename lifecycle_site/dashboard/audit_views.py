@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import csv
+import json
 
 from django import forms
 from django.core.paginator import Paginator
@@ -10,7 +11,7 @@ from django.http import HttpRequest, HttpResponse
 from django.shortcuts import render
 from django.utils import timezone
 
-from lifecycle_site.audit.models import TransitionRecord
+from lifecycle_site.audit.models import ParameterRecord, TransitionRecord
 from lifecycle_site.dashboard.access import viewer_required
 
 PAGE_SIZE = 50
@@ -18,6 +19,8 @@ CSV_LIMIT = 100_000
 
 
 class AuditFilter(forms.Form):
+    kind = forms.ChoiceField(required=False, label="Changes of",
+                             choices=[("", "lifecycle state"), ("parameters", "parameters")])
     robot = forms.CharField(required=False)
     node = forms.CharField(required=False, help_text="ROS name, e.g. /lidar_driver")
     user = forms.CharField(required=False)
@@ -32,8 +35,13 @@ class AuditFilter(forms.Form):
             raise forms.ValidationError("'From' must be before 'to'.")
         return data
 
+    @property
+    def parameters(self) -> bool:
+        return self.is_bound and self.is_valid() and self.cleaned_data.get("kind") == "parameters"
+
     def apply(self, records: QuerySet) -> QuerySet:
         data = self.cleaned_data
+        when = "at" if records.model is ParameterRecord else "requested_at"
         if data.get("robot"):
             records = records.filter(robot_name__icontains=data["robot"])
         if data.get("node"):
@@ -45,15 +53,16 @@ class AuditFilter(forms.Form):
         if data.get("source"):
             records = records.filter(source=data["source"])
         if data.get("since"):
-            records = records.filter(requested_at__gte=data["since"])
+            records = records.filter(**{f"{when}__gte": data["since"]})
         if data.get("until"):
-            records = records.filter(requested_at__lte=data["until"])
+            records = records.filter(**{f"{when}__lte": data["until"]})
         return records
 
 
 def _records(request: HttpRequest) -> tuple[AuditFilter, QuerySet]:
     form = AuditFilter(request.GET or None)
-    records = TransitionRecord.objects.select_related("node")
+    model = ParameterRecord if form.parameters else TransitionRecord
+    records = model.objects.select_related("node")
     if form.is_bound and form.is_valid():
         records = form.apply(records)
     elif form.is_bound:
@@ -70,16 +79,24 @@ def audit_list(request: HttpRequest) -> HttpResponse:
     return render(
         request,
         "dashboard/audit.html",
-        {"form": form, "page": page, "records": [r.as_dict() for r in page], "query": query.urlencode()},
+        {"form": form, "page": page, "records": [r.as_dict() for r in page], "query": query.urlencode(),
+         "parameters": form.parameters},
     )
 
 
 @viewer_required
 def audit_csv(request: HttpRequest) -> HttpResponse:
-    _, records = _records(request)
+    form, records = _records(request)
     response = HttpResponse(content_type="text/csv; charset=utf-8")
-    response["Content-Disposition"] = f'attachment; filename="audit-{timezone.now():%Y%m%d-%H%M%S}.csv"'
+    kind = "parameters" if form.parameters else "transitions"
+    response["Content-Disposition"] = f'attachment; filename="audit-{kind}-{timezone.now():%Y%m%d-%H%M%S}.csv"'
     writer = csv.writer(response)
+    if form.parameters:
+        writer.writerow(["at", "robot", "node", "parameter", "old", "new", "outcome", "source", "user", "reason"])
+        for r in records[:CSV_LIMIT].iterator(chunk_size=2000):
+            writer.writerow([r.at.isoformat(), r.robot_name, r.node_name, r.name, json.dumps(r.old_value),
+                             json.dumps(r.new_value), r.outcome, r.source, r.requested_by_name, r.reason])
+        return response
     writer.writerow(["requested_at", "completed_at", "robot", "node", "transition", "from", "goal", "result",
                      "outcome", "source", "user", "duration_ms", "run_id", "error"])
     for r in records[:CSV_LIMIT].iterator(chunk_size=2000):

@@ -12,6 +12,7 @@ VIEW = [
     "fleet.view_managednode",
     "fleet.view_logrecord",
     "audit.view_transitionrecord",
+    "audit.view_parameterrecord",
 ]
 OPERATE = VIEW + ["fleet.operate_node"]
 ADMINISTER = OPERATE + [

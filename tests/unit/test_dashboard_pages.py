@@ -133,3 +133,16 @@ def test_fixed_prefix_keeps_the_login_redirect_under_it(db, settings):
     settings.URL_PREFIX = "/edge/lifecycle"
     response = Client().get("/")
     assert response["Location"] == "/edge/lifecycle/login/?next=/edge/lifecycle/"
+
+
+def test_parameter_changes_are_in_the_audit_history_and_csv(viewer_client, fleet):
+    from lifecycle_site.audit.models import ParameterRecord
+
+    node = fleet[1][2]
+    ParameterRecord.objects.create(node=node, robot_name=node.robot.name, node_name=node.name, name="scale_linear",
+                                   old_value=0.5, new_value=0.8, outcome="succeeded", source="external",
+                                   at=timezone.now())
+    page = viewer_client.get("/audit/?kind=parameters&source=external").content.decode()
+    assert "scale_linear" in page and "0.5" in page and "0.8" in page
+    rows = list(csv.reader(io.StringIO(viewer_client.get("/audit.csv?kind=parameters").content.decode())))
+    assert rows[0][3] == "parameter" and rows[1][3:6] == ["scale_linear", "0.5", "0.8"]
