@@ -29,12 +29,7 @@ def _record(node: "LiveNode", name: str, old: Any, new: Any, outcome: str, reaso
         new_value=new, outcome=outcome, reason=reason, source=source, requested_by_id=user_id,
         at=datetime.now(timezone.utc),
     )
-    if user_id is not None:
-        from django.contrib.auth import get_user_model
-
-        record.requested_by_name = get_user_model().objects.filter(pk=user_id).values_list(
-            "username", flat=True).first() or ""
-    record.save()
+    record.save()  # fills in the user's name
     return record.as_dict()
 
 

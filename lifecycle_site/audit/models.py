@@ -9,7 +9,7 @@ class AppendOnlyError(Exception):
     """Raised on any attempt to change or delete an audit record."""
 
 
-class TransitionRecordQuerySet(models.QuerySet):
+class AppendOnlyQuerySet(models.QuerySet):
     def update(self, **kwargs):  # noqa: D102 - guard, see AppendOnlyError
         raise AppendOnlyError("Audit records cannot be changed.")
 
@@ -17,7 +17,31 @@ class TransitionRecordQuerySet(models.QuerySet):
         raise AppendOnlyError("Audit records cannot be deleted.")
 
 
-class TransitionRecord(models.Model):
+class AppendOnlyRecord(models.Model):
+    """Base of audit records: written once, never changed or deleted (nor through querysets)."""
+
+    requested_by = models.ForeignKey(
+        settings.AUTH_USER_MODEL, null=True, blank=True, on_delete=models.SET_NULL, related_name="+"
+    )
+    requested_by_name = models.CharField(max_length=150, blank=True)
+
+    objects = AppendOnlyQuerySet.as_manager()
+
+    class Meta:
+        abstract = True
+
+    def save(self, *args, **kwargs) -> None:
+        if self.pk is not None:
+            raise AppendOnlyError("Audit records cannot be changed.")
+        if self.requested_by is not None and not self.requested_by_name:
+            self.requested_by_name = self.requested_by.get_username()
+        super().save(*args, **kwargs)
+
+    def delete(self, *args, **kwargs):
+        raise AppendOnlyError("Audit records cannot be deleted.")
+
+
+class TransitionRecord(AppendOnlyRecord):
     class Outcome(models.TextChoices):
         SUCCEEDED = "succeeded", "succeeded"
         FAILED = "failed", "failed"
@@ -51,17 +75,11 @@ class TransitionRecord(models.Model):
     result_state_label = models.CharField(max_length=32, blank=True)
     outcome = models.CharField(max_length=16, choices=Outcome.choices)
     source = models.CharField(max_length=16, choices=Source.choices)
-    requested_by = models.ForeignKey(
-        settings.AUTH_USER_MODEL, null=True, blank=True, on_delete=models.SET_NULL, related_name="+"
-    )
-    requested_by_name = models.CharField(max_length=150, blank=True)
     requested_at = models.DateTimeField()
     completed_at = models.DateTimeField(null=True, blank=True)
     duration_ms = models.FloatField(null=True, blank=True)
     error = models.TextField(blank=True)
     run_id = models.CharField(max_length=64, blank=True, help_text="Groups the steps of one group operation.")
-
-    objects = TransitionRecordQuerySet.as_manager()
 
     class Meta:
         ordering = ["-requested_at", "-id"]
@@ -72,16 +90,6 @@ class TransitionRecord(models.Model):
 
     def __str__(self) -> str:
         return f"{self.robot_name}:{self.node_name} {self.transition_label} {self.outcome}"
-
-    def save(self, *args, **kwargs) -> None:
-        if self.pk is not None:
-            raise AppendOnlyError("Audit records cannot be changed.")
-        if self.requested_by is not None and not self.requested_by_name:
-            self.requested_by_name = self.requested_by.get_username()
-        super().save(*args, **kwargs)
-
-    def delete(self, *args, **kwargs):
-        raise AppendOnlyError("Audit records cannot be deleted.")
 
     def as_dict(self) -> dict:
         def state(state_id, label):
@@ -109,11 +117,7 @@ class TransitionRecord(models.Model):
         }
 
 
-class ParameterRecordQuerySet(TransitionRecordQuerySet):
-    pass
-
-
-class ParameterRecord(models.Model):
+class ParameterRecord(AppendOnlyRecord):
     """One parameter change (or refused attempt), append-only like TransitionRecord."""
 
     node = models.ForeignKey(
@@ -128,27 +132,11 @@ class ParameterRecord(models.Model):
                                                         ("observed", "observed")])
     reason = models.TextField(blank=True)
     source = models.CharField(max_length=16, choices=TransitionRecord.Source.choices)
-    requested_by = models.ForeignKey(
-        settings.AUTH_USER_MODEL, null=True, blank=True, on_delete=models.SET_NULL, related_name="+"
-    )
-    requested_by_name = models.CharField(max_length=150, blank=True)
     at = models.DateTimeField()
-
-    objects = ParameterRecordQuerySet.as_manager()
 
     class Meta:
         ordering = ["-at", "-id"]
         indexes = [models.Index(fields=["node", "-at"], name="param_node_recent")]
-
-    def save(self, *args, **kwargs) -> None:
-        if self.pk is not None:
-            raise AppendOnlyError("Audit records cannot be changed.")
-        if self.requested_by is not None and not self.requested_by_name:
-            self.requested_by_name = self.requested_by.get_username()
-        super().save(*args, **kwargs)
-
-    def delete(self, *args, **kwargs):
-        raise AppendOnlyError("Audit records cannot be deleted.")
 
     def as_dict(self) -> dict:
         return {

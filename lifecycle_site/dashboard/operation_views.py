@@ -6,7 +6,8 @@ from django.shortcuts import render
 from django.views.decorators.http import require_POST
 
 from lifecycle_site.dashboard.access import operator_required
-from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
+from lifecycle_site.dashboard.views import node_or_404
+from lifecycle_site.fleet.models import GroupRun, Robot
 from lifecycle_site.fleet.runs import RunRefused, start_run
 
 
@@ -35,9 +36,7 @@ def robot_operation(request: HttpRequest, robot: str) -> HttpResponse:
 @operator_required
 @require_POST
 def node_restart(request: HttpRequest, key: str) -> HttpResponse:
-    node = ManagedNode.objects.select_related("robot").filter(key=key).first()
-    if node is None:
-        raise Http404(f"There is no node {key}.")
+    node = node_or_404(key)
     try:
         run = start_run(node.robot, "restart", user=request.user, source="dashboard", nodes=[node.name])
     except RunRefused as exc:
@@ -48,9 +47,7 @@ def node_restart(request: HttpRequest, key: str) -> HttpResponse:
 @operator_required
 @require_POST
 def desired_state(request: HttpRequest, key: str) -> HttpResponse:
-    node = ManagedNode.objects.select_related("robot").filter(key=key).first()
-    if node is None:
-        raise Http404(f"There is no node {key}.")
+    node = node_or_404(key)
     wanted = request.POST.get("desired_state", "")
     if wanted not in ("", "unconfigured", "inactive", "active"):
         wanted = ""

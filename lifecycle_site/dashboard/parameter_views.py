@@ -4,25 +4,19 @@ from __future__ import annotations
 import json
 from typing import Any
 
-from django.http import Http404, HttpRequest, HttpResponse
+from django.http import HttpRequest, HttpResponse
 from django.shortcuts import render
 from django.views.decorators.http import require_POST
 
 from lifecycle_site.api.parameters import apply, fetch
 from lifecycle_site.dashboard.access import operator_required, viewer_required
+from lifecycle_site.dashboard.views import node_or_404
 from lifecycle_site.fleet.gateway_client import GatewayError
 from lifecycle_site.fleet.models import ManagedNode
 from lifecycle_site.fleet.param_files import ParameterFileError, diff, load
 from ros_gateway import param_types as pt
 
 MAX_FILE_BYTES = 256 * 1024
-
-
-def _node(key: str) -> ManagedNode:
-    node = ManagedNode.objects.select_related("robot").filter(key=key).first()
-    if node is None:
-        raise Http404(f"There is no node {key}.")
-    return node
 
 
 def _section(request: HttpRequest, node: ManagedNode, **extra) -> HttpResponse:
@@ -54,7 +48,7 @@ def _parse(raw: str, entry: dict) -> Any:
 
 @viewer_required
 def parameters(request: HttpRequest, key: str) -> HttpResponse:
-    node = _node(key)
+    node = node_or_404(key)
     if request.method != "POST":
         return _section(request, node)
     return _edit(request, node)
@@ -103,7 +97,7 @@ def _shown(value: Any) -> str:
 @require_POST
 def import_file(request: HttpRequest, key: str) -> HttpResponse:
     """Step 1: read an uploaded parameter file and show what it would change."""
-    node = _node(key)
+    node = node_or_404(key)
     upload = request.FILES.get("file")
     if upload is None:
         return _section(request, node, import_error="Choose a parameter file (.yaml) first.")
@@ -126,7 +120,7 @@ def import_file(request: HttpRequest, key: str) -> HttpResponse:
 @require_POST
 def apply_file(request: HttpRequest, key: str) -> HttpResponse:
     """Step 2: apply what the preview showed."""
-    node = _node(key)
+    node = node_or_404(key)
     try:
         values = json.loads(request.POST.get("values", "{}"))
         assert isinstance(values, dict)

@@ -41,7 +41,7 @@ def fleet(request: HttpRequest) -> HttpResponse:
     )
 
 
-def _node_or_404(key: str) -> ManagedNode:
+def node_or_404(key: str) -> ManagedNode:
     node = ManagedNode.objects.select_related("robot").filter(key=key).first()
     if node is None:
         raise Http404(f"There is no node {key}.")
@@ -50,7 +50,7 @@ def _node_or_404(key: str) -> ManagedNode:
 
 @viewer_required
 def node_detail(request: HttpRequest, key: str) -> HttpResponse:
-    node = _node_or_404(key)
+    node = node_or_404(key)
     payload = node_dict(node)
     records = TransitionRecord.objects.filter(node=node).select_related("node")[:20]
     return render(
@@ -71,7 +71,7 @@ def node_detail(request: HttpRequest, key: str) -> HttpResponse:
 def node_transition(request: HttpRequest, key: str) -> HttpResponse:
     """A transition button: answers with a status message (and the state panel, in case
     the WebSocket is down)."""
-    node = _node_or_404(key)
+    node = node_or_404(key)
     if not _can_operate(request):
         outcome_context = {"ok": False, "message": "Your role may view but not operate nodes (operator needed)."}
         return render(request, "dashboard/_transition_result.html", outcome_context, status=403)
