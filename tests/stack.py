@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -34,16 +35,37 @@ def domain(offset: int) -> int:
     return int(os.environ["LIFECYCLE_TEST_DOMAIN_BASE"]) + offset
 
 
-def wait_for(condition: Callable[[], object], timeout: float, what: str, interval: float = 0.1):
-    """Poll ``condition`` until it returns something truthy; fail with ``what`` after ``timeout``."""
+def wait_for(
+    condition: Callable[[], object],
+    timeout: float,
+    what: str,
+    interval: float = 0.1,
+    tolerate: tuple[type[Exception], ...] = (),
+):
+    """Poll ``condition`` until it returns something truthy; fail with ``what`` after ``timeout``.
+
+    Exceptions of the ``tolerate`` types count as "not yet" (the last one is reported).
+    """
     deadline = time.monotonic() + timeout
+    last_error: Exception | None = None
     while True:
-        result = condition()
-        if result:
-            return result
+        try:
+            result = condition()
+            if result:
+                return result
+        except tolerate as exc:
+            last_error = exc
         if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
+            detail = f" (last error: {last_error})" if last_error else ""
+            raise AssertionError(f"timed out after {timeout:g} s waiting for {what}{detail}")
         time.sleep(interval)
+
+
+def free_port() -> int:
+    """A TCP port nobody listens on right now, on loopback."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
 
 
 class Process:

@@ -38,12 +38,6 @@ def pytest_collection_modifyitems(items):
             item.add_marker(pytest.mark.browser)
 
 
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
 @pytest.fixture(scope="module")
 def robot(gateway):  # noqa: F811
     from django.utils import timezone
@@ -64,7 +58,7 @@ def robot(gateway):  # noqa: F811
 @pytest.fixture(scope="module")
 def site(gateway):  # noqa: F811
     """daphne serving the site; it trusts X-Forwarded-Prefix (sent only by our nginx)."""
-    port = free_port()
+    port = stack.free_port()
     process = stack.Process(
         "daphne",
         [sys.executable, "-m", "daphne", "-b", "127.0.0.1", "-p", str(port), "lifecycle_site.asgi:application"],
@@ -88,7 +82,7 @@ def proxied_site(site):
     """A real nginx that strips /lifecycle/ and passes WebSocket upgrades, like the device's."""
     nginx = shutil.which("nginx") or "/usr/sbin/nginx"
     assert Path(nginx).exists(), "nginx is not installed (Debian package nginx); .ci/run installs it"
-    port, upstream = free_port(), site.rstrip("/")
+    port, upstream = stack.free_port(), site.rstrip("/")
     workdir = Path(settings.DATA_DIR) / "nginx"
     (workdir / "logs").mkdir(parents=True, exist_ok=True)
     (workdir / "nginx.conf").write_text(textwrap.dedent(f"""

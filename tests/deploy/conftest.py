@@ -18,8 +18,9 @@ from pathlib import Path
 
 import pytest
 
-from tests.deploy import engine
-from tests.deploy.engine import DEMO_DOMAIN, DEMO_ROBOT, EDGE_DIR, Stack
+from tests.deploy import edge_stack, engine
+from tests.deploy.edge_stack import Stack
+from tests.deploy.engine import DEMO_DOMAIN, DEMO_ROBOT, EDGE_DIR
 
 
 def pytest_configure(config) -> None:
@@ -112,7 +113,7 @@ def stack(image, scratch, timings):
         web_port=web_port,
         admin_password=password,
     )
-    timings.record("stale_projects_removed", engine.remove_stale_projects())
+    timings.record("stale_projects_removed", edge_stack.remove_stale_projects())
     networks = engine.run(["docker", "network", "ls", "--format", "{{.Name}}"], timeout=30).stdout.split()
     if "proxy-redirect" not in networks:  # as the Industrial Edge runtime has it
         engine.run(["docker", "network", "create", "proxy-redirect"], timeout=60)
@@ -122,10 +123,10 @@ def stack(image, scratch, timings):
             stack.compose("up", "-d", timeout=300)
             engine.wait_for(lambda: stack.health("web") == "healthy", 120, "the web container to be healthy")
         stack.proxy_port = engine.free_port()
-        stack.nginx = engine.start_nginx(scratch / "nginx", stack.proxy_port, web_port)
+        stack.nginx = edge_stack.start_nginx(scratch / "nginx", stack.proxy_port, web_port)
         yield stack
     finally:
-        engine.stop_process(stack.nginx)
+        edge_stack.stop_process(stack.nginx)
         stack.save_logs()
         with timings.timed("stack_down_s"):
             stack.down()

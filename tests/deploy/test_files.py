@@ -12,7 +12,7 @@ import sys
 import pytest
 import yaml
 
-from tests.deploy import engine
+from tests.deploy import edge_stack, engine
 from tests.deploy.engine import DOCKER_DIR, EDGE_DIR, IMAGE, VERSION
 
 COMPOSE_FILES = {
@@ -70,7 +70,7 @@ def test_edge_app_layout():
         assert "./cfg-data/:/cfg-data/:ro" in services[name]["volumes"]
         assert any(v.startswith("lifecycle-data:") for v in services[name]["volumes"])
     assert "lifecycle-data" in compose["volumes"]
-    total = sum(engine.mem_limit_bytes(s["mem_limit"]) for s in services.values())
+    total = sum(edge_stack.mem_limit_bytes(s["mem_limit"]) for s in services.values())
     assert total <= APP_MEMORY_BUDGET, f"the app's memory limits add up to {total / 2**20:.0f} MiB"
     for name, service in services.items():
         keys = " ".join(service.get("environment", {})).upper()

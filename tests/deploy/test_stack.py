@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from tests.deploy import engine
+from tests.deploy import edge_stack, engine
 from tests.deploy.client import Browser, insecure_context
 from tests.deploy.engine import DEMO_ROBOT, DOCKER_DIR, EDGE_DIR, IMAGE, VERSION
 
@@ -218,7 +218,7 @@ def test_memory_within_limits(stack, timings):
     """Every container under its mem_limit (which Docker enforces: the limit shows in stats)."""
     compose = {}
     for name in ("docker-compose.yml", "docker-compose.demo.yml"):
-        compose.update(engine.yaml_services(EDGE_DIR / name))
+        compose.update(edge_stack.yaml_services(EDGE_DIR / name))
     ids = {service: stack.container(service) for service in compose}
     stats = engine.run(
         ["docker", "stats", "--no-stream", "--format", "{{.ID}}\t{{.MemUsage}}", *ids.values()], timeout=60
@@ -226,10 +226,10 @@ def test_memory_within_limits(stack, timings):
     usage = {}
     for line in stats.strip().splitlines():
         cid, mem = line.split("\t")
-        used, limit = (engine.stats_bytes(part) for part in mem.split("/"))
+        used, limit = (edge_stack.stats_bytes(part) for part in mem.split("/"))
         service = next(s for s, full in ids.items() if full.startswith(cid))
         usage[service] = round(used / 2**20, 1)
-        configured = engine.mem_limit_bytes(compose[service]["mem_limit"])
+        configured = edge_stack.mem_limit_bytes(compose[service]["mem_limit"])
         assert abs(limit - configured) < 2**20, f"{service}: Docker's limit {limit} is not the mem_limit {configured}"
         assert used < configured, f"{service} uses {used / 2**20:.0f} MiB of its {configured / 2**20:.0f} MiB"
     assert set(usage) == set(compose)
