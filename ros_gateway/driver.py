@@ -44,18 +44,22 @@ class NodeDriver:
                 completed_at=datetime.now(timezone.utc), error=message,
             )
             raise NodeUnreachable(message) from None
-        if result.result_state is not None:
-            if result.transition is not None and node.tracker.commanded == result.transition.id:
-                node.tracker.settled = result.transition.id  # its beginning is yet to come
-            await self.gateway.set_state(node, result.result_state)
+        if result.transition is not None and node.tracker.commanded == result.transition.id:
+            node.tracker.settled = result.transition.id  # its beginning is yet to come
         if result.outcome == "failed":
             result.message = await self._with_reason(node, requested_at, result.message)
-        record = await db(store.record_transition)(
-            **audit, transition=result.transition, start_state=result.start_state,
-            result_state=result.result_state, outcome=result.outcome, completed_at=datetime.now(timezone.utc),
-            error=result.message,
+        # The new state (pushed and stored) and the audit record are written side by side.
+        new_state = self.gateway.set_state(node, result.result_state) if result.result_state is not None else None
+        record, _ = await asyncio.gather(
+            db(store.record_transition)(
+                **audit, transition=result.transition, start_state=result.start_state,
+                result_state=result.result_state, outcome=result.outcome,
+                completed_at=datetime.now(timezone.utc), error=result.message,
+            ),
+            new_state or asyncio.sleep(0),
         )
-        await self.gateway.publish_record(node, record)
+        # Pages showing the history get the record after the requester has its answer.
+        self.gateway.spawn(self.gateway.publish_record(node, record))
         return result, record
 
     def _claim(self, node: "LiveNode", transition: sm.Transition) -> None:

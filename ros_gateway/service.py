@@ -298,10 +298,12 @@ class Gateway:
                 self.spawn(self._check_settled(node, state_id))
             node.state_id = state_id
             node.last_seen = datetime.now(timezone.utc)
-            # Push first: the page should not wait for the disk.
-            await self.relay.publish(node.groups(), {"type": "node.state", "node": node.payload()})
             node.row.state_id = state_id
-            await db(store.save_state)(node.row.id, state_id)
+            # The push and the disk write go together; the page waits for neither.
+            await asyncio.gather(
+                self.relay.publish(node.groups(), {"type": "node.state", "node": node.payload()}),
+                db(store.save_state)(node.row.id, state_id),
+            )
 
     def on_transition_event(self, domain_id: int, name: str, msg) -> None:
         """A node's ~/transition_event (called on the loop, handed over from the executor)."""
