@@ -26,7 +26,7 @@ class NodeDriver:
 
     async def transition(
         self, node: "LiveNode", requested, timeout: float, *, source: str, user_id: int | None = None,
-        run_id: str = "",
+        run_id: str = "", known_state: int | None = None,
     ) -> tuple[TransitionResult, dict]:
         """Carry out one transition; the caller holds ``node.lock``. Returns the result and
         its audit record; raises NodeUnreachable (recorded too) when nothing could be sent."""
@@ -36,7 +36,7 @@ class NodeDriver:
                      source=source, requested_at=requested_at, user_id=user_id, run_id=run_id)
         try:
             result = await perform_transition(domain, node.name, requested, timeout,
-                                              on_send=lambda t: self._claim(node, t))
+                                              on_send=lambda t: self._claim(node, t), known_state=known_state)
         except NodeUnreachable as exc:
             message = f"{node.name} on {node.robot.name} did not answer ({exc}); nothing was sent to it."
             await db(store.record_transition)(

@@ -172,7 +172,8 @@ class GroupRunner:
                         return {**result, "outcome": "skipped", "state": sm.state_dict(state),
                                 "message": f"already {sm.state_label(state)}"}
                     for label in steps:
-                        step = await self._step(run, node, label)
+                        step = await self._step(run, node, label, state)
+                        state = step["to"]["id"]
                         result["steps"].append(step)
                         if step["outcome"] != "succeeded":
                             result.update(outcome="failed", message=step["message"])
@@ -185,9 +186,11 @@ class GroupRunner:
         result["duration_ms"] = round((time.perf_counter() - began) * 1000, 1)
         return result
 
-    async def _step(self, run: GroupRun, node: "LiveNode", label: str) -> dict:
+    async def _step(self, run: GroupRun, node: "LiveNode", label: str, state: int) -> dict:
+        """One transition; ``state`` is the node's state as just read or reached (no re-read)."""
         outcome, record = await self.gateway.driver.transition(
-            node, label, run.node_timeout, source=run.source, user_id=run.requested_by_id, run_id=run.id
+            node, label, run.node_timeout, source=run.source, user_id=run.requested_by_id, run_id=run.id,
+            known_state=state if sm.is_primary(state) else None,
         )
         status, message = outcome.outcome, outcome.message
         if status == "timed_out":
@@ -213,7 +216,9 @@ class GroupRunner:
 
     async def _progress(self, run: GroupRun, results: list[dict], status: str = "running", message: str = "") -> None:
         await db(_save)(run.id, results=results)
-        node_groups = [protocol.node_group(r["node_id"]) for r in results if r.get("node_id")]
+        # The robot's and the fleet's pages follow every run; a node page only its own node's
+        # (always so for a restart or recovery, which are about one node).
+        node_groups = [protocol.node_group(r["node_id"]) for r in results[-1:] if r.get("node_id")]
         await self.gateway.relay.publish(
             [protocol.robot_group(run.robot_id), protocol.FLEET_GROUP, *node_groups],
             {"type": "run.progress", "run": {"id": run.id, "robot": run.robot.name, "operation": run.operation,

@@ -75,13 +75,16 @@ async def perform_transition(
     requested: str | int,
     timeout: float,
     on_send=None,
+    known_state: int | None = None,
 ) -> TransitionResult:
     """Check, call and verify one transition. Raises NodeUnreachable and sm.UnknownTransition.
 
     ``on_send(transition)`` runs just before the request leaves, so the caller can tell the
     node's transition events that follow apart from other tools' transitions.
+    ``known_state``: the state the caller has just read from the node itself (a group run
+    step by step), which spares one get_state call.
     """
-    start_state = await read_state(domain, fqn, timeout)
+    start_state = known_state if known_state is not None else await read_state(domain, fqn, timeout)
     transition = sm.resolve_transition(requested, start_state)
     if transition is None:
         valid = [t.as_dict() for t in sm.valid_transitions(start_state)]
