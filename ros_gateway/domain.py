@@ -18,6 +18,7 @@ from lifecycle_msgs.msg import TransitionEvent
 from rcl_interfaces.msg import Log, ParameterEvent
 from rclpy.context import Context
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.qos import (
     DurabilityPolicy,
     HistoryPolicy,
@@ -29,6 +30,8 @@ from rclpy.qos import (
 log = logging.getLogger(__name__)
 
 GET_STATE_TYPE = "lifecycle_msgs/srv/GetState"
+# /rosout messages taken per wake-up at most, so a flood cannot starve the thread's stop check.
+ROSOUT_BATCH = 1000
 
 ROSOUT_QOS = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,
@@ -69,6 +72,9 @@ class RosDomain:
         self._thread: threading.Thread | None = None
         self._clients: dict[tuple[str, str], Any] = {}
         self._event_subscriptions: dict[str, Any] = {}
+        self._log_node: rclpy.node.Node | None = None
+        self._log_thread: threading.Thread | None = None
+        self._stopping = threading.Event()
         self.started_at = 0.0
 
     # -- life of the domain ---------------------------------------------------------
@@ -82,7 +88,19 @@ class RosDomain:
             start_parameter_services=False,
             enable_rosout=False,
         )
-        self.node.create_subscription(Log, "/rosout", self._rosout_callback, ROSOUT_QOS)
+        # /rosout is drained by a thread of its own from a node outside the executor: a
+        # flooding logger must not slow transition events and service replies (the executor
+        # rebuilds its wait set over every entity for each message it takes).
+        self._log_node = rclpy.create_node(
+            f"lifecycle_gateway_logs_{os.getpid()}",
+            context=self.context,
+            start_parameter_services=False,
+            enable_rosout=False,
+        )
+        self._rosout = self._log_node.create_subscription(Log, "/rosout", lambda _msg: None, ROSOUT_QOS)
+        self._log_thread = threading.Thread(
+            target=self._drain_rosout, name=f"ros-rosout-{self.domain_id}", daemon=True
+        )
         if self._on_parameter_event is not None:
             self.node.create_subscription(
                 ParameterEvent,
@@ -94,6 +112,7 @@ class RosDomain:
         self.executor.add_node(self.node)
         self._thread = threading.Thread(target=self._spin, name=f"ros-domain-{self.domain_id}", daemon=True)
         self._thread.start()
+        self._log_thread.start()
         self.started_at = time.monotonic()
         log.info("watching ROS domain %d", self.domain_id)
 
@@ -105,10 +124,36 @@ class RosDomain:
         except Exception:  # the thread must not die silently
             log.exception("executor of ROS domain %d stopped", self.domain_id)
 
-    def stop(self) -> None:
+    def _drain_rosout(self) -> None:
+        """Wait on /rosout alone and take every waiting message per wake-up (bounded waits,
+        so a stopping domain is noticed within 0.1 s)."""
+        wait_set = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, self.context.handle)
+        handle = self._rosout.handle
         try:
+            while not self._stopping.is_set() and self.context.ok():
+                wait_set.clear_entities()
+                wait_set.add_subscription(handle)
+                wait_set.wait(100_000_000)
+                if handle.pointer not in wait_set.get_ready_entities("subscription"):
+                    continue
+                for _ in range(ROSOUT_BATCH):
+                    taken = handle.take_message(Log, False)
+                    if taken is None:
+                        break
+                    self._on_log(self.domain_id, taken[0])
+        except Exception:  # shutting down (invalid handle, context gone) or a bug: say so once
+            if not self._stopping.is_set():
+                log.exception("reading /rosout of ROS domain %d stopped", self.domain_id)
+
+    def stop(self) -> None:
+        self._stopping.set()
+        try:
+            if self._log_thread is not None:
+                self._log_thread.join(timeout=2.0)
             if self.executor is not None:
                 self.executor.shutdown(timeout_sec=2.0)
+            if self._log_node is not None:
+                self._log_node.destroy_node()
             if self.node is not None:
                 self.node.destroy_node()
         finally:
@@ -188,9 +233,6 @@ class RosDomain:
             raise ServiceTimeout(f"{fqn}/{service} did not answer within {timeout:g} s") from None
 
     # -- callbacks (executor thread) ------------------------------------------------
-    def _rosout_callback(self, msg: Log) -> None:
-        self._on_log(self.domain_id, msg)
-
     def _hand_over(self, callback: Callable, *args: Any) -> None:
         try:
             self.loop.call_soon_threadsafe(callback, *args)

@@ -32,7 +32,8 @@ class NodeDriver:
         its audit record; raises NodeUnreachable (recorded too) when nothing could be sent."""
         domain = self.gateway.domains[node.robot.domain_id]
         requested_at = datetime.now(timezone.utc)
-        audit = dict(node_id=node.row.id, robot=node.robot, node_name=node.name, requested_label=str(requested),
+        audit = dict(node_id=node.row.id, node_key=node.key, robot=node.robot, node_name=node.name,
+                     requested_label=str(requested),
                      source=source, requested_at=requested_at, user_id=user_id, run_id=run_id)
         try:
             result = await perform_transition(domain, node.name, requested, timeout,

@@ -326,6 +326,7 @@ class Gateway:
         log.info("external transition on %s:%s: %s", node.robot.name, node.name, completed.outcome)
         record = await db(store.record_transition)(
             node_id=node.row.id,
+            node_key=node.key,
             robot=node.robot,
             node_name=node.name,
             transition=completed.transition,

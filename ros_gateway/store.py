@@ -105,6 +105,7 @@ def record_transition(
     error: str = "",
     run_id: str = "",
     requested_label: str = "",
+    node_key: str = "",
 ) -> dict:
     """Append one audit record; returns it as the API shows it."""
 
@@ -136,7 +137,9 @@ def record_transition(
         error=error,
         run_id=run_id,
     )
-    return TransitionRecord.objects.select_related("node").get(pk=record.pk).as_dict()
+    if node_id is not None and node_key:
+        record.node = ManagedNode(pk=node_id, key=node_key)  # what as_dict needs, without a query
+    return record.as_dict()
 
 
 def insert_logs(rows: list[LogRecord]) -> list[LogRecord]:

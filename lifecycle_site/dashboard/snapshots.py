@@ -1,6 +1,11 @@
 """Plain-data snapshots that pages and consumers render (one query each, no N+1)."""
 from __future__ import annotations
 
+from functools import lru_cache
+
+from django.template.loader import render_to_string
+from django.utils.safestring import mark_safe
+
 from lifecycle_site.dashboard.graph import layout
 from lifecycle_site.fleet.models import ManagedNode, Robot
 from lifecycle_site.fleet.serializers import node_dict
@@ -30,11 +35,19 @@ def one_node(key: str) -> dict:
     return node_dict(ManagedNode.objects.select_related("robot").get(key=key))
 
 
+@lru_cache(maxsize=64)
+def graph_svg(state_id: int, alive: bool) -> str:
+    """The state machine drawing; a handful of variants, each rendered once (it is the
+    costly part of a node page's live update)."""
+    context = {"graph": layout(state_id, alive), "node": {"state": sm.state_dict(state_id)}}
+    return mark_safe(render_to_string("dashboard/_graph.html", context))
+
+
 def state_panel(node: dict) -> dict:
     """Context of the node page's live part: state, valid transitions, graph."""
     return {
         "node": node,
-        "graph": layout(node["state"]["id"], node["alive"]),
+        "graph_svg": graph_svg(node["state"]["id"], node["alive"]),
         "busy": node["alive"] and not sm.is_primary(node["state"]["id"]),
         "states": STATES,
     }
