@@ -1,0 +1,172 @@
+"""Scenario 4: one node logs as fast as it can for 10 s.
+
+Counts the records along the way: sent by the node, received by the gateway, dropped by its
+bounded buffer, stored in the database, relayed to a WebSocket client of the node's log
+console (``ws/logs/node/<id>/``). Meanwhile the fleet page is fetched every quarter second
+and the gateway's and site's resident memory sampled.
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import threading
+import time
+
+from tests.benchmarks.harness import BenchContext, BenchError, Stack
+from tests.benchmarks.probe import LineProcess
+from tests.benchmarks.profiling import profiled
+from tests.benchmarks.report import ScenarioResult, Series
+from tests.benchmarks.system import loadavg, rss_mb
+from tests.benchmarks.web import Http, ws_connect
+
+NAME = "flood"
+TITLE = "4. Log flood: one node logging as fast as it can"
+DOMAIN = 112
+ROBOT = "bench-flood"
+NODE = "log_flooder"
+DRAIN_TIMEOUT_S = 90.0
+STABLE_S = 2.0
+# "Memory flat": in the second half of the flood the gateway grows by at most this much
+# (its bounded buffer fills within the first second or two, then memory must stay put).
+FLAT_MB = 5.0
+
+
+class Relayed:
+    """Records reaching the log console's WebSocket."""
+
+    def __init__(self) -> None:
+        self.records = 0
+        self.last = 0.0
+
+
+async def count_records(web: Http, key: str, relayed: Relayed, ready: asyncio.Event, stop: asyncio.Event) -> None:
+    async with ws_connect(web, f"/ws/logs/node/{key}/") as ws:
+        ready.set()
+        while not stop.is_set():
+            try:
+                message = await asyncio.wait_for(ws.recv(), 0.25)
+            except asyncio.TimeoutError:
+                continue
+            records = json.loads(message).get("records", [])
+            if records:
+                relayed.records += len(records)
+                relayed.last = time.monotonic()
+
+
+Sample = tuple[float, float, float]  # (monotonic time, gateway RSS MB, site RSS MB)
+
+
+def observe(web: Http, pids: tuple[int, int], pages: Series, memory: list[Sample], stop: threading.Event) -> None:
+    """Fetch the fleet page and sample memory until told to stop (a thread of its own)."""
+    while not stop.is_set():
+        response = web.get("/")
+        if response.status == 200:
+            pages.add(response.ms)
+        memory.append((time.monotonic(), rss_mb(pids[0]), rss_mb(pids[1])))
+        stop.wait(0.25)
+
+
+def wait_drained(stack: Stack, relayed: Relayed) -> tuple[dict, float]:
+    """Until the gateway's stored count and the relayed count stop moving."""
+    deadline = time.monotonic() + DRAIN_TIMEOUT_S
+    last_seen, last_change = (-1, -1), time.monotonic()
+    stats: dict = {}
+    while time.monotonic() < deadline:
+        stats = stack.gateway_stats()
+        seen = (stats.get("logs_stored", 0), relayed.records)
+        if seen != last_seen:
+            last_seen, last_change = seen, time.monotonic()
+        elif time.monotonic() - last_change > STABLE_S and not stats.get("logs_buffered"):
+            return stats, last_change
+        time.sleep(0.1)
+    raise BenchError(f"the gateway was still storing records {DRAIN_TIMEOUT_S:g} s after the flood: {stats}")
+
+
+async def measure(stack: Stack, flooder: LineProcess, seconds: float, result: ScenarioResult) -> dict:
+    key = f"{ROBOT}.{NODE}"
+    relayed, ready, stop = Relayed(), asyncio.Event(), asyncio.Event()
+    listener = asyncio.create_task(count_records(stack.web, key, relayed, ready, stop))
+    await asyncio.wait_for(ready.wait(), 15)
+    await asyncio.sleep(1.0)
+    before = stack.gateway_stats()
+    memory_before = (rss_mb(stack.gateway.pid), rss_mb(stack.site.pid))
+    pages = result.new_series("GET / fleet page during the flood")
+    memory: list[Sample] = []
+    done = threading.Event()
+    observer_web = Http(stack.web.host, stack.web.port)
+    observer_web.cookies = dict(stack.web.cookies)
+    observer = threading.Thread(target=observe, args=(observer_web, (stack.gateway.pid, stack.site.pid), pages,
+                                                      memory, done), daemon=True)
+    observer.start()
+    began = time.monotonic()
+    sent = await asyncio.to_thread(flooder.call, "flood", seconds + 30, seconds=seconds)
+    after, stored_done = await asyncio.to_thread(wait_drained, stack, relayed)
+    done.set()
+    observer.join(5)
+    stop.set()
+    await listener
+    await asyncio.sleep(3.0)
+    return {
+        "sent": sent, "before": before, "after": after, "began": began, "stored_done": stored_done,
+        "relayed": relayed, "memory_before": memory_before, "memory": memory,
+        "memory_after": (rss_mb(stack.gateway.pid), rss_mb(stack.site.pid)),
+    }
+
+
+def report(run: dict, result: ScenarioResult) -> None:
+    before, after, sent = run["before"], run["after"], run["sent"]
+
+    def delta(name: str) -> int:
+        return after.get(name, 0) - before.get(name, 0)
+
+    flood_s = sent["seconds"]
+    received, dropped, stored = delta("logs_received"), delta("logs_dropped"), delta("logs_stored")
+    relayed: Relayed = run["relayed"]
+    stored_s = max(run["stored_done"] - run["began"], flood_s)
+    relayed_s = max(relayed.last - run["began"], flood_s)
+    relay_rate = relayed.records / relayed_s
+    result.figure("sent by the node", sent["sent"], "records")
+    result.figure("sent per second", sent["sent"] / flood_s, "/s")
+    result.figure("received by the gateway", received, "records")
+    result.figure("lost before the gateway (DDS, sent - received)", sent["sent"] - received, "records")
+    result.figure("dropped by the gateway's bounded buffer", dropped, "records")
+    result.figure("stored in the database", stored, "records")
+    result.figure("relayed to the WebSocket client", relayed.records, "records")
+    result.figure("received per second (over the flood)", received / flood_s, "/s")
+    result.figure("stored per second (until storing ended)", stored / stored_s, "/s")
+    result.figure("relayed per second (until relaying ended)", relay_rate, "/s")
+    result.figure("storing/relaying went on after the flood", max(stored_s, relayed_s) - flood_s, "s")
+    gw_before, site_before = run["memory_before"]
+    gw_peak = max((m[1] for m in run["memory"]), default=float("nan"))
+    site_peak = max((m[2] for m in run["memory"]), default=float("nan"))
+    half = run["began"] + flood_s / 2
+    first_half = max((m[1] for m in run["memory"] if m[0] <= half), default=float("nan"))
+    gw_after, site_after = run["memory_after"]
+    result.figure("gateway RSS before the flood", gw_before, "MB")
+    result.figure("gateway RSS peak", gw_peak, "MB")
+    result.figure("gateway RSS after draining", gw_after, "MB")
+    result.figure("site RSS before the flood", site_before, "MB")
+    result.figure("site RSS peak", site_peak, "MB")
+    result.figure("site RSS after draining", site_after, "MB")
+    result.check("relayed per second", relay_rate, ">= 5000 /s", relay_rate >= 5000, "/s")
+    result.figure("gateway RSS growth, before -> after", gw_after - gw_before, "MB")
+    growth = gw_peak - first_half
+    result.check("gateway RSS growth in 2nd half of flood", growth, f"<= {FLAT_MB:g} MB", growth <= FLAT_MB, "MB")
+    pages = next(s for s in result.series if s.name.startswith("GET /"))
+    p95 = pages.summary()["p95"]
+    result.check("fleet page during flood, p95", p95, "< 500 ms", p95 < 500, "ms")
+
+
+def run(ctx: BenchContext) -> ScenarioResult:
+    result = ScenarioResult(NAME, TITLE, load_before=loadavg())
+    seconds = 3.0 if ctx.quick else 10.0
+    with ctx.stack(NAME, [(ROBOT, DOMAIN)]) as stack:
+        flooder = LineProcess(stack, "flooder", "tests.benchmarks.flooder", str(DOMAIN), NODE)
+        # A few other nodes on the robot, so the fleet page is not empty.
+        stack.start_robot("robot", DOMAIN, generic=10, prefix="quiet")
+        stack.wait_nodes([f"{ROBOT}.{NODE}"], 60, state="unconfigured")
+        with profiled(ctx, stack, NAME):
+            outcome = asyncio.run(measure(stack, flooder, seconds, result))
+        flooder.close()
+    report(outcome, result)
+    return result

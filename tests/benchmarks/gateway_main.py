@@ -1,0 +1,71 @@
+"""The product's gateway (ros_gateway.service.Gateway, as ``manage.py ros_gateway`` runs it)
+plus a JSON file of its own counters, rewritten every half second, so the benchmark can see
+what it received, dropped, stored and published. Nothing of the gateway is changed.
+
+    python -m tests.benchmarks.gateway_main NAME STATS_PATH
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import signal
+import sys
+import time
+from pathlib import Path
+
+REPORT_INTERVAL_S = 0.5
+
+
+def snapshot(gateway) -> dict:
+    logs, buffer = gateway.logs, gateway.logs.buffer
+    return {
+        "time": time.time(),
+        "monotonic": time.monotonic(),
+        "logs_received": buffer.received,
+        "logs_dropped": buffer.dropped,
+        "logs_buffered": len(buffer),
+        "logs_stored": logs.stored,
+        "published": gateway.relay.published,
+        "publish_failures": gateway.relay.publish_failures,
+        "commands_handled": gateway.commands.handled,
+        "domains": sorted(gateway.domains),
+        "nodes_known": len(gateway.nodes),
+        "nodes_alive": sum(1 for n in gateway.nodes.values() if n.alive),
+        "nodes_state_read": sum(1 for n in gateway.nodes.values() if n.alive and n.state_read),
+        "background_tasks": len(gateway._background),
+    }
+
+
+async def report(gateway, path: Path) -> None:
+    scratch = path.with_suffix(".tmp")
+    while True:
+        scratch.write_text(json.dumps(snapshot(gateway)))
+        scratch.replace(path)
+        await asyncio.sleep(REPORT_INTERVAL_S)
+
+
+def main(name: str, stats_path: str) -> None:
+    os.environ.setdefault("DJANGO_SETTINGS_MODULE", "lifecycle_site.settings")
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    import django
+
+    django.setup()
+    from ros_gateway.service import Gateway
+
+    async def run() -> None:
+        gateway = Gateway(name)
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, gateway.stop)
+        reporter = asyncio.create_task(report(gateway, Path(stats_path)))
+        try:
+            await gateway.run()
+        finally:
+            reporter.cancel()
+
+    asyncio.run(run())
+
+
+if __name__ == "__main__":
+    main(*sys.argv[1:3])

@@ -1,0 +1,275 @@
+"""The real stack of one scenario: its own Redis, a fresh SQLite database, the gateway and
+daphne as subprocesses, and robot processes on demand; everything is stopped on exit.
+
+DDS stays on this machine (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST) and the benchmark uses
+ROS domains 110-119 only, apart from the tests (20-100, 150-160) and the demo (21, 22).
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Callable, TypeVar
+
+from tests.benchmarks.system import free_port
+from tests.benchmarks.web import Http
+
+ROOT = Path(__file__).resolve().parents[2]
+PYTHON = sys.executable
+USER, PASSWORD = "bench-operator", "bench-password-9431"
+CHANNEL_PREFIX = "lifecycle-bench"
+
+T = TypeVar("T")
+
+
+class BenchError(RuntimeError):
+    """A part of the stack did not come up or misbehaved; the message says which."""
+
+
+def wait_for(condition: Callable[[], T], timeout: float, what: str, interval: float = 0.1) -> T:
+    """Poll ``condition`` until it returns something truthy; BenchError after ``timeout``."""
+    deadline = time.monotonic() + timeout
+    while True:
+        result = condition()
+        if result:
+            return result
+        if time.monotonic() > deadline:
+            raise BenchError(f"timed out after {timeout:g} s waiting for {what}")
+        time.sleep(interval)
+
+
+class Child:
+    """A subprocess in its own process group, its output in a log file."""
+
+    def __init__(self, name: str, argv: list[str], env: dict[str, str], log_dir: Path, stdin: int | None = None,
+                 stdout: int | None = None) -> None:
+        self.name = name
+        self.log_path = log_dir / f"{name}.log"
+        with open(self.log_path, "ab") as log:
+            self.popen = subprocess.Popen(
+                argv, cwd=ROOT, env=env, stdin=stdin if stdin is not None else subprocess.DEVNULL,
+                stdout=stdout if stdout is not None else log, stderr=log, start_new_session=True,
+            )
+
+    @property
+    def pid(self) -> int:
+        return self.popen.pid
+
+    def output(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+    def alive(self) -> bool:
+        return self.popen.poll() is None
+
+    def stop(self, timeout: float = 15.0) -> None:
+        if self.alive():
+            try:
+                os.killpg(self.popen.pid, signal.SIGTERM)
+                self.popen.wait(timeout)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.popen.pid, signal.SIGKILL)
+                self.popen.wait(5)
+            except ProcessLookupError:
+                pass
+
+
+def environment(data_dir: Path, redis_port: int, **extra: str) -> dict[str, str]:
+    """What every process of one stack shares: settings, data dir, Redis, DDS on loopback."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("LIFECYCLE_", "DJANGO_", "ROS_"))}
+    env.update(
+        DJANGO_SETTINGS_MODULE="lifecycle_site.settings",
+        LIFECYCLE_DATA_DIR=str(data_dir),
+        DATABASE_URL=f"sqlite:///{data_dir / 'db.sqlite3'}",
+        REDIS_URL=f"redis://127.0.0.1:{redis_port}/0",
+        LIFECYCLE_CHANNEL_PREFIX=CHANNEL_PREFIX,
+        ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+        ROS_DOMAIN_ID="119",  # anything that forgets its domain stays in ours
+        PYTHONUNBUFFERED="1",
+    )
+    env.update(extra)
+    return env
+
+
+def run_manage(env: dict[str, str], *args: str, timeout: float = 120.0) -> str:
+    done = subprocess.run([PYTHON, "manage.py", *args], cwd=ROOT, env=env, capture_output=True, text=True,
+                          timeout=timeout)
+    if done.returncode != 0:
+        raise BenchError(f"manage.py {args[0]} failed:\n{done.stdout}\n{done.stderr}")
+    return done.stdout
+
+
+SEED_USER = f"""
+from django.contrib.auth import get_user_model
+from django.contrib.auth.models import Group
+user = get_user_model().objects.create_user({USER!r}, password={PASSWORD!r})
+user.groups.add(Group.objects.get(name="operator"))
+"""
+SEED_ROBOTS = """
+import json, os
+from lifecycle_site.fleet.models import Robot
+for name, domain in json.loads(os.environ["BENCH_ROBOTS"]):
+    Robot.objects.create(name=name, domain_id=domain)
+"""
+
+
+class Template:
+    """A migrated database with the benchmark's operator and API token, copied per scenario."""
+
+    def __init__(self, workdir: Path) -> None:
+        self.dir = workdir / "template"
+        self.dir.mkdir(parents=True)
+        env = environment(self.dir, 0)
+        run_manage(env, "migrate", "--noinput")
+        run_manage(env, "shell", "-c", SEED_USER)
+        # The token the way an operator makes one (docs/api.md).
+        self.token = run_manage(env, "create_api_token", USER, "--name", "benchmark").strip()
+
+    def copy_to(self, data_dir: Path) -> None:
+        data_dir.mkdir(parents=True)
+        for path in self.dir.glob("db.sqlite3*"):
+            shutil.copy(path, data_dir / path.name)
+        shutil.copy(self.dir / "secret_key", data_dir / "secret_key")
+
+
+class Stack:
+    """Redis, database, gateway and daphne of one scenario (a context manager)."""
+
+    api: Http  # bearer token of the benchmark's operator
+    web: Http  # the same operator's browser session (login form)
+
+    def __init__(self, workdir: Path, template: Template, name: str, robots: list[tuple[str, int]],
+                 **env_extra: str) -> None:
+        self.name = name
+        self.dir = workdir / name
+        template.copy_to(self.dir)
+        self.log_dir = self.dir / "logs"
+        self.log_dir.mkdir()
+        self.token = template.token
+        self.redis_port, self.web_port = free_port(), free_port()
+        self.env = environment(self.dir, self.redis_port, **env_extra)
+        self.robots = robots
+        self.children: list[Child] = []
+        self.redis: subprocess.Popen | None = None
+        self.gateway: Child | None = None
+        self.site: Child | None = None
+        self.stats_path = self.dir / "gateway-stats.json"
+
+    # -- bring-up and teardown ------------------------------------------------------------
+    def __enter__(self) -> "Stack":
+        try:
+            self.start()
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def start(self) -> None:
+        from lifecycle_site import local_redis
+
+        self.redis = local_redis.start(self.redis_port, self.dir / "redis")
+        run_manage(dict(self.env, BENCH_ROBOTS=json.dumps(self.robots)), "shell", "-c", SEED_ROBOTS)
+        self.gateway = self.spawn(
+            "gateway", [PYTHON, "-m", "tests.benchmarks.gateway_main", f"bench-{self.name}", str(self.stats_path)]
+        )
+        self.site = self.spawn(
+            "daphne", [PYTHON, "-m", "daphne", "-b", "127.0.0.1", "-p", str(self.web_port),
+                       "lifecycle_site.asgi:application"]
+        )
+        wait_for(lambda: self._answers() or not self.site.alive(), 30, "daphne to listen")
+        self._require_alive(self.site)
+        self.api = Http("127.0.0.1", self.web_port, token=self.token)
+        wait_for(lambda: self._gateway_online() or not self.gateway.alive(), 60, "the gateway heartbeat")
+        self._require_alive(self.gateway)
+        self.web = Http("127.0.0.1", self.web_port)
+        self.web.login(USER, PASSWORD)
+
+    def stop(self) -> None:
+        for child in reversed(self.children):
+            child.stop()
+        self.children.clear()
+        if self.redis is not None and self.redis.poll() is None:
+            self.redis.terminate()
+            self.redis.wait(10)
+
+    def spawn(self, name: str, argv: list[str], **kwargs: int) -> Child:
+        child = Child(name, argv, self.env, self.log_dir, **kwargs)
+        self.children.append(child)
+        return child
+
+    def _answers(self) -> bool:
+        with socket.socket() as probe:
+            return probe.connect_ex(("127.0.0.1", self.web_port)) == 0
+
+    def _gateway_online(self) -> bool:
+        response = self.api.get("/api/v1/robots")
+        return response.status == 200 and response.json()["gateway_online"]
+
+    @staticmethod
+    def _require_alive(child: Child) -> None:
+        if not child.alive():
+            raise BenchError(f"{child.name} exited on start:\n{child.output()[-3000:]}")
+
+    # -- robots ---------------------------------------------------------------------------
+    def start_robot(self, name: str, domain: int, generic: int, prefix: str, nodes: str = "",
+                    wait: bool = True) -> Child:
+        """A demo robot process with ``generic`` minimal lifecycle nodes (<prefix>_000 ...)."""
+        argv = [PYTHON, "-m", "ros_gateway.demo.robot", "--domain", str(domain), "--nodes", nodes,
+                "--generic", str(generic), "--generic-prefix", prefix, "--ros-args", "--disable-external-lib-logs"]
+        child = self.spawn(name, argv)
+        if wait:
+            self.wait_robot(child)
+        return child
+
+    def wait_robot(self, child: Child, timeout: float = 90.0) -> None:
+        wait_for(lambda: "demo robot ready" in child.output() or not child.alive(), timeout, f"{child.name} to start")
+        self._require_alive(child)
+
+    # -- what the stack reports -----------------------------------------------------------
+    def gateway_stats(self) -> dict:
+        """Counters the gateway wrapper writes every half second (see gateway_main.py)."""
+        try:
+            return json.loads(self.stats_path.read_text())
+        except (OSError, ValueError):
+            return {}
+
+    def nodes(self, robot: str | None = None) -> list[dict]:
+        path = "/api/v1/nodes" + (f"?robot={robot}" if robot else "")
+        response = self.api.get(path)
+        if response.status != 200:
+            raise BenchError(f"GET {path} answered {response.status}: {response.body[:300]!r}")
+        return response.json()["nodes"]
+
+    def wait_nodes(self, keys: list[str], timeout: float, state: str | None = None) -> None:
+        """Until every listed node is alive (and in ``state``, when given)."""
+        wanted = set(keys)
+
+        def ready() -> bool:
+            listed = {n["id"]: n for n in self.nodes()}
+            return all(
+                k in listed and listed[k]["alive"] and (state is None or listed[k]["state"]["label"] == state)
+                for k in wanted
+            )
+
+        wait_for(ready, timeout, f"{len(wanted)} nodes to be listed alive" + (f" and {state}" if state else ""), 0.25)
+
+
+class BenchContext:
+    """What every scenario gets: a work dir, the template database, the run's options."""
+
+    def __init__(self, workdir: Path, template: Template, quick: bool, profile_dir: Path | None) -> None:
+        self.workdir = workdir
+        self.template = template
+        self.quick = quick
+        self.profile_dir = profile_dir
+
+    def stack(self, name: str, robots: list[tuple[str, int]], **env_extra: str) -> Stack:
+        return Stack(self.workdir, self.template, name, robots, **env_extra)

@@ -1,0 +1,98 @@
+"""Scenario 1: one lifecycle transition, three ways, side by side on the same node.
+
+(a) ``POST /api/v1/nodes/{id}/transition`` to daphne over a keep-alive connection with a
+    bearer token (site -> Redis -> gateway -> DDS and back);
+(b) a direct ChangeState call from a warm rclpy process (the floor); beside it (b2) the same
+    process reading the state first, as the gateway does before every change (its safety
+    promise), which is the floor of what the gateway does;
+(c) a fresh process per call, as ``ros2 lifecycle set`` does (start, discover, call, exit).
+
+The three are interleaved cycle by cycle (configure, activate, deactivate, cleanup), so a
+disturbance of the machine hits all of them alike.
+"""
+from __future__ import annotations
+
+import subprocess
+import time
+
+from tests.benchmarks.harness import PYTHON, ROOT, BenchContext, BenchError
+from tests.benchmarks.probe import RosProbe
+from tests.benchmarks.profiling import profiled
+from tests.benchmarks.report import ScenarioResult, Series
+from tests.benchmarks.system import loadavg
+from tests.benchmarks.web import Http
+
+NAME = "transition"
+TITLE = "1. Transition latency: API vs direct rclpy (floor) vs fresh process per call"
+DOMAIN = 110
+ROBOT = "bench-tr"
+NODE = "bench_node_000"
+CYCLE = [("configure", 1), ("activate", 3), ("deactivate", 4), ("cleanup", 2)]
+# Quiet time after each call, so the gateway's follow-up work (events, audit, pushes) of one
+# call does not overlap the next measurement.
+PAUSE_S = 0.08
+
+
+def api_cycle(api: Http, key: str, total: Series | None, inner: Series | None) -> None:
+    for label, _ in CYCLE:
+        response = api.transition(key, label)
+        if response.status != 200:
+            raise BenchError(f"API {label} on {key} answered {response.status}: {response.body[:300]!r}")
+        if total is not None and inner is not None:
+            total.add(response.ms)
+            inner.add(response.json()["duration_ms"])
+        time.sleep(PAUSE_S)
+
+
+def direct_cycle(probe: RosProbe, fqn: str, series: Series | None, check: bool = False) -> None:
+    for _, transition_id in CYCLE:
+        answer = probe.change(fqn, transition_id, check)
+        if series is not None:
+            series.add(answer["ms"])
+        time.sleep(PAUSE_S)
+
+
+def fresh_cycle(env: dict[str, str], fqn: str, series: Series) -> None:
+    for label, transition_id in CYCLE:
+        began = time.perf_counter()
+        done = subprocess.run(
+            [PYTHON, str(ROOT / "tests" / "benchmarks" / "one_shot.py"), str(DOMAIN), fqn, str(transition_id)],
+            cwd=ROOT, env=env, capture_output=True, timeout=60,
+        )
+        if done.returncode != 0:
+            raise BenchError(f"fresh-process {label} failed ({done.returncode}): {done.stderr[-500:]!r}")
+        series.add((time.perf_counter() - began) * 1000)
+        time.sleep(PAUSE_S)
+
+
+def run(ctx: BenchContext) -> ScenarioResult:
+    result = ScenarioResult(NAME, TITLE, load_before=loadavg())
+    cycles, fresh_cycles = (8, 1) if ctx.quick else (40, 3)
+    a = result.new_series("(a) API POST .../transition")
+    b = result.new_series("(b) direct rclpy ChangeState (floor)")
+    b2 = result.new_series("(b2) direct get_state + ChangeState")
+    c = result.new_series("(c) fresh process per call")
+    inner = result.new_series("gateway's own ChangeState call, of (a)")
+    key, fqn = f"{ROBOT}.{NODE}", f"/{NODE}"
+    with ctx.stack(NAME, [(ROBOT, DOMAIN)]) as stack:
+        stack.start_robot("robot", DOMAIN, generic=1, prefix="bench_node")
+        stack.wait_nodes([key], 60, state="unconfigured")
+        probe = RosProbe(stack, DOMAIN)
+        api_cycle(stack.api, key, None, None)  # warm-up: clients matched, code paths loaded
+        direct_cycle(probe, fqn, None)
+        fresh_every = max(cycles // fresh_cycles, 1)
+        with profiled(ctx, stack, NAME):
+            for i in range(cycles):
+                api_cycle(stack.api, key, a, inner)
+                direct_cycle(probe, fqn, b)
+                direct_cycle(probe, fqn, b2, check=True)
+                if i % fresh_every == 0 and len(c.values) < 4 * fresh_cycles:
+                    fresh_cycle(stack.env, fqn, c)
+        probe.close()
+    a_over_b = result.figure("ratio a/b (median)", a.median / b.median, "x")
+    c_over_a = result.figure("ratio c/a (median)", c.median / a.median, "x")
+    result.figure("ratio a/b2 (median; b2 checks the state first, as the gateway does)", a.median / b2.median, "x")
+    result.figure("API overhead over the gateway's ChangeState (median)", a.median - inner.median, "ms")
+    result.check("a/b, API within 1.5x of the floor", a_over_b, "<= 1.5", a_over_b <= 1.5, "x")
+    result.check("c/a, API 50x faster than fresh process", c_over_a, ">= 50", c_over_a >= 50, "x")
+    return result
