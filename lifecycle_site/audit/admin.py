@@ -3,8 +3,21 @@ from django.contrib import admin
 from lifecycle_site.audit.models import ParameterRecord, TransitionRecord
 
 
+class ReadOnlyAdmin(admin.ModelAdmin):
+    """Audit records can be browsed, never added, changed or deleted."""
+
+    def has_add_permission(self, request) -> bool:
+        return False
+
+    def has_change_permission(self, request, obj=None) -> bool:
+        return False
+
+    def has_delete_permission(self, request, obj=None) -> bool:
+        return False
+
+
 @admin.register(TransitionRecord)
-class TransitionRecordAdmin(admin.ModelAdmin):
+class TransitionRecordAdmin(ReadOnlyAdmin):
     """Read-only: the audit log is append-only."""
 
     list_display = (
@@ -15,18 +28,9 @@ class TransitionRecordAdmin(admin.ModelAdmin):
     search_fields = ("node_name", "requested_by_name", "error")
     date_hierarchy = "requested_at"
 
-    def has_add_permission(self, request) -> bool:
-        return False
-
-    def has_change_permission(self, request, obj=None) -> bool:
-        return False
-
-    def has_delete_permission(self, request, obj=None) -> bool:
-        return False
-
 
 @admin.register(ParameterRecord)
-class ParameterRecordAdmin(admin.ModelAdmin):
+class ParameterRecordAdmin(ReadOnlyAdmin):
     """Read-only: parameter changes are part of the append-only audit log."""
 
     list_display = ("at", "robot_name", "node_name", "name", "old_value", "new_value", "outcome", "source",
@@ -34,12 +38,3 @@ class ParameterRecordAdmin(admin.ModelAdmin):
     list_filter = ("outcome", "source", "robot_name")
     search_fields = ("node_name", "name", "requested_by_name", "reason")
     date_hierarchy = "at"
-
-    def has_add_permission(self, request) -> bool:
-        return False
-
-    def has_change_permission(self, request, obj=None) -> bool:
-        return False
-
-    def has_delete_permission(self, request, obj=None) -> bool:
-        return False

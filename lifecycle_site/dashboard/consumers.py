@@ -69,8 +69,11 @@ class LiveConsumer(AsyncWebsocketConsumer):
             online = await database_sync_to_async(GatewayHeartbeat.online)()
             if online != self.gateway_online:
                 self.gateway_online = online
-                await self.send_html("dashboard/_gateway_banner.html", {"gateway_online": online, "oob": True})
+                await self.send_gateway_status(online)
             await asyncio.sleep(GATEWAY_CHECK_S)
+
+    async def send_gateway_status(self, online: bool) -> None:
+        await self.send_html("dashboard/_gateway_banner.html", {"gateway_online": online, "oob": True})
 
     async def send_html(self, template: str, context: dict) -> None:
         with script_prefix(self.prefix):
@@ -158,10 +161,5 @@ class LogConsumer(LiveConsumer):
     async def run_progress(self, event: dict) -> None:
         pass
 
-    async def watch_gateway(self) -> None:
-        while True:
-            online = await database_sync_to_async(GatewayHeartbeat.online)()
-            if online != self.gateway_online:
-                self.gateway_online = online
-                await self.send(text_data=json.dumps({"gateway_online": online}))
-            await asyncio.sleep(GATEWAY_CHECK_S)
+    async def send_gateway_status(self, online: bool) -> None:
+        await self.send(text_data=json.dumps({"gateway_online": online}))
