@@ -17,7 +17,7 @@ from types import ModuleType
 
 from tests.benchmarks import flood, push, scale, transition
 from tests.benchmarks.harness import ROOT, BenchContext, Template
-from tests.benchmarks.report import ScenarioResult, render_table, write_json
+from tests.benchmarks.report import ScenarioResult, machine, render_table, write_json
 from tests.benchmarks.system import loadavg
 
 SCENARIOS: dict[str, ModuleType] = {m.NAME: m for m in (transition, push, scale, flood)}
@@ -26,7 +26,7 @@ SCENARIOS: dict[str, ModuleType] = {m.NAME: m for m in (transition, push, scale,
 def parse(argv: list[str]) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="python -m tests.benchmarks", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="a short smoke run: fewer samples, 60 nodes, 3 s flood")
+    parser.add_argument("--quick", action="store_true", help="a short smoke run: fewer samples, 60 nodes, 6 s flood")
     parser.add_argument("--only", action="append", choices=sorted(SCENARIOS), metavar="NAME",
                         help=f"run only this scenario (repeatable): {', '.join(SCENARIOS)}")
     parser.add_argument("--output", type=Path, default=ROOT / "bench-results.json")
@@ -48,6 +48,7 @@ def main(argv: list[str]) -> int:
     workdir = Path(tempfile.mkdtemp(prefix="lifecycle-bench-"))
     print(f"benchmarks: {', '.join(names)}{' (quick)' if options.quick else ''}; work dir {workdir}", flush=True)
     began = time.monotonic()
+    measured_on = machine()
     results: list[ScenarioResult] = []
     failed: list[str] = []
     template = Template(workdir)
@@ -65,7 +66,7 @@ def main(argv: list[str]) -> int:
         result.seconds = time.monotonic() - started
         results.append(result)
         print("\n" + render_table(result), flush=True)
-    write_json(options.output, results, {"quick": options.quick, "only": options.only})
+    write_json(options.output, results, {"quick": options.quick, "only": options.only}, measured_on)
     missed = [f"{r.name}: {c.name}" for r in results for c in r.checks if not c.met]
     print(f"\n{len(results) - len(failed)} of {len(names)} scenarios ran in {time.monotonic() - began:.0f} s; "
           f"results in {options.output}")

@@ -154,9 +154,10 @@ def machine() -> dict[str, Any]:
     }
 
 
-def write_json(path: Path, results: list[ScenarioResult], options: dict[str, Any]) -> None:
+def write_json(path: Path, results: list[ScenarioResult], options: dict[str, Any], machine: dict[str, Any]) -> None:
+    """``machine`` as read when the run began (the commit then is the one measured)."""
     body = {
-        "machine": machine(),
+        "machine": machine,
         "options": options,
         "scenarios": {r.name: r.as_dict() for r in results},
     }

@@ -8,6 +8,7 @@ which every process on the machine shares).
     python -m tests.benchmarks.ros_probe DOMAIN
     -> {"op": "change", "node": "/n_000", "transition": 1}   <- {"ok": true, "ms": 0.9, "sent": T}
        (with "check": true it first reads the state, as the gateway does before every change)
+    -> {"op": "state", "node": "/n_000"}                     <- {"ok": true, "label": "inactive"}
     -> {"op": "watch", "node": "/n_000"}                     <- {"ok": true}
     -> {"op": "events"}                                      <- {"events": [[T, "unconfigured", "configuring"]]}
 """
@@ -78,6 +79,10 @@ class Probe:
         response = self._call(change, request, timeout)
         return {"ok": bool(response.success), "ms": (time.perf_counter() - began) * 1000, "sent": sent}
 
+    def state(self, node: str, timeout: float = 10.0) -> dict:
+        response = self._call(self.client(node, "get_state", GetState, timeout), GetState.Request(), timeout)
+        return {"ok": True, "label": response.current_state.label}
+
     def watch(self, node: str) -> dict:
         if node not in self.subscriptions:
             self.subscriptions[node] = self.node.create_subscription(
@@ -104,7 +109,8 @@ class Probe:
 def main(domain: int) -> int:
     probe = Probe(domain)
     print(json.dumps({"ready": True}), flush=True)
-    handlers = {"change": probe.change, "watch": probe.watch, "events": lambda: probe.take_events()}
+    handlers = {"change": probe.change, "state": probe.state, "watch": probe.watch,
+                "events": lambda: probe.take_events()}
     for line in sys.stdin:
         command = json.loads(line)
         op = command.pop("op")
