@@ -1,6 +1,7 @@
 """How API requests are authenticated: a bearer token, or the browser's session (with CSRF)."""
 from __future__ import annotations
 
+import json
 from functools import wraps
 from typing import Callable
 
@@ -18,6 +19,16 @@ UNSAFE_METHODS = {"POST", "PUT", "PATCH", "DELETE"}
 def error(code: str, message: str, status: int, **details) -> JsonResponse:
     """The one error shape of the API: {"error": {"code", "message", ...details}}."""
     return JsonResponse({"error": {"code": code, "message": message, **details}}, status=status)
+
+
+def json_body(request: HttpRequest, empty: bytes = b""):
+    """The request body parsed as JSON, or the API's 400 malformed_json answer.
+
+    ``empty`` stands in for an empty body (b"" keeps an empty body malformed)."""
+    try:
+        return json.loads(request.body or empty)
+    except (ValueError, UnicodeDecodeError) as exc:
+        return error("malformed_json", f"The request body is not valid JSON: {exc}.", 400)
 
 
 def _token_user(request: HttpRequest):

@@ -1,12 +1,11 @@
 """JSON API for group operations, soft restart and desired state (docs/api.md)."""
 from __future__ import annotations
 
-import json
 import math
 
 from django.http import Http404, HttpRequest, JsonResponse
 
-from lifecycle_site.api.auth import api_view, error
+from lifecycle_site.api.auth import api_view, error, json_body
 from lifecycle_site.api.views import get_node
 from lifecycle_site.fleet.models import GroupRun, Robot
 from lifecycle_site.fleet.runs import RunRefused, start_run, wait_for
@@ -15,10 +14,9 @@ OPERATE = "fleet.operate_node"
 
 
 def _body(request: HttpRequest) -> dict | JsonResponse:
-    try:
-        body = json.loads(request.body or b"{}")
-    except (ValueError, UnicodeDecodeError) as exc:
-        return error("malformed_json", f"The request body is not valid JSON: {exc}.", 400)
+    body = json_body(request, empty=b"{}")
+    if isinstance(body, JsonResponse):
+        return body
     if not isinstance(body, dict):
         return error("malformed_json", "The request body must be a JSON object.", 400)
     return body

@@ -1,11 +1,9 @@
 """JSON API for a node's parameters: list with descriptors, set (checked), YAML export."""
 from __future__ import annotations
 
-import json
-
 from django.http import HttpRequest, HttpResponse, JsonResponse
 
-from lifecycle_site.api.auth import api_view, error
+from lifecycle_site.api.auth import api_view, error, json_body
 from lifecycle_site.api.views import get_node
 from lifecycle_site.fleet.gateway_client import call_gateway
 from lifecycle_site.fleet.param_files import dump
@@ -31,10 +29,9 @@ def node_parameters(request: HttpRequest, key: str) -> JsonResponse:
         return JsonResponse({"node": node.key, "parameters": fetch(node)})
     if not request.user.has_perm("fleet.operate_node"):
         return error("forbidden", "Your role may view parameters but not change them (operator needed).", 403)
-    try:
-        values = json.loads(request.body or b"")
-    except (ValueError, UnicodeDecodeError) as exc:
-        return error("malformed_json", f"The request body is not valid JSON: {exc}.", 400)
+    values = json_body(request)
+    if isinstance(values, JsonResponse):
+        return values
     if not isinstance(values, dict) or not values:
         return error("missing_field", 'Send the new values as {"name": value, ...}.', 400)
     results = apply(node, values, request.user, "api")

@@ -2,13 +2,12 @@
 the ROS gateway and every transition attempt lands in the audit log."""
 from __future__ import annotations
 
-import json
 import math
 
 from django.db.models import Count, Q
 from django.http import Http404, HttpRequest, JsonResponse
 
-from lifecycle_site.api.auth import api_view, error
+from lifecycle_site.api.auth import api_view, error, json_body
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.fleet.gateway_client import GatewayError, call_gateway
 from lifecycle_site.fleet.models import GatewayHeartbeat, LogRecord, ManagedNode, Robot
@@ -92,10 +91,9 @@ def get_node(key: str) -> ManagedNode:
 
 @api_view(methods=("POST",), permission="fleet.operate_node")
 def transition(request: HttpRequest, key: str) -> JsonResponse:
-    try:
-        body = json.loads(request.body or b"")
-    except (ValueError, UnicodeDecodeError) as exc:
-        return error("malformed_json", f"The request body is not valid JSON: {exc}.", 400)
+    body = json_body(request)
+    if isinstance(body, JsonResponse):
+        return body
     if not isinstance(body, dict) or "transition" not in body:
         return error("missing_field", 'Send {"transition": "configure"} (a label or a numeric id).', 400)
     requested = body["transition"]

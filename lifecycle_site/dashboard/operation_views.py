@@ -7,7 +7,7 @@ from django.views.decorators.http import require_POST
 
 from lifecycle_site.dashboard.access import operator_required
 from lifecycle_site.dashboard.views import node_or_404
-from lifecycle_site.fleet.models import GroupRun, Robot
+from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
 from lifecycle_site.fleet.runs import RunRefused, start_run
 
 
@@ -49,7 +49,7 @@ def node_restart(request: HttpRequest, key: str) -> HttpResponse:
 def desired_state(request: HttpRequest, key: str) -> HttpResponse:
     node = node_or_404(key)
     wanted = request.POST.get("desired_state", "")
-    if wanted not in ("", "unconfigured", "inactive", "active"):
+    if wanted not in dict(ManagedNode._meta.get_field("desired_state").choices):
         wanted = ""
     node.desired_state = wanted
     node.save(update_fields=["desired_state"])
