@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 
 from lifecycle_site.fleet.models import LogRecord
 from ros_gateway import protocol, store
-from ros_gateway.store import db
+from ros_gateway.store import LogRow, db
 from ros_gateway.streams import LogBuffer, LogEntry, logger_to_node_name, owning_node
 
 if TYPE_CHECKING:
@@ -24,6 +24,7 @@ BATCH_LIMIT = 2000
 PUSH_CHUNK = 200
 PRUNE_INTERVAL_S = 60.0
 ERROR_LEVEL = 40
+LEVEL_NAMES = dict(LogRecord.LEVELS)
 
 
 class LogPipeline:
@@ -62,11 +63,11 @@ class LogPipeline:
             rows, nodes = self._to_rows(batch)
             if not rows:
                 continue
-            saved = await db(store.insert_logs)(rows)
-            self.stored += len(saved)
-            await self._push(saved, nodes)
+            ids = await db(store.insert_logs)(rows)
+            self.stored += len(ids)
+            await self._push(rows, ids, nodes)
 
-    def _to_rows(self, batch: list[LogEntry]) -> tuple[list[LogRecord], list["LiveNode | None"]]:
+    def _to_rows(self, batch: list[LogEntry]) -> tuple[list[LogRow], list["LiveNode | None"]]:
         rows, nodes = [], []
         by_robot: dict[int, dict[str, "LiveNode"]] = {}
         for node in self.gateway.nodes.values():
@@ -81,27 +82,37 @@ class LogPipeline:
             if node is not None and entry.level >= ERROR_LEVEL:
                 self.recent_errors.setdefault(node.key, deque(maxlen=20)).append(entry)
             rows.append(
-                LogRecord(
-                    robot_id=robot.id,
-                    node_id=node.row.id if node else None,
-                    logger=entry.logger[:255],
-                    stamp=entry.stamp,
-                    level=entry.level if entry.level in (10, 20, 30, 40, 50) else 20,
-                    message=entry.message,
-                    file=entry.file[:255],
-                    function=entry.function[:255],
-                    line=max(entry.line, 0),
+                LogRow(
+                    robot.id,
+                    node.row.id if node else None,
+                    entry.logger[:255],
+                    entry.stamp,
+                    entry.level if entry.level in LEVEL_NAMES else LogRecord.INFO,
+                    entry.message,
+                    entry.file[:255],
+                    entry.function[:255],
+                    max(entry.line, 0),
                 )
             )
             nodes.append(node)
         return rows, nodes
 
-    async def _push(self, saved: list[LogRecord], nodes: list["LiveNode | None"]) -> None:
+    async def _push(self, rows: list[LogRow], ids: list[int], nodes: list["LiveNode | None"]) -> None:
         per_group: dict[str, list[dict]] = {}
-        for record, node in zip(saved, nodes, strict=True):
-            payload = record.as_dict()
-            payload["node_id"] = node.key if node else None
-            per_group.setdefault(protocol.robot_group(record.robot_id), []).append(payload)
+        for row, row_id, node in zip(rows, ids, nodes, strict=True):
+            # LogRecord.as_dict() of the stored record, plus the node's key (no model instances).
+            payload = {
+                "id": row_id,
+                "stamp": row.stamp.isoformat(),
+                "level": LEVEL_NAMES[row.level],
+                "logger": row.logger,
+                "message": row.message,
+                "file": row.file,
+                "function": row.function,
+                "line": row.line,
+                "node_id": node.key if node else None,
+            }
+            per_group.setdefault(protocol.robot_group(row.robot_id), []).append(payload)
             if node is not None:
                 per_group.setdefault(protocol.node_group(node.key), []).append(payload)
         for group, records in per_group.items():
