@@ -40,6 +40,10 @@ DESIRED = {"unconfigured": sm.UNCONFIGURED, "inactive": sm.INACTIVE, "active": s
 # After a step timed out with the node still inside the transition, how many more timeouts
 # to give it to finish before calling it failed.
 SETTLE_TIMEOUTS = 3
+# Nodes of one tier driven at the same time, at most.
+TIER_CONCURRENCY = 8
+# A run's progress goes out (push and save) at most this often, and at its end.
+PROGRESS_INTERVAL_S = 0.25
 # Crash-loop guard: at most this many recoveries of one node within the window.
 RECOVERY_LIMIT, RECOVERY_WINDOW_S = 3, 300.0
 
@@ -48,10 +52,20 @@ def _load(run_id: str) -> GroupRun | None:
     return GroupRun.objects.select_related("robot").filter(pk=run_id).first()
 
 
-def _ordered_names(robot_id: int) -> list[str]:
-    """The robot's bring-up order: listed nodes by position, then the others by name."""
-    nodes = ManagedNode.objects.filter(robot_id=robot_id).order_by(F("order").asc(nulls_last=True), "name")
-    return list(nodes.values_list("name", flat=True))
+def _tiers(robot_id: int, only: list[str]) -> list[list[str]]:
+    """The robot's bring-up order as tiers run one after the other: one tier per position
+    (nodes sharing a position go together), then every node without a position. Nodes within
+    a tier have no order between them. ``only`` narrows the run to those nodes."""
+    rows = ManagedNode.objects.filter(robot_id=robot_id).order_by(F("order").asc(nulls_last=True), "name")
+    wanted = set(only)
+    tiers: dict[int | None, list[str]] = {}
+    for name, position in rows.values_list("name", "order"):
+        if not only or name in wanted:
+            tiers.setdefault(position, []).append(name)
+    listed = {name for tier in tiers.values() for name in tier}
+    # Named but unknown by now (removed meanwhile): still reported, as "not running".
+    missing = [name for name in only if name not in listed]
+    return [*tiers.values(), *([missing] if missing else [])]
 
 
 def _save(run_id: str, **fields) -> None:
@@ -114,22 +128,29 @@ class GroupRunner:
         target, reverse, leave_alone = plan if plan else (target_override, False, ())
         if target_override is not None:
             target = target_override
-        names = run.only_nodes or await db(_ordered_names)(run.robot_id)
+        tiers = await db(_tiers)(run.robot_id, run.only_nodes)
         if reverse:
-            names = list(reversed(names))
-        results: list[dict] = []
-        stopped_by: str | None = None
-        for name in names:
-            if stopped_by:
-                results.append({"node": name, "outcome": "not_run", "steps": [],
-                                "message": f"not run: the run stopped after {stopped_by} failed"})
-                continue
-            node = self.gateway.find_node(run.robot.name, name)
-            result = await self._drive_node(run, node, name, target, leave_alone)
-            results.append(result)
-            await self._progress(run, results)
-            if result["outcome"] == "failed" and run.policy == GroupRun.Policy.STOP:
-                stopped_by = name
+            tiers = [list(reversed(tier)) for tier in reversed(tiers)]
+        names = [name for tier in tiers for name in tier]
+        progress = _Progress(self.gateway, run, names)
+        limit = asyncio.Semaphore(TIER_CONCURRENCY)
+        stopped_by: list[str] = []  # the node whose failure stopped the run
+
+        async def drive(name: str) -> None:
+            async with limit:
+                if stopped_by:
+                    result = {"node": name, "outcome": "not_run", "steps": [],
+                              "message": f"not run: the run stopped after {stopped_by[0]} failed"}
+                else:
+                    node = self.gateway.find_node(run.robot.name, name)
+                    result = await self._drive_node(run, node, name, target, leave_alone)
+                    if result["outcome"] == "failed" and run.policy == GroupRun.Policy.STOP and not stopped_by:
+                        stopped_by.append(name)
+            progress.finished(result)
+
+        for tier in tiers:
+            await asyncio.gather(*(drive(name) for name in tier))
+        results = progress.results()
         failed = sum(r["outcome"] == "failed" for r in results)
         if not failed:
             status = GroupRun.Status.SUCCEEDED
@@ -140,9 +161,10 @@ class GroupRunner:
         summary = ", ".join(f"{sum(r['outcome'] == o for r in results)} {o.replace('_', ' ')}"
                             for o in ("succeeded", "skipped", "failed", "not_run")
                             if any(r["outcome"] == o for r in results))
+        await progress.close()
         await db(_save)(run.id, status=status, results=results, finished=datetime.now(timezone.utc),
                         message=summary or "no nodes")
-        await self._progress(run, results, status=status, message=summary)
+        await progress.push(status=status, message=summary)
         log.info("run %s (%s of %s): %s", run.id, run.operation, run.robot.name, summary)
 
     async def _drive_node(self, run: GroupRun, node: "LiveNode | None", name: str, target: int,
@@ -214,13 +236,54 @@ class GroupRunner:
                 return state
             await asyncio.sleep(0.1)
 
-    async def _progress(self, run: GroupRun, results: list[dict], status: str = "running", message: str = "") -> None:
-        await db(_save)(run.id, results=results)
+
+class _Progress:
+    """A run's results as its nodes finish, saved and pushed at most every PROGRESS_INTERVAL_S
+    (a 100-node run sends a handful of updates, not a hundred)."""
+
+    def __init__(self, gateway: "Gateway", run: GroupRun, names: list[str]) -> None:
+        self.gateway, self.run, self.names = gateway, run, names
+        self.done: dict[str, dict] = {}
+        self.fresh_nodes: list[str] = []  # node keys finished since the last push
+        self.last_push = 0.0
+        self.pending: asyncio.Task | None = None
+        self.waiting = False  # the pending update is still in its sleep (safe to cancel)
+
+    def results(self) -> list[dict]:
+        """Finished nodes' results, in the run's order."""
+        return [self.done[name] for name in self.names if name in self.done]
+
+    def finished(self, result: dict) -> None:
+        self.done[result["node"]] = result
+        if result.get("node_id"):
+            self.fresh_nodes.append(result["node_id"])
+        if self.pending is None:
+            self.pending = asyncio.ensure_future(self._push_soon())
+
+    async def _push_soon(self) -> None:
+        self.waiting = True
+        await asyncio.sleep(max(0.0, self.last_push + PROGRESS_INTERVAL_S - time.monotonic()))
+        self.waiting, self.pending = False, None
+        await db(_save)(self.run.id, results=self.results())
+        await self.push()
+
+    async def close(self) -> None:
+        """Drop an update still waiting its turn, or let one under way finish; the final one follows."""
+        pending, self.pending = self.pending, None
+        if pending is not None:
+            if self.waiting:
+                pending.cancel()
+            await asyncio.gather(pending, return_exceptions=True)
+
+    async def push(self, status: str = "running", message: str = "") -> None:
+        self.last_push = time.monotonic()
+        run = self.run
         # The robot's and the fleet's pages follow every run; a node page only its own node's
         # (always so for a restart or recovery, which are about one node).
-        node_groups = [protocol.node_group(r["node_id"]) for r in results[-1:] if r.get("node_id")]
+        node_groups = [protocol.node_group(key) for key in dict.fromkeys(self.fresh_nodes)]
+        self.fresh_nodes = []
         await self.gateway.relay.publish(
             [protocol.robot_group(run.robot_id), protocol.FLEET_GROUP, *node_groups],
             {"type": "run.progress", "run": {"id": run.id, "robot": run.robot.name, "operation": run.operation,
-                                             "status": status, "message": message, "results": results}},
+                                             "status": status, "message": message, "results": self.results()}},
         )

@@ -77,7 +77,8 @@ class ManagedNode(models.Model):
     order = models.PositiveIntegerField(
         null=True,
         blank=True,
-        help_text="Position in the robot's bring-up order (lowest first); empty: after the others.",
+        help_text="Position in the robot's bring-up order, lowest first; nodes sharing a position go "
+        "together. Empty: after the others, side by side with the other unordered nodes.",
     )
     desired_state = models.CharField(
         max_length=16,

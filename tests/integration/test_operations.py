@@ -171,6 +171,22 @@ def test_a_slow_node_that_gets_there_late_is_not_called_failed(api, ops):
     assert result["state"]["label"] == "active"
 
 
+def test_nodes_without_a_position_come_last_and_go_side_by_side(api, ops):
+    ManagedNode.objects.filter(robot__name=ROBOT).update(order=None)
+    _order("/lidar_driver")
+    nodes = ["/slow/flaky_node", "/camera_driver", "/lidar_driver"]
+    assert operation(api, {"operation": "reset", "nodes": nodes}).json()["run"]["status"] == "succeeded"
+    run = operation(api, {"operation": "bringup", "nodes": nodes}).json()["run"]
+    assert run["status"] == "succeeded", run
+    assert [r["node"] for r in run["results"]] == ["/lidar_driver", "/camera_driver", "/slow/flaky_node"]
+    records = {(r.node_name, r.transition_label): r for r in TransitionRecord.objects.filter(run_id=run["id"])}
+    # The positioned node first, all the way up, before the others begin...
+    assert records["/lidar_driver", "activate"].completed_at < records["/camera_driver", "configure"].requested_at
+    # ...then the unordered ones together: the camera is up while the slow node still configures (2.5 s).
+    assert records["/camera_driver", "activate"].completed_at < records["/slow/flaky_node", "configure"].completed_at
+    assert records["/camera_driver", "configure"].requested_at < records["/slow/flaky_node", "configure"].completed_at
+
+
 @pytest.mark.parametrize("start", [[], ["configure"], ["configure", "activate"]])
 def test_restart_from_every_primary_state_ends_active(api, ops, start):
     key = f"{ROBOT}.spare_{len(start):03d}"

@@ -168,13 +168,15 @@ class Command(BaseCommand):
         except RunRefused as exc:
             code = {"gateway_offline": EXIT_OFFLINE, "not_found": EXIT_USAGE}.get(exc.code, EXIT_FAILED)
             raise CliExit(code, exc.message, exc.code) from None
-        shown = [0]
+        shown: set[str] = set()
 
         def progress(current: GroupRun) -> None:
-            """Print each node's line as its result arrives (the gateway adds a node once done)."""
-            for result in current.results[shown[0]:]:
-                self.stdout.write(out.result_line(result))
-            shown[0] = len(current.results)
+            """Print each node's line as its result arrives (the gateway adds a node once done;
+            nodes driven side by side may finish in any order)."""
+            for result in current.results:
+                if result["node"] not in shown:
+                    shown.add(result["node"])
+                    self.stdout.write(out.result_line(result))
 
         try:
             run = wait_for(run, opts.wait, None if opts.json else progress)
