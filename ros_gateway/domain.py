@@ -39,6 +39,10 @@ log = logging.getLogger(__name__)
 GET_STATE_TYPE = "lifecycle_msgs/srv/GetState"
 # Watched nodes per shard (its own rclpy node, executor and thread).
 NODES_PER_SHARD = 12
+# The service list (thousands of entries in a big domain) is re-read on each discovery pass
+# while the set of running nodes changes and for a while after; otherwise this often.
+SERVICE_SCAN_SETTLE_S = 5.0
+SERVICE_SCAN_EVERY_S = 2.0
 # /rosout messages taken per wake-up at most, so a flood cannot starve the thread's stop check.
 ROSOUT_BATCH = 1000
 
@@ -119,6 +123,9 @@ class RosDomain:
         self._log_thread: threading.Thread | None = None
         self._stopping = threading.Event()
         self.started_at = 0.0
+        self._running: set[str] = set()  # running nodes at the last discovery pass
+        self._lifecycle: set[str] = set()  # of those, the ones offering GetState at the last scan
+        self._last_change = self._last_scan = 0.0
 
     # -- life of the domain ---------------------------------------------------------
     def start(self) -> None:
@@ -209,18 +216,23 @@ class RosDomain:
         """Fully qualified names of running nodes offering lifecycle_msgs/srv/GetState.
 
         A service name alone is not proof of life: our own clients keep ``X/get_state`` in
-        the graph after X is gone, so the node must also be listed as a running node.
+        the graph after X is gone, so the node must also be listed as a running node. The
+        node list is cheap and read every time; the service list only when needed (above).
         """
         running = {
             f"{namespace.rstrip('/')}/{name}" for name, namespace in self.node.get_node_names_and_namespaces()
         }
-        names = set()
-        for service, types in self.node.get_service_names_and_types():
-            if GET_STATE_TYPE in types and service.endswith("/get_state"):
-                fqn = service[: -len("/get_state")]
-                if fqn in running:
-                    names.add(fqn)
-        return names
+        now = time.monotonic()
+        if running != self._running:
+            self._running, self._last_change = running, now
+        if now - self._last_change < SERVICE_SCAN_SETTLE_S or now - self._last_scan >= SERVICE_SCAN_EVERY_S:
+            self._last_scan = now
+            self._lifecycle = {
+                service[: -len("/get_state")]
+                for service, types in self.node.get_service_names_and_types()
+                if GET_STATE_TYPE in types and service.endswith("/get_state")
+            }
+        return self._lifecycle & running
 
     def _shard_for(self, fqn: str) -> _Shard:
         """The node's shard: where it was placed, else the least loaded one with room, else a new one."""
