@@ -243,6 +243,11 @@ class Gateway:
 
     def _check_incarnation(self, domain: RosDomain, node: LiveNode) -> None:
         current = domain.incarnation(node.name)
+        if len(current) > 1 and current != node.incarnation:
+            # Service requests then reach every one of them and the first answer wins.
+            log.warning("%d processes publish the transition events of %s on %s: a second node under the same "
+                        "name, or a killed process whose DDS lease has not run out yet; its state may be misread",
+                        len(current), node.name, node.robot.name)
         if current - node.incarnation and node.incarnation:
             log.info("%s on %s was restarted (new process under the same name)", node.name, node.robot.name)
             node.respawned, node.state_read = True, False

@@ -2,7 +2,6 @@
 range of ROS domains of this test run's own. Subprocesses (gateway, daphne) get the same
 values through ``tests.stack.environment()``."""
 import os
-import random
 import socket
 import tempfile
 
@@ -16,7 +15,11 @@ def _free_port() -> int:
 # Set once per run (the values travel to pytest's subprocesses through the environment).
 os.environ.setdefault("LIFECYCLE_DATA_DIR", tempfile.mkdtemp(prefix="lifecycle-test-"))
 os.environ.setdefault("REDIS_URL", f"redis://127.0.0.1:{_free_port()}/0")
-os.environ.setdefault("LIFECYCLE_TEST_DOMAIN_BASE", str(random.randrange(30, 90)))
+if "LIFECYCLE_TEST_DOMAIN_BASE" not in os.environ:  # the run's first process claims them
+    from tests import domains
+
+    # Offsets 0-29 (tests.stack.domain): domains 30-109, held for the run's life.
+    os.environ["LIFECYCLE_TEST_DOMAIN_BASE"] = str(domains.claim_block(30, 80, 30))
 os.environ.setdefault("LIFECYCLE_CHANNEL_PREFIX", "lifecycle-test")
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.setdefault("ROS_DOMAIN_ID", os.environ["LIFECYCLE_TEST_DOMAIN_BASE"])

@@ -2,7 +2,8 @@
 daphne as subprocesses, and robot processes on demand; everything is stopped on exit.
 
 DDS stays on this machine (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST) and the benchmark uses
-ROS domains 110-119 only, apart from the tests (20-100, 150-160) and the demo (21, 22).
+ROS domains 110-119 only, apart from the tests (30-109, 150-160) and the demo (21, 22). Each
+scenario claims its domains (tests/domains.py), so two runs on one machine cannot share one.
 """
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ import time
 from pathlib import Path
 from typing import Callable, TypeVar
 
+from tests import domains
 from tests.benchmarks.system import free_port
 from tests.benchmarks.web import Http
 
@@ -175,6 +177,10 @@ class Stack:
     def start(self) -> None:
         from lifecycle_site import local_redis
 
+        try:
+            domains.claim(sorted({domain for _, domain in self.robots}))
+        except domains.DomainInUse as exc:
+            raise BenchError(f"{exc}: wait for the other benchmark run to end") from None
         self.redis = local_redis.start(self.redis_port, self.dir / "redis")
         run_manage(dict(self.env, BENCH_ROBOTS=json.dumps(self.robots)), "shell", "-c", SEED_ROBOTS)
         self.gateway = self.spawn(
@@ -199,6 +205,7 @@ class Stack:
         if self.redis is not None and self.redis.poll() is None:
             self.redis.terminate()
             self.redis.wait(10)
+        domains.release(sorted({domain for _, domain in self.robots}))
 
     def spawn(self, name: str, argv: list[str], **kwargs: int) -> Child:
         child = Child(name, argv, self.env, self.log_dir, **kwargs)

@@ -1,0 +1,69 @@
+"""Claims on ROS domain ids, so two test or benchmark runs on one machine never share one.
+
+Two runs in one domain see each other's nodes under the same names: a service request then
+reaches both processes and the first answer wins, which looks like a node that changed state
+or restarted on its own. A claim is an exclusive ``flock`` on a file per domain id, held
+until the process exits (the kernel drops it even after a crash).
+"""
+from __future__ import annotations
+
+import atexit
+import fcntl
+import os
+import random
+import tempfile
+from typing import IO
+
+_held: dict[int, IO] = {}
+
+
+class DomainInUse(RuntimeError):
+    """Another run on this machine holds the domain."""
+
+
+def _path(domain_id: int) -> str:
+    return os.path.join(tempfile.gettempdir(), f"lifecycle-ros-domain-{domain_id}.lock")
+
+
+def claim(domain_ids: list[int]) -> None:
+    """Claim all the domains or none; DomainInUse names the first one taken."""
+    taken: list[int] = []
+    try:
+        for domain_id in domain_ids:
+            if domain_id in _held:
+                continue
+            handle = open(_path(domain_id), "w")
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                handle.close()
+                raise DomainInUse(f"ROS domain {domain_id} is in use by another run on this machine") from None
+            _held[domain_id] = handle
+            taken.append(domain_id)
+    except DomainInUse:
+        release(taken)
+        raise
+
+
+def release(domain_ids: list[int]) -> None:
+    for domain_id in domain_ids:
+        handle = _held.pop(domain_id, None)
+        if handle is not None:
+            handle.close()
+
+
+@atexit.register
+def _release_all() -> None:
+    release(list(_held))
+
+
+def claim_block(low: int, high: int, size: int, attempts: int = 200) -> int:
+    """Claim ``size`` consecutive domains starting at a random base in [low, high); returns the base."""
+    for _ in range(attempts):
+        base = random.randrange(low, high)
+        try:
+            claim(list(range(base, base + size)))
+        except DomainInUse:
+            continue
+        return base
+    raise DomainInUse(f"no {size} free consecutive ROS domains between {low} and {high + size}")
