@@ -1,0 +1,16 @@
+import pytest
+
+
+@pytest.fixture(autouse=True)
+def fresh_site_caches():
+    """The site's per-process caches (what a token grants, the gateway's heartbeat) start empty
+    in each test: rolling the database back between tests sends none of the signals that
+    would clear them."""
+    from lifecycle_site.api.grants import forget
+    from lifecycle_site.fleet.gateway_client import forget_gateway_status
+
+    forget()
+    forget_gateway_status()
+    yield
+    forget()
+    forget_gateway_status()
