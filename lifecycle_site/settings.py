@@ -57,8 +57,10 @@ URL_PREFIX = os.environ.get("LIFECYCLE_URL_PREFIX", "").rstrip("/")
 FORCE_SCRIPT_NAME = URL_PREFIX or None
 LIFECYCLE_TRUST_FORWARDED_PREFIX = env_bool("LIFECYCLE_TRUST_FORWARDED_PREFIX", False)
 
+# The site is served by ``python -m daphne`` (make demo, the image). "daphne" is not an app
+# here: it only replaces runserver, and importing it (twisted, autobahn, cryptography) costs
+# every other process, the gateway and the CLI, ~26 MB.
 INSTALLED_APPS = [
-    "daphne",
     "django.contrib.admin",
     "django.contrib.auth",
     "django.contrib.contenttypes",

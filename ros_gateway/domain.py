@@ -18,6 +18,7 @@ import logging
 import os
 import threading
 import time
+from pathlib import Path
 from typing import Any, Callable
 
 import rclpy
@@ -37,6 +38,8 @@ from rclpy.qos import (
 log = logging.getLogger(__name__)
 
 GET_STATE_TYPE = "lifecycle_msgs/srv/GetState"
+# The gateway's Fast DDS defaults (see the file for why); read when the first Context starts.
+FASTDDS_PROFILES = Path(__file__).with_name("fastdds_gateway.xml")
 # Watched nodes per shard (its own rclpy node, executor and thread).
 NODES_PER_SHARD = 12
 # The service list (thousands of entries in a big domain) is re-read on each discovery pass
@@ -131,6 +134,7 @@ class RosDomain:
     def start(self) -> None:
         # Discovery range and static peers come from the environment (ROS_AUTOMATIC_DISCOVERY_RANGE,
         # ROS_STATIC_PEERS) exactly as for any ROS process; only the domain id is ours to set.
+        os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(FASTDDS_PROFILES))
         rclpy.init(context=self.context, domain_id=self.domain_id)
         self.node = rclpy.create_node(
             f"lifecycle_gateway_{os.getpid()}",
