@@ -7,6 +7,10 @@
     promise), which is the floor of what the gateway does;
 (c) a fresh process per call, as ``ros2 lifecycle set`` does (start, discover, call, exit).
 
+Beside (a), the HTTP layer alone on the same connection: a static file from daphne, and a
+token-authenticated read of the robot list (database only: no gateway, no ROS), to show
+where (a)'s time goes.
+
 The three are interleaved cycle by cycle (configure, activate, deactivate, cleanup), so a
 disturbance of the machine hits all of them alike.
 """
@@ -34,6 +38,7 @@ PAUSE_S = 0.08
 # A refused or failed API call is counted and the node put back in step; more than this many
 # and the scenario fails.
 MAX_API_FAILURES = 3
+STATIC_FILE = "/static/img/favicon.svg"
 # From each state back to unconfigured, directly (transition ids).
 BACK_TO_UNCONFIGURED = {"active": [4, 2], "inactive": [2], "unconfigured": []}
 
@@ -46,6 +51,16 @@ def api_cycle(api: Http, key: str, total: Series | None, inner: Series | None) -
         if total is not None and inner is not None:
             total.add(response.ms)
             inner.add(response.json()["duration_ms"])
+        time.sleep(PAUSE_S)
+
+
+def http_cycle(api: Http, static: Series, read: Series) -> None:
+    for _ in CYCLE:
+        for series, path in ((static, STATIC_FILE), (read, "/api/v1/robots")):
+            response = api.get(path)
+            if response.status != 200:
+                raise BenchError(f"GET {path} answered {response.status}")
+            series.add(response.ms)
         time.sleep(PAUSE_S)
 
 
@@ -87,6 +102,8 @@ def run(ctx: BenchContext) -> ScenarioResult:
     b2 = result.new_series("(b2) direct get_state + ChangeState")
     c = result.new_series("(c) fresh process per call")
     inner = result.new_series("gateway's own ChangeState call, of (a)")
+    static = result.new_series("HTTP floor: static file from daphne")
+    read = result.new_series("token GET /api/v1/robots (site only: DB, no gateway)")
     key, fqn = f"{ROBOT}.{NODE}", f"/{NODE}"
     with ctx.stack(NAME, [(ROBOT, DOMAIN)]) as stack:
         stack.start_robot("robot", DOMAIN, generic=1, prefix="bench_node")
@@ -106,6 +123,7 @@ def run(ctx: BenchContext) -> ScenarioResult:
                         raise
                     time.sleep(0.5)
                     realign(probe, fqn)
+                http_cycle(stack.api, static, read)
                 direct_cycle(probe, fqn, b)
                 direct_cycle(probe, fqn, b2, check=True)
                 if i % fresh_every == 0 and len(c.values) < 4 * fresh_cycles:
