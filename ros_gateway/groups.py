@@ -143,7 +143,12 @@ class GroupRunner:
                               "message": f"not run: the run stopped after {stopped_by[0]} failed"}
                 else:
                     node = self.gateway.find_node(run.robot.name, name)
-                    result = await self._drive_node(run, node, name, target, leave_alone)
+                    try:
+                        result = await self._drive_node(run, node, name, target, leave_alone)
+                    except Exception as exc:  # a bug or the database: this node fails, the run ends cleanly
+                        log.exception("run %s: driving %s failed", run.id, name)
+                        result = {"node": name, "node_id": node.key if node else None, "outcome": "failed",
+                                  "steps": [], "message": f"the gateway could not drive it ({exc})"}
                     if result["outcome"] == "failed" and run.policy == GroupRun.Policy.STOP and not stopped_by:
                         stopped_by.append(name)
             progress.finished(result)
@@ -246,8 +251,9 @@ class _Progress:
         self.done: dict[str, dict] = {}
         self.fresh_nodes: list[str] = []  # node keys finished since the last push
         self.last_push = 0.0
-        self.pending: asyncio.Task | None = None
-        self.waiting = False  # the pending update is still in its sleep (safe to cancel)
+        self.pending: asyncio.Task | None = None  # the task sending updates, while there are any
+        self.waiting = False  # it is in its sleep (safe to cancel)
+        self.changed = False  # results finished since the last update
 
     def results(self) -> list[dict]:
         """Finished nodes' results, in the run's order."""
@@ -257,18 +263,26 @@ class _Progress:
         self.done[result["node"]] = result
         if result.get("node_id"):
             self.fresh_nodes.append(result["node_id"])
+        self.changed = True
         if self.pending is None:
-            self.pending = asyncio.ensure_future(self._push_soon())
+            self.pending = asyncio.ensure_future(self._push_while_changed())
 
-    async def _push_soon(self) -> None:
-        self.waiting = True
-        await asyncio.sleep(max(0.0, self.last_push + PROGRESS_INTERVAL_S - time.monotonic()))
-        self.waiting, self.pending = False, None
-        await db(_save)(self.run.id, results=self.results())
-        await self.push()
+    async def _push_while_changed(self) -> None:
+        try:
+            while self.changed:
+                self.waiting = True
+                await asyncio.sleep(max(0.0, self.last_push + PROGRESS_INTERVAL_S - time.monotonic()))
+                self.waiting, self.changed = False, False
+                await db(_save)(self.run.id, results=self.results())
+                await self.push()
+        finally:
+            self.waiting = False
+            if self.pending is asyncio.current_task():
+                self.pending = None
 
     async def close(self) -> None:
-        """Drop an update still waiting its turn, or let one under way finish; the final one follows."""
+        """Drop an update still waiting its turn, or let one under way finish (so it cannot
+        overtake the final one, which follows)."""
         pending, self.pending = self.pending, None
         if pending is not None:
             if self.waiting:
