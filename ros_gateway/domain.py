@@ -66,16 +66,16 @@ class ServiceUnavailable(Exception):
     """No server for the service appeared within the bound."""
 
 
+def _gateway_node(context: Context, name: str) -> rclpy.node.Node:
+    """A node of the gateway's own: no parameter services, and it does not log to /rosout."""
+    return rclpy.create_node(name, context=context, start_parameter_services=False, enable_rosout=False)
+
+
 class _Shard:
     """An rclpy node with an executor thread of its own, holding some watched nodes' entities."""
 
     def __init__(self, context: Context, domain_id: int, index: int) -> None:
-        self.node = rclpy.create_node(
-            f"lifecycle_gateway_{os.getpid()}_{index}",
-            context=context,
-            start_parameter_services=False,
-            enable_rosout=False,
-        )
+        self.node = _gateway_node(context, f"lifecycle_gateway_{os.getpid()}_{index}")
         self.executor = SingleThreadedExecutor(context=context)
         self.executor.add_node(self.node)
         self.watched: set[str] = set()  # fully qualified names of the nodes placed here
@@ -136,21 +136,11 @@ class RosDomain:
         # ROS_STATIC_PEERS) exactly as for any ROS process; only the domain id is ours to set.
         os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(FASTDDS_PROFILES))
         rclpy.init(context=self.context, domain_id=self.domain_id)
-        self.node = rclpy.create_node(
-            f"lifecycle_gateway_{os.getpid()}",
-            context=self.context,
-            start_parameter_services=False,
-            enable_rosout=False,
-        )
+        self.node = _gateway_node(self.context, f"lifecycle_gateway_{os.getpid()}")
         # /rosout is drained by a thread of its own from a node outside the executor: a
         # flooding logger must not slow transition events and service replies (the executor
         # rebuilds its wait set over every entity for each message it takes).
-        self._log_node = rclpy.create_node(
-            f"lifecycle_gateway_logs_{os.getpid()}",
-            context=self.context,
-            start_parameter_services=False,
-            enable_rosout=False,
-        )
+        self._log_node = _gateway_node(self.context, f"lifecycle_gateway_logs_{os.getpid()}")
         self._rosout = self._log_node.create_subscription(Log, "/rosout", lambda _msg: None, ROSOUT_QOS)
         self._log_thread = threading.Thread(
             target=self._drain_rosout, name=f"ros-rosout-{self.domain_id}", daemon=True

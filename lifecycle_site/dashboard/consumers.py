@@ -123,11 +123,8 @@ class FleetConsumer(RunProgressMixin, LiveConsumer):
         self.known.add(node["id"])
         template = "dashboard/_node_row_new.html" if new else "dashboard/_node_row.html"
         with script_prefix(self.prefix):
-            row = snapshots.fleet_row(node)
-            html = render_to_string(
-                template, {"node": row, "nodes": [row], "oob": "true", "can_operate": self.can_operate}
-            )
-        await self.send(text_data=html)
+            row = snapshots.fleet_row(node)  # its links carry the prefix
+        await self.send_html(template, {"node": row, "nodes": [row], "oob": "true", "can_operate": self.can_operate})
 
 
 class NodeConsumer(RunProgressMixin, LiveConsumer):
