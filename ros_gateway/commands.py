@@ -7,14 +7,14 @@ import time
 from collections import deque
 from typing import TYPE_CHECKING
 
-from ros_gateway import protocol
-from ros_gateway import state_machine as sm
 from ros_gateway.lifecycle import (
     NodeUnreachable,
     available_states,
     available_transitions,
     read_state,
 )
+from ros_gateway.shared import protocol
+from ros_gateway.shared import state_machine as sm
 
 if TYPE_CHECKING:
     from ros_gateway.service import Gateway, LiveNode

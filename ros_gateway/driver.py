@@ -8,9 +8,9 @@ import time
 from datetime import datetime, timezone
 from typing import TYPE_CHECKING
 
-from ros_gateway import state_machine as sm
 from ros_gateway import store
 from ros_gateway.lifecycle import NodeUnreachable, TransitionResult, perform_transition
+from ros_gateway.shared import state_machine as sm
 from ros_gateway.store import db
 
 if TYPE_CHECKING:

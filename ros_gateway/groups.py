@@ -17,9 +17,9 @@ from typing import TYPE_CHECKING
 from django.db.models import F
 
 from lifecycle_site.fleet.models import GroupRun, ManagedNode
-from ros_gateway import protocol
-from ros_gateway import state_machine as sm
 from ros_gateway.lifecycle import NodeUnreachable, read_state
+from ros_gateway.shared import protocol
+from ros_gateway.shared import state_machine as sm
 from ros_gateway.store import db
 
 if TYPE_CHECKING:

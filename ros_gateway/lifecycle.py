@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 from lifecycle_msgs.msg import Transition as TransitionMsg
 from lifecycle_msgs.srv import ChangeState, GetAvailableStates, GetAvailableTransitions, GetState
 
-from ros_gateway import state_machine as sm
 from ros_gateway.domain import RosDomain, ServiceTimeout, ServiceUnavailable
+from ros_gateway.shared import state_machine as sm
 
 
 class NodeUnreachable(Exception):

@@ -10,7 +10,8 @@ from datetime import datetime, timedelta
 from typing import TYPE_CHECKING
 
 from lifecycle_site.fleet.models import LogRecord
-from ros_gateway import protocol, store
+from ros_gateway import store
+from ros_gateway.shared import protocol
 from ros_gateway.store import LogRow, db
 from ros_gateway.streams import LogBuffer, LogEntry, logger_to_node_name, owning_node
 

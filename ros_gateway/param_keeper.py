@@ -8,9 +8,9 @@ from datetime import datetime, timezone
 from typing import TYPE_CHECKING, Any
 
 from lifecycle_site.audit.models import ParameterRecord
-from ros_gateway import param_types as pt
-from ros_gateway import protocol
 from ros_gateway.parameters import from_msg, list_parameters, set_parameters, type_of
+from ros_gateway.shared import param_types as pt
+from ros_gateway.shared import protocol
 from ros_gateway.store import db
 
 if TYPE_CHECKING:

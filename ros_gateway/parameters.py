@@ -6,9 +6,9 @@ from typing import Any
 from rcl_interfaces.msg import Parameter, ParameterValue
 from rcl_interfaces.srv import DescribeParameters, GetParameters, ListParameters, SetParameters
 
-from ros_gateway import param_types as pt
 from ros_gateway.domain import RosDomain, ServiceTimeout, ServiceUnavailable
 from ros_gateway.lifecycle import NodeUnreachable
+from ros_gateway.shared import param_types as pt
 
 _FIELDS = {
     pt.BOOL: "bool_value",

@@ -15,7 +15,7 @@ from redis.asyncio.retry import Retry
 from redis.backoff import ExponentialBackoff
 from redis.exceptions import ConnectionError, TimeoutError
 
-from ros_gateway import protocol
+from ros_gateway.shared import protocol
 
 log = logging.getLogger(__name__)
 

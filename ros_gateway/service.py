@@ -15,8 +15,7 @@ from datetime import datetime, timezone
 
 from django.conf import settings
 
-from ros_gateway import protocol, store
-from ros_gateway import state_machine as sm
+from ros_gateway import store
 from ros_gateway.commands import CommandHandler
 from ros_gateway.domain import RosDomain
 from ros_gateway.driver import NodeDriver
@@ -25,6 +24,8 @@ from ros_gateway.lifecycle import NodeUnreachable, read_state
 from ros_gateway.logs import LogPipeline
 from ros_gateway.param_keeper import ParameterKeeper
 from ros_gateway.relay import Relay
+from ros_gateway.shared import protocol
+from ros_gateway.shared import state_machine as sm
 from ros_gateway.store import db
 from ros_gateway.streams import Completed, TransitionTracker
 

@@ -14,7 +14,7 @@ from django.utils import timezone
 
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.fleet.models import GatewayHeartbeat, LogRecord, ManagedNode, Robot
-from ros_gateway import state_machine as sm
+from ros_gateway.shared import state_machine as sm
 
 
 def db(func):

@@ -7,7 +7,7 @@ from lifecycle_site.api.auth import api_view, error, json_body
 from lifecycle_site.api.views import get_node
 from lifecycle_site.fleet.gateway_client import call_gateway
 from lifecycle_site.fleet.param_files import dump
-from ros_gateway import protocol
+from ros_gateway.shared import protocol
 
 
 def fetch(node) -> list[dict]:

@@ -13,8 +13,8 @@ from lifecycle_site.fleet.gateway_client import GatewayError, call_gateway
 from lifecycle_site.fleet.models import GatewayHeartbeat, LogRecord, ManagedNode, Robot
 from lifecycle_site.fleet.serializers import node_dict
 from lifecycle_site.fleet.transitions import request_transition
-from ros_gateway import protocol
-from ros_gateway import state_machine as sm
+from ros_gateway.shared import protocol
+from ros_gateway.shared import state_machine as sm
 
 MAX_LIMIT = 1000
 LEVELS = {name: value for value, name in LogRecord.LEVELS}

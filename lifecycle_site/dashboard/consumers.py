@@ -16,7 +16,7 @@ from django.template.loader import render_to_string
 from lifecycle_site.dashboard import snapshots
 from lifecycle_site.fleet.models import GatewayHeartbeat
 from lifecycle_site.prefix import forwarded_prefix, script_prefix
-from ros_gateway import protocol
+from ros_gateway.shared import protocol
 
 GATEWAY_CHECK_S = 3.0
 NOT_LOGGED_IN = 4401

@@ -4,7 +4,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from ros_gateway import state_machine as sm
+from ros_gateway.shared import state_machine as sm
 
 WIDTH, HEIGHT = 720, 360
 BOX_W, BOX_H = 112, 34

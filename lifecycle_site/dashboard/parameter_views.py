@@ -14,7 +14,7 @@ from lifecycle_site.dashboard.views import node_or_404
 from lifecycle_site.fleet.gateway_client import GatewayError
 from lifecycle_site.fleet.models import ManagedNode
 from lifecycle_site.fleet.param_files import ParameterFileError, diff, load
-from ros_gateway import param_types as pt
+from ros_gateway.shared import param_types as pt
 
 MAX_FILE_BYTES = 256 * 1024
 

@@ -13,8 +13,8 @@ from django.utils.safestring import mark_safe
 from lifecycle_site.dashboard.graph import layout
 from lifecycle_site.fleet.models import ManagedNode, Robot
 from lifecycle_site.fleet.serializers import node_dict
-from ros_gateway import protocol
-from ros_gateway import state_machine as sm
+from ros_gateway.shared import protocol
+from ros_gateway.shared import state_machine as sm
 
 # Primary states first, then the transition states, as the node's get_available_states lists them.
 STATES = [sm.state_dict(s) for s in sm.PRIMARY_STATES] + [

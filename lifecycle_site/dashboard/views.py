@@ -16,7 +16,7 @@ from lifecycle_site.dashboard.access import viewer_required
 from lifecycle_site.fleet.models import GatewayHeartbeat, ManagedNode, Robot
 from lifecycle_site.fleet.serializers import node_dict
 from lifecycle_site.fleet.transitions import request_transition
-from ros_gateway import state_machine as sm
+from ros_gateway.shared import state_machine as sm
 
 ROS_NAME = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
 FILTER_STATES = ["unconfigured", "inactive", "active", "finalized", "busy", "lost", "waiting"]

@@ -14,8 +14,8 @@ from django.core.management.base import DjangoHelpFormatter
 from lifecycle_site.fleet.gateway_client import MAX_SERVICE_TIMEOUT
 from lifecycle_site.fleet.models import GroupRun, ManagedNode
 from lifecycle_site.fleet.runs import MAX_WAIT_S
-from ros_gateway import protocol
-from ros_gateway import state_machine as sm
+from ros_gateway.shared import protocol
+from ros_gateway.shared import state_machine as sm
 
 RUN_DETAILS = "One line per node as it is done, then a summary; exit 0 only if the run succeeded."
 ROBOT_RUNS = {

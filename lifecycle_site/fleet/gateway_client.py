@@ -16,7 +16,7 @@ from redis.backoff import ExponentialBackoff
 from redis.retry import Retry
 
 from lifecycle_site.fleet.models import GatewayHeartbeat
-from ros_gateway import protocol
+from ros_gateway.shared import protocol
 
 
 class GatewayError(Exception):

@@ -10,7 +10,7 @@ import uuid
 
 from lifecycle_site.fleet.gateway_client import GatewayError, call_gateway
 from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
-from ros_gateway import protocol
+from ros_gateway.shared import protocol
 
 OPERATIONS = [choice for choice, _ in GroupRun.Operation.choices if choice != "recover"]
 MAX_WAIT_S = 600.0

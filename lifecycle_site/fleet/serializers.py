@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from lifecycle_site.fleet.models import ManagedNode
-from ros_gateway.protocol import node_payload
+from ros_gateway.shared.protocol import node_payload
 
 
 def node_dict(node: ManagedNode) -> dict:

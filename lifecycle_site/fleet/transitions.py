@@ -13,8 +13,8 @@ from django.utils import timezone
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.fleet.gateway_client import GatewayError, call_gateway
 from lifecycle_site.fleet.models import ManagedNode
-from ros_gateway import protocol
-from ros_gateway import state_machine as sm
+from ros_gateway.shared import protocol
+from ros_gateway.shared import state_machine as sm
 
 
 @dataclass

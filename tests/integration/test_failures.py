@@ -11,7 +11,7 @@ from django.conf import settings
 
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.fleet.models import GatewayHeartbeat, ManagedNode, Robot
-from ros_gateway import protocol
+from ros_gateway.shared import protocol
 from tests import stack
 from tests.integration.conftest import register, transition, wait_node
 

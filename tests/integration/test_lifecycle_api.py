@@ -145,7 +145,7 @@ def test_state_changes_are_pushed_to_the_channels_groups(api, robots):
     from channels.layers import get_channel_layer
 
     from lifecycle_site.fleet.models import Robot
-    from ros_gateway import protocol
+    from ros_gateway.shared import protocol
 
     key = f"{AGV_A}.camera_driver"
     robot_id = Robot.objects.get(name=AGV_A).id

@@ -10,7 +10,7 @@ from django.utils import timezone
 
 from lifecycle_site.audit.models import AppendOnlyError, TransitionRecord
 from lifecycle_site.fleet.models import GatewayHeartbeat, ManagedNode, Robot
-from ros_gateway import state_machine as sm
+from ros_gateway.shared import state_machine as sm
 
 
 @pytest.fixture

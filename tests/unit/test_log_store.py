@@ -11,8 +11,9 @@ from django.db import IntegrityError, connection
 from django.utils import timezone as dj_timezone
 
 from lifecycle_site.fleet.models import LogRecord, ManagedNode, Robot
-from ros_gateway import protocol, store
+from ros_gateway import store
 from ros_gateway.logs import LogPipeline
+from ros_gateway.shared import protocol
 from ros_gateway.store import LogRow
 from ros_gateway.streams import LogEntry
 

@@ -26,8 +26,8 @@ from lifecycle_site.dashboard import consumers, snapshots
 from lifecycle_site.fleet import gateway_client
 from lifecycle_site.fleet.models import GatewayHeartbeat, ManagedNode, Robot
 from lifecycle_site.prefix import script_prefix
-from ros_gateway import protocol
-from ros_gateway import state_machine as sm
+from ros_gateway.shared import protocol
+from ros_gateway.shared import state_machine as sm
 from tests.conftest import make_user
 
 AUTH_TABLES = ("api_apitoken", "auth_user", "auth_permission", "auth_group")

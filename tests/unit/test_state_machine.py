@@ -1,7 +1,7 @@
 """The lifecycle state machine facts both sides rely on."""
 import pytest
 
-from ros_gateway import state_machine as sm
+from ros_gateway.shared import state_machine as sm
 
 
 @pytest.mark.parametrize(

@@ -1,5 +1,5 @@
 """Pairing transition events, and mapping /rosout loggers to nodes (no ROS needed)."""
-from ros_gateway import state_machine as sm
+from ros_gateway.shared import state_machine as sm
 from ros_gateway.streams import LogBuffer, TransitionTracker, owning_node
 
 

@@ -20,8 +20,8 @@ from lifecycle_site.fleet.gateway_client import GatewayError, GatewayOffline, ca
 from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
 from lifecycle_site.fleet.runs import RunRefused, start_run, wait_for
 from lifecycle_site.fleet.transitions import ago, request_transition
-from ros_gateway import protocol
-from ros_gateway import state_machine as sm
+from ros_gateway.shared import protocol
+from ros_gateway.shared import state_machine as sm
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_OFFLINE, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 

@@ -57,7 +57,7 @@ def node_payload(
     *, key: str, robot: str, name: str, state_id: int, alive: bool, last_seen: str | None
 ) -> dict:
     """How a node is described to the API and to live pages, from the DB or the gateway."""
-    from ros_gateway import state_machine as sm
+    from ros_gateway.shared import state_machine as sm
 
     return {
         "id": key,
