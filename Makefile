@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 # DDS discovery stays on this machine unless you say otherwise (see README).
 export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 
-.PHONY: setup demo test test-unit test-integration test-deploy bench images edge-package clean
+.PHONY: setup system-packages demo test test-unit test-integration test-deploy bench images edge-package clean
 
 $(BIN)/.installed: requirements.txt requirements-dev.txt
 	@$(PYTHON) -c 'import sys; assert sys.version_info[:2] == (3, 11), "Python 3.11 is needed (the ROS 2 Jazzy wheels are built for it); set PYTHON=/path/to/python3.11"'
@@ -16,10 +16,16 @@ $(BIN)/.installed: requirements.txt requirements-dev.txt
 
 setup: $(BIN)/.installed
 
+# The Debian packages the tests need (Redis, nginx, Chromium, Docker ...): installed when
+# missing, as root or with passwordless sudo; otherwise it stops and prints the command to run.
+# `make demo` does not need them.
+system-packages:
+	@.ci/system-packages
+
 demo: setup
 	$(BIN)/python manage.py run_demo
 
-test: setup
+test: system-packages setup
 	$(BIN)/python -m pytest --ignore=tests/deploy $(PYTEST_ARGS)
 
 test-unit: setup
@@ -30,7 +36,7 @@ test-integration: setup
 
 # Real Docker engine: builds the images offline, runs the Industrial Edge compose file behind
 # an nginx that serves it under a sub-path, as the device does (see docker/README.md).
-test-deploy: setup
+test-deploy: system-packages setup
 	$(BIN)/python -m pytest tests/deploy $(PYTEST_ARGS)
 
 # Container images (offline, from a wheelhouse) and the Industrial Edge app package.

@@ -11,6 +11,8 @@ from pathlib import Path
 
 import redis
 
+from lifecycle_site.child_process import die_with_parent
+
 
 def answers(url: str, timeout: float = 0.5) -> bool:
     try:
@@ -31,7 +33,10 @@ def server_binary() -> str:
 
 
 def start(port: int, workdir: Path, wait: float = 10.0) -> subprocess.Popen:
-    """Start a throw-away Redis on 127.0.0.1:``port`` (no persistence); returns its process."""
+    """Start a throw-away Redis on 127.0.0.1:``port`` (no persistence); returns its process.
+
+    It gets SIGTERM when the calling process dies, so call this from the main thread.
+    """
     workdir.mkdir(parents=True, exist_ok=True)
     process = subprocess.Popen(
         [
@@ -47,6 +52,7 @@ def start(port: int, workdir: Path, wait: float = 10.0) -> subprocess.Popen:
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
         start_new_session=True,  # Ctrl-C reaches whoever started it, who then stops it in order
+        preexec_fn=die_with_parent(),  # and it ends with its starter, even one killed by SIGKILL
     )
     url = f"redis://127.0.0.1:{port}/0"
     deadline = time.monotonic() + wait

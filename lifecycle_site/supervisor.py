@@ -2,7 +2,6 @@
 (as systemd, compose restart policies or launch's respawn would), stops them all at the end."""
 from __future__ import annotations
 
-import ctypes
 import os
 import signal
 import subprocess
@@ -10,16 +9,9 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from lifecycle_site.child_process import die_with_parent
+
 RESPAWN_DELAY_S = 2.0
-PR_SET_PDEATHSIG = 1
-
-
-def _die_with_parent() -> None:
-    """In the child: get SIGTERM when the supervisor dies, even by SIGKILL (Linux)."""
-    try:
-        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
-    except (OSError, AttributeError):
-        pass
 
 
 @dataclass
@@ -42,7 +34,7 @@ class Child:
             stderr=subprocess.STDOUT,
             env={**os.environ, **self.env},
             start_new_session=True,  # Ctrl-C in the terminal reaches us, and we stop the children
-            preexec_fn=_die_with_parent,
+            preexec_fn=die_with_parent(),  # SIGTERM when the supervisor dies, even by SIGKILL
         )
         log.close()
         self.died_at = None

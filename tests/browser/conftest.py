@@ -128,7 +128,7 @@ def proxied_site(site):
 def browser():
     from playwright.sync_api import sync_playwright
 
-    assert Path(CHROMIUM).exists(), "Debian's chromium is not installed; .ci/run installs it"
+    assert Path(CHROMIUM).exists(), "Debian's chromium is not installed: make test (or .ci/system-packages) installs it"
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     with sync_playwright() as playwright:
         chromium = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
