@@ -24,9 +24,11 @@ ECHO_WINDOW_S = 10.0
 
 def _record(node: "LiveNode", name: str, old: Any, new: Any, outcome: str, reason: str, source: str,
             user_id: int | None) -> dict:
+    # A NaN or infinite value (a dynamically typed parameter may hold one) is kept as its text:
+    # the JSON columns refuse it, and the record must not be lost.
     record = ParameterRecord(
-        node_id=node.row.id, robot_name=node.robot.name, node_name=node.name, name=name, old_value=old,
-        new_value=new, outcome=outcome, reason=reason, source=source, requested_by_id=user_id,
+        node_id=node.row.id, robot_name=node.robot.name, node_name=node.name, name=name, old_value=pt.storable(old),
+        new_value=pt.storable(new), outcome=outcome, reason=reason, source=source, requested_by_id=user_id,
         at=datetime.now(timezone.utc),
     )
     record.save()  # fills in the user's name
@@ -86,8 +88,12 @@ class ParameterKeeper:
             if result["successful"]:
                 known[name] = {**known[name], "value": new}
                 changes.append({"name": name, "old": old, "new": new})
-            await db(_record)(node, name, old, new, "succeeded" if result["successful"] else "rejected",
-                              result["reason"], source, user_id)
+            try:
+                await db(_record)(node, name, old, new, "succeeded" if result["successful"] else "rejected",
+                                  result["reason"], source, user_id)
+            except Exception:  # the database: the records of the other values must still be written
+                log.exception("the change of parameter %r of %s:%s (%s) could not be recorded in the audit log",
+                              name, node.robot.name, node.name, "set" if result["successful"] else "refused")
             ordered.append({"name": name, "old": old, "new": new, **result})
         if changes:
             await self._push(node, changes)

@@ -2,8 +2,9 @@
 from __future__ import annotations
 
 import json
+import math
 from functools import wraps
-from typing import Callable
+from typing import Any, Callable
 
 from django.http import Http404, HttpRequest, JsonResponse
 from django.middleware.csrf import CsrfViewMiddleware
@@ -13,6 +14,7 @@ from django.views.decorators.csrf import csrf_exempt
 from lifecycle_site.api import grants
 from lifecycle_site.api.models import ApiToken, hash_token
 from lifecycle_site.fleet.gateway_client import GatewayError
+from ros_gateway import param_types as pt
 
 UNSAFE_METHODS = {"POST", "PUT", "PATCH", "DELETE"}
 
@@ -22,12 +24,65 @@ def error(code: str, message: str, status: int, **details) -> JsonResponse:
     return JsonResponse({"error": {"code": code, "message": message, **details}}, status=status)
 
 
+class NonFiniteNumber(ValueError):
+    """JSON text holds NaN, Infinity, -Infinity or a number too large for a double (1e999).
+
+    Python's json module accepts these (1e999 becomes inf), but they are not JSON, no ROS
+    double can use them, and an audit record cannot store them."""
+
+    def __init__(self, literal: str, path: tuple) -> None:
+        self.literal = literal
+        self.path = path
+        where = f" at {pt.path_text(path)}" if path else ""
+        super().__init__(
+            f"{literal}{where} is not a finite number (NaN, Infinity, -Infinity and numbers beyond "
+            "±1.8e308, such as 1e999, cannot be used)"
+        )
+
+
+class _Literal(str):
+    """How a non-finite number's own text is kept while parsing, to name it in the refusal."""
+
+
+def _float(text: str) -> float | _Literal:
+    value = float(text)
+    return value if math.isfinite(value) else _Literal(text)
+
+
+def _first_literal(value: Any, path: tuple = ()) -> tuple[tuple, str] | None:
+    if isinstance(value, _Literal):
+        return path, str(value)
+    items = value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, list) else ()
+    for key, item in items:
+        found = _first_literal(item, (*path, key))
+        if found is not None:
+            return found
+    return None
+
+
+def loads_finite(text: str | bytes) -> Any:
+    """``json.loads``, but NaN, Infinity, -Infinity and numbers too large for a double, anywhere
+    in the document (nested lists included), raise NonFiniteNumber naming the first one."""
+    document = json.loads(text, parse_constant=_Literal, parse_float=_float)
+    found = _first_literal(document)
+    if found is not None:
+        path, literal = found
+        raise NonFiniteNumber(literal, path)
+    return document
+
+
 def json_body(request: HttpRequest, empty: bytes = b""):
-    """The request body parsed as JSON, or the API's 400 malformed_json answer.
+    """The request body parsed as JSON, or the API's 400 answer (malformed_json, or
+    non_finite_number for NaN, Infinity, -Infinity, 1e999: nothing is sent to a robot).
 
     ``empty`` stands in for an empty body (b"" keeps an empty body malformed)."""
     try:
-        return json.loads(request.body or empty)
+        return loads_finite(request.body or empty)
+    except NonFiniteNumber as exc:
+        return error(
+            "non_finite_number", f"Nothing was sent: {exc}.", 400,
+            value=exc.literal, path=list(exc.path),
+        )
     except (ValueError, UnicodeDecodeError) as exc:
         return error("malformed_json", f"The request body is not valid JSON: {exc}.", 400)
 

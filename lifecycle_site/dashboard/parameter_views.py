@@ -2,12 +2,14 @@
 from __future__ import annotations
 
 import json
+import math
 from typing import Any
 
 from django.http import HttpRequest, HttpResponse
 from django.shortcuts import render
 from django.views.decorators.http import require_POST
 
+from lifecycle_site.api.auth import NonFiniteNumber, loads_finite
 from lifecycle_site.api.parameters import apply, fetch
 from lifecycle_site.dashboard.access import operator_required, viewer_required
 from lifecycle_site.dashboard.views import node_or_404
@@ -32,15 +34,21 @@ def _section(request: HttpRequest, node: ManagedNode, **extra) -> HttpResponse:
 
 
 def _parse(raw: str, entry: dict) -> Any:
-    """A form field as the parameter's type (the gateway checks ranges again)."""
+    """A form field as the parameter's type (the gateway checks ranges again). NaN and
+    infinities are refused here: no record could store them and they are never meant."""
     kind = entry["type"]
     try:
         if kind == "integer":
             return int(raw)
         if kind == "double":
-            return float(raw)
+            value = float(raw)
+            if not math.isfinite(value):
+                raise NonFiniteNumber(raw.strip(), ())
+            return value
         if kind.endswith("_array"):
-            return json.loads(raw)
+            return loads_finite(raw)
+    except NonFiniteNumber as exc:
+        raise pt.InvalidValue(str(exc)) from None
     except ValueError:
         raise pt.InvalidValue(f"{raw!r} is not a valid {kind.replace('_', ' ')}") from None
     return raw
@@ -122,8 +130,10 @@ def apply_file(request: HttpRequest, key: str) -> HttpResponse:
     """Step 2: apply what the preview showed."""
     node = node_or_404(key)
     try:
-        values = json.loads(request.POST.get("values", "{}"))
+        values = loads_finite(request.POST.get("values", "{}"))
         assert isinstance(values, dict)
+    except NonFiniteNumber as exc:
+        return _section(request, node, import_error=f"Nothing was sent: {exc}.")
     except (ValueError, AssertionError):
         return _section(request, node, import_error="The preview was damaged; import the file again.")
     if not values:

@@ -5,6 +5,8 @@ from typing import Any
 
 import yaml
 
+from ros_gateway import param_types as pt
+
 
 class ParameterFileError(ValueError):
     """The file cannot be used; the message says why."""
@@ -59,14 +61,27 @@ def load(text: str, node_name: str) -> dict[str, Any]:
     return _flatten(section["ros__parameters"])
 
 
+def _not_finite_note(value: Any) -> str:
+    """Why a value from a file cannot be set, if it is or holds .nan or .inf (YAML has both)."""
+    found = pt.non_finite(value)
+    if found is None:
+        return ""
+    path, number = found
+    where = f"item {path[0]} is " if path else ""  # ROS arrays are flat: the index says where
+    return f"cannot be set: {where}{number}, not a finite number"
+
+
 def diff(current: list[dict], wanted: dict[str, Any]) -> list[dict]:
-    """What applying ``wanted`` would change: one entry per parameter that differs."""
+    """What applying ``wanted`` would change: one entry per parameter that differs. An entry
+    with a note (no such parameter, read-only, not a finite number) is shown, not applied."""
     by_name = {p["name"]: p for p in current}
     changes = []
     for name, value in sorted(wanted.items()):
         parameter = by_name.get(name)
         if parameter is None:
             changes.append({"name": name, "old": None, "new": value, "note": "the node has no such parameter"})
+        elif note := _not_finite_note(value):
+            changes.append({"name": name, "old": parameter["value"], "new": value, "note": note})
         elif parameter["value"] != value:
             note = "read-only" if parameter.get("read_only") else ""
             changes.append({"name": name, "old": parameter["value"], "new": value, "note": note})

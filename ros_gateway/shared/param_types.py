@@ -27,6 +27,40 @@ class InvalidValue(ValueError):
     """The value does not fit the parameter; the message says why, for the operator."""
 
 
+def non_finite(value: Any, path: tuple = ()) -> tuple[tuple, float] | None:
+    """The first NaN or infinite float in ``value`` (looking into lists and dicts) and where
+    it is (keys and indexes), or None. Such a value has no JSON form, so it can neither be
+    sent on nor stored in a JSON column."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return path, value
+    items = value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, list) else ()
+    for key, item in items:
+        found = non_finite(item, (*path, key))
+        if found is not None:
+            return found
+    return None
+
+
+def path_text(path: tuple) -> str:
+    """Where a value is, as an engineer would write it: ``gains[2]``, ``limits.max``."""
+    text = ""
+    for key in path:
+        text += f"[{key}]" if isinstance(key, int) else f".{key}" if text else str(key)
+    return text
+
+
+def storable(value: Any) -> Any:
+    """``value`` with every NaN or infinite float as its text ("nan", "inf", "-inf"), so an
+    audit record of any value is valid JSON."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    if isinstance(value, list):
+        return [storable(item) for item in value]
+    if isinstance(value, dict):
+        return {key: storable(item) for key, item in value.items()}
+    return value
+
+
 def _is_int(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
