@@ -14,7 +14,7 @@ from django.views.decorators.csrf import csrf_exempt
 from lifecycle_site.api import grants
 from lifecycle_site.api.models import ApiToken, hash_token
 from lifecycle_site.fleet.gateway_client import GatewayError
-from ros_gateway import param_types as pt
+from ros_gateway.shared import param_types as pt
 
 UNSAFE_METHODS = {"POST", "PUT", "PATCH", "DELETE"}
 

@@ -5,7 +5,7 @@ from typing import Any
 
 import yaml
 
-from ros_gateway import param_types as pt
+from ros_gateway.shared import param_types as pt
 
 
 class ParameterFileError(ValueError):

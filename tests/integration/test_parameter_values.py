@@ -10,7 +10,7 @@ from django.core.files.uploadedfile import SimpleUploadedFile
 
 from lifecycle_site.audit.models import ParameterRecord
 from lifecycle_site.fleet.gateway_client import call_gateway
-from ros_gateway import protocol
+from ros_gateway.shared import protocol
 from tests import stack
 from tests.integration.conftest import register, wait_node
 

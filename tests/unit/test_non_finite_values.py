@@ -11,8 +11,8 @@ from lifecycle_site.api.auth import NonFiniteNumber, loads_finite
 from lifecycle_site.audit.models import ParameterRecord, TransitionRecord
 from lifecycle_site.fleet.models import ManagedNode, Robot
 from lifecycle_site.fleet.param_files import diff, load
-from ros_gateway import param_types as pt
-from ros_gateway import state_machine as sm
+from ros_gateway.shared import param_types as pt
+from ros_gateway.shared import state_machine as sm
 
 
 @pytest.mark.parametrize(
