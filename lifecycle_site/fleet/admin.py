@@ -1,5 +1,6 @@
 from django.contrib import admin
 
+from lifecycle_site.fleet import accounts_admin  # noqa: F401  (users and groups, limited by role)
 from lifecycle_site.fleet.models import ManagedNode, Robot
 
 

@@ -29,6 +29,10 @@ ADMINISTER = OPERATE + [
     "api.delete_apitoken",
 ]
 ROLES: dict[str, list[str]] = {"viewer": VIEW, "operator": OPERATE, "admin": ADMINISTER}
+ADMIN_ROLE = "admin"
+#: The roles a member of the admin role may give or take away; the admin role itself, the
+#: staff and superuser flags and single permissions are a superuser's (see accounts_admin).
+ASSIGNABLE_BY_ADMINS = ("viewer", "operator")
 
 
 def ensure_roles(**_: Any) -> None:
@@ -48,14 +52,18 @@ def ensure_roles(**_: Any) -> None:
 
 
 def admins_are_staff(sender, instance, action: str, **_: Any) -> None:
-    """Members of the admin role get Django's staff flag, which opens the admin site to them."""
+    """Members of the admin role get Django's staff flag, which opens the admin site to them.
+
+    It follows the admin group only, which only a superuser hands out, and the admin role
+    cannot change the groups of a staff account (accounts_admin): so it neither makes nor
+    unmakes staff on a non-superuser's behalf. It never touches a superuser."""
     if action not in ("post_add", "post_remove", "post_clear"):
         return
     from django.contrib.auth import get_user_model
 
     if not isinstance(instance, get_user_model()):
         return
-    is_admin = instance.groups.filter(name="admin").exists()
+    is_admin = instance.groups.filter(name=ADMIN_ROLE).exists()
     if instance.is_staff != is_admin and not instance.is_superuser:
         instance.is_staff = is_admin
         instance.save(update_fields=["is_staff"])
