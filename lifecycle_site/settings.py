@@ -122,11 +122,22 @@ if DATABASES["default"]["ENGINE"] == "django.db.backends.sqlite3":
 DEFAULT_AUTO_FIELD = "django.db.models.BigAutoField"
 
 REDIS_URL = os.environ.get("REDIS_URL", "redis://127.0.0.1:6479/0")
+# Every consumer waits for its messages in a blocking BZPOPMIN of 5 s (channels-redis's
+# RedisChannelLayer.brpop_timeout). The Redis client's read timeout must outlast that pop, or
+# a consumer on a quiet page dies with "Timeout reading from" every 5 s and daphne closes its
+# socket with 1011: redis-py 8 made that timeout 5 s by default (it had none before, so a
+# Redis lost during the pop hung the consumer). Set here whatever the version: 10 s more.
+CHANNEL_LAYER_SOCKET_TIMEOUT_S = 15.0
 CHANNEL_LAYERS = {
     "default": {
         "BACKEND": "channels_redis.core.RedisChannelLayer",
         "CONFIG": {
-            "hosts": [REDIS_URL],
+            # A dict per host: the keys other than "address" go to redis-py's connection pool.
+            "hosts": [{
+                "address": REDIS_URL,
+                "socket_timeout": CHANNEL_LAYER_SOCKET_TIMEOUT_S,
+                "socket_connect_timeout": 5.0,
+            }],
             "prefix": os.environ.get("LIFECYCLE_CHANNEL_PREFIX", "lifecycle"),
             "capacity": 1000,
             "expiry": 30,
