@@ -40,6 +40,8 @@ log = logging.getLogger(__name__)
 GET_STATE_TYPE = "lifecycle_msgs/srv/GetState"
 # The gateway's Fast DDS defaults (see the file for why); read when the first Context starts.
 FASTDDS_PROFILES = Path(__file__).with_name("fastdds_gateway.xml")
+# After a domain starts, discovery needs a moment before "not in the graph" means "gone".
+DISCOVERY_SETTLE_S = 3.0
 # Watched nodes per shard (its own rclpy node, executor and thread).
 NODES_PER_SHARD = 12
 # The service list (thousands of entries in a big domain) is re-read on each discovery pass
@@ -204,6 +206,10 @@ class RosDomain:
             for shard in self._shards:
                 shard.thread.join(timeout=3.0)
         log.info("stopped watching ROS domain %d", self.domain_id)
+
+    def settling(self) -> bool:
+        """Whether discovery in this domain is too young to call a node missing."""
+        return time.monotonic() - self.started_at < DISCOVERY_SETTLE_S
 
     # -- graph ----------------------------------------------------------------------
     def lifecycle_node_names(self) -> set[str]:
