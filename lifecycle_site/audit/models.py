@@ -80,6 +80,8 @@ class TransitionRecord(AppendOnlyRecord):
     duration_ms = models.FloatField(null=True, blank=True)
     error = models.TextField(blank=True)
     run_id = models.CharField(max_length=64, blank=True, help_text="Groups the steps of one group operation.")
+    # The id of the gateway's fact this record was made from: applying a fact twice makes one record.
+    fact_id = models.CharField(max_length=32, null=True, blank=True, unique=True, editable=False)
 
     class Meta:
         ordering = ["-requested_at", "-id"]
@@ -133,6 +135,7 @@ class ParameterRecord(AppendOnlyRecord):
     reason = models.TextField(blank=True)
     source = models.CharField(max_length=16, choices=TransitionRecord.Source.choices)
     at = models.DateTimeField()
+    fact_id = models.CharField(max_length=32, null=True, blank=True, unique=True, editable=False)
 
     class Meta:
         ordering = ["-at", "-id"]
