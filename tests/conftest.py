@@ -23,11 +23,17 @@ def django_db_setup(django_test_environment, django_db_blocker):
 
 @pytest.fixture(scope="session")
 def redis_server():
-    """A real Redis of this test run's own, on a free loopback port."""
-    process = stack.start_redis()
-    yield process
-    process.terminate()
-    process.wait(5)
+    """A real Redis of this test run's own, on a free loopback port (a test may stop it and
+    start it again: same port, empty, as after a restart without persistence)."""
+
+    def stop(process) -> None:
+        process.terminate()
+        process.wait(5)
+
+    server = stack.Restartable(stack.start_redis, stop, "Redis")
+    server.start()
+    yield server
+    server.stop()
 
 
 @pytest.fixture(scope="session")

@@ -17,23 +17,27 @@ from pathlib import Path
 REPORT_INTERVAL_S = 0.5
 
 
+tasks_module = None  # ros_gateway.tasks, once Django is set up
+
+
 def snapshot(gateway) -> dict:
-    logs, buffer = gateway.logs, gateway.logs.buffer
+    logs, buffer, tasks = gateway.logs, gateway.logs.buffer, tasks_module
     return {
         "time": time.time(),
         "monotonic": time.monotonic(),
         "logs_received": buffer.received,
         "logs_dropped": buffer.dropped,
         "logs_buffered": len(buffer),
-        "logs_stored": logs.stored,
+        "logs_collected": logs.collected,
+        "outbox": gateway.outbox.counters(),
         "published": gateway.relay.published,
         "publish_failures": gateway.relay.publish_failures,
         "commands_handled": gateway.commands.handled,
         "domains": sorted(gateway.domains),
-        "nodes_known": len(gateway.nodes),
-        "nodes_alive": sum(1 for n in gateway.nodes.values() if n.alive),
-        "nodes_state_read": sum(1 for n in gateway.nodes.values() if n.alive and n.state_read),
-        "background_tasks": len(gateway._background),
+        "nodes_known": len(gateway.registry.nodes),
+        "nodes_alive": sum(1 for n in gateway.registry.nodes.values() if n.alive),
+        "nodes_state_read": sum(1 for n in gateway.registry.nodes.values() if n.alive and n.state_read),
+        "background_tasks": len(tasks._running),
     }
 
 
@@ -51,10 +55,17 @@ def main(name: str, stats_path: str) -> None:
     import django
 
     django.setup()
+    from django.conf import settings
+
+    from ros_gateway import tasks
+    from ros_gateway.config import GatewayConfig
     from ros_gateway.service import Gateway
 
+    global tasks_module
+    tasks_module = tasks
+
     async def run() -> None:
-        gateway = Gateway(name)
+        gateway = Gateway(GatewayConfig.load(name, settings))
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, gateway.stop)
