@@ -45,6 +45,31 @@ def live_db(django_db_setup, django_db_blocker):
     django_db_blocker.restore()
 
 
+@pytest.fixture(scope="session")
+def ingest(redis_server, live_db):
+    """The site's ingest process, one for the whole run (defined here, once, so that every
+    test directory shares it): it stores what every gateway reports
+    (a test may stop it for a while and start it again)."""
+    count = 0
+
+    def start() -> stack.Process:
+        nonlocal count
+        count += 1
+        process = stack.start_ingest(f"ingest-{count}")
+        stack.wait_for(lambda: "ingest is running" in process.output() or not process.alive(), 30,
+                       "the ingest process to start")
+        assert process.alive(), process.output()
+        return process
+
+    def stop(process: stack.Process) -> None:
+        assert process.stop() == 0, process.output()
+
+    holder = stack.Restartable(start, stop, "the ingest process")
+    holder.start()
+    yield holder
+    holder.stop()
+
+
 def make_user(username: str, role: str | None):
     user = get_user_model().objects.filter(username=username).first()
     if user is None:

@@ -17,30 +17,6 @@ def pytest_collection_modifyitems(items):
             item.add_marker(pytest.mark.integration)
 
 
-@pytest.fixture(scope="session")
-def ingest(redis_server, live_db):
-    """The site's ingest process, for the whole run: it stores what every gateway reports
-    (a test may stop it for a while and start it again)."""
-    count = 0
-
-    def start() -> stack.Process:
-        nonlocal count
-        count += 1
-        process = stack.start_ingest(f"ingest-{count}")
-        stack.wait_for(lambda: "ingest is running" in process.output() or not process.alive(), 30,
-                       "the ingest process to start")
-        assert process.alive(), process.output()
-        return process
-
-    def stop(process: stack.Process) -> None:
-        assert process.stop() == 0, process.output()
-
-    holder = stack.Restartable(start, stop, "the ingest process")
-    holder.start()
-    yield holder
-    holder.stop()
-
-
 @pytest.fixture(scope="module")
 def gateway(redis_server, live_db, ingest):
     process = stack.start_gateway()

@@ -147,7 +147,8 @@ def test_garbage_on_the_command_queue_does_not_hurt_the_gateway(api, flaky, gate
 def test_gateway_stopped_means_503_and_nodes_keep_their_last_state(api, flaky, gateway):
     wait_node(api, key("/fail"), alive=True)
     assert gateway.stop() == 0, gateway.output()
-    assert not gateways.status("local").online
+    # A stopped gateway says so in its last beat; the site reads beats at most once a second.
+    stack.wait_for(lambda: not gateways.status("local").online, gateways.BEAT_CACHE_S + 1, "the gateway offline")
     response = transition(api, key("/fail"), "configure")
     assert response.status_code == 503 and response.json()["error"]["code"] == "gateway_offline"
     assert api.get(f"/api/v1/nodes/{key('/fail')}").status_code == 200

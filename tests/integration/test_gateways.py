@@ -13,7 +13,7 @@ import pytest
 from django.core.management import call_command
 
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.fleet.models import Gateway, LogRecord, ManagedNode
+from lifecycle_site.fleet.models import Gateway, LogRecord, ManagedNode, Robot
 from tests import stack
 from tests.integration.conftest import register, transition, wait_node
 
@@ -62,6 +62,9 @@ def cells(redis_server, live_db, ingest, tmp_path_factory):
         process.stop()
     for cell in made.values():
         cell.process.stop()
+    # Later tests (the gateway banner among them) see a fleet without these cells.
+    Robot.objects.filter(gateway__name__in=CELLS).delete()
+    Gateway.objects.filter(name__in=CELLS).delete()
 
 
 def gateways(api) -> dict[str, dict]:
