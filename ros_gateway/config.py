@@ -36,6 +36,10 @@ class GatewayConfig:
     robot_refresh_interval: float = 2.0
     heartbeat_interval: float = 2.0
     log_buffer: int = 20000
+    # One get_state per robot process this often (0: off), bounded by the timeout; two misses
+    # in a row and its nodes are unreachable (see liveness.py).
+    liveness_interval: float = 1.0
+    liveness_timeout: float = 1.5
     dds: dict = field(default_factory=dict)
 
     @property
@@ -51,6 +55,9 @@ class GatewayConfig:
         lifecycle = settings.LIFECYCLE
         dds = {key: environ[key] for key in DDS_VARIABLES if environ.get(key)}
         check_dds(dds)
+        if lifecycle["LIVENESS_INTERVAL"] < 0 or lifecycle["LIVENESS_TIMEOUT"] <= 0:
+            raise ConfigError("LIFECYCLE_LIVENESS_INTERVAL must be 0 (off) or more and LIFECYCLE_LIVENESS_TIMEOUT "
+                              "more than 0 (seconds).")
         return cls(
             name=name,
             redis_url=settings.REDIS_URL,
@@ -60,6 +67,8 @@ class GatewayConfig:
             robot_refresh_interval=lifecycle["ROBOT_REFRESH_INTERVAL"],
             heartbeat_interval=lifecycle["HEARTBEAT_INTERVAL"],
             log_buffer=lifecycle["LOG_BUFFER"],
+            liveness_interval=lifecycle["LIVENESS_INTERVAL"],
+            liveness_timeout=lifecycle["LIVENESS_TIMEOUT"],
             dds=dds,
         )
 

@@ -84,6 +84,7 @@ class StateChange:
     kind: str  # "seen" | "gone" | "state"
     state_id: int
     respawned: bool = False
+    reason: str = ""  # why a node went: "" (it left the ROS graph) or "unreachable"
     fact: dict | None = None
 
 
@@ -167,9 +168,9 @@ class NodeRegistry:
         self.changes.publish(StateChange(node, "seen", node.state_id))
         return node
 
-    def vanished(self, node: LiveNode) -> None:
+    def vanished(self, node: LiveNode, reason: str = "") -> None:
         node.alive, node.seen, node.last_seen = False, False, datetime.now(timezone.utc)
-        self.changes.publish(StateChange(node, "gone", node.state_id))
+        self.changes.publish(StateChange(node, "gone", node.state_id, reason=reason))
 
     def set_state(self, node: LiveNode, state_id: int, *, read: bool = False) -> StateChange | None:
         """The node is now in ``state_id``; returns the change, or None if it is no news.
