@@ -255,6 +255,11 @@ class Ingest:
                 "logs_lost", "logs_dropped",
             ])
         self.redis.xack(stream, protocol.INGEST_GROUP, *[entry for entry, _ in entries])
+        # Stored and acknowledged: Redis keeps only what is not (MAXLEN then bounds a backlog,
+        # not a history), so a small Redis (Edge: 40 MB, noeviction) never fills up with it.
+        if entries:
+            last = entries[-1][0]
+            self.redis.xtrim(stream, minid=last.decode() if isinstance(last, bytes) else last)
         push(pushes)
         return len(fresh)
 
