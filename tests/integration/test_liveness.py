@@ -41,6 +41,8 @@ def test_a_process_that_stops_answering_is_unreachable_within_five_seconds(api, 
         for node in ("lidar_driver", "camera_driver"):
             wait_node(api, f"{ROBOT}.{node}", alive=False, timeout=BOUND_S + 1)
         took = time.monotonic() - stopped
+        node = api.get(f"/api/v1/nodes/{ROBOT}.lidar_driver").json()
+        assert (node["alive"], node["gone_reason"]) == (False, "unreachable"), node
         print(f"[liveness] a frozen robot process shown unreachable after {took:.2f} s")
         assert took < BOUND_S, f"unreachable after {took:.1f} s"
         # The other robot's nodes stay alive and take commands.
@@ -54,5 +56,6 @@ def test_a_process_that_stops_answering_is_unreachable_within_five_seconds(api, 
     for node in ("lidar_driver", "camera_driver"):
         wait_node(api, f"{ROBOT}.{node}", alive=True, state="unconfigured", timeout=BOUND_S + 1)
     print(f"[liveness] back after {time.monotonic() - resumed:.2f} s")
+    assert api.get(f"/api/v1/nodes/{ROBOT}.lidar_driver").json()["gone_reason"] == ""
     assert transition(api, f"{ROBOT}.camera_driver", "configure").status_code == 200
     wait_node(api, f"{ROBOT}.camera_driver", alive=True, state="inactive")
