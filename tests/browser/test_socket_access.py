@@ -12,7 +12,7 @@ from django.contrib.auth.models import Group
 from websockets.exceptions import ConnectionClosed
 
 from tests.benchmarks.web import Http, ws_connect
-from tests.browser.conftest import PASSWORD
+from tests.browser.conftest import PASSWORD, ROBOT
 from tests.conftest import make_user
 
 BOUND_S = 5.0  # consumers re-check access every 3 s
@@ -76,3 +76,27 @@ def test_the_socket_closes_within_seconds_when_access_ends(site, robot, how, cod
     assert close_code == code, f"{how}: socket close code {close_code} after {after:.1f} s"
     assert after < BOUND_S, f"{how}: closed after {after:.1f} s"
     assert bystander_open, "another user's socket was closed too"
+
+
+def test_an_open_page_follows_when_its_users_access_ends(browser, site, robot):
+    from playwright.sync_api import expect
+
+    user = make_user("sock-page", "operator")
+    user.set_password(PASSWORD)
+    user.save()
+    page = browser.new_page()
+    try:
+        page.goto(site + "login/")
+        page.fill("#id_username", "sock-page")
+        page.fill("#id_password", PASSWORD)
+        page.click("button[type=submit]")
+        expect(page.locator("h2", has_text=ROBOT)).to_be_visible(timeout=20_000)
+        page.wait_for_timeout(1000)  # the live socket is open
+        user.groups.clear()
+        expect(page.locator("h1")).to_have_text("Your account has no role yet", timeout=BOUND_S * 1000 + 2000)
+        user.is_active = False
+        user.save()
+        page.goto(site)
+        expect(page.locator("#id_username")).to_be_visible()  # logged out: the login form
+    finally:
+        page.close()
