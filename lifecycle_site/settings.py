@@ -88,6 +88,8 @@ MIDDLEWARE = [
     "django.middleware.clickjacking.XFrameOptionsMiddleware",
     "django_htmx.middleware.HtmxMiddleware",
 ]
+# Refused form posts (a stale page, a forged request) are on record like other refusals.
+CSRF_FAILURE_VIEW = "lifecycle_site.audit.denials.csrf_failure"
 
 ROOT_URLCONF = "lifecycle_site.urls"
 ASGI_APPLICATION = "lifecycle_site.asgi.application"
