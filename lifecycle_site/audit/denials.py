@@ -37,6 +37,18 @@ def record(request: HttpRequest | None, status: int, code: str, detail: str = ""
         log.exception("could not record a refused attempt")
 
 
+def too_many_bad_tokens(request: HttpRequest) -> bool:
+    """Whether this client sent AXES_FAILURE_LIMIT x 4 invalid bearer tokens within the login
+    lock-out time: its token requests are then refused unchecked (token guessing)."""
+    from django.conf import settings
+    from django.utils import timezone
+
+    since = timezone.now() - settings.AXES_COOLOFF_TIME
+    limit = settings.AXES_FAILURE_LIMIT * 4
+    client = request.META.get("REMOTE_ADDR", "")[:64]
+    return AccessDenial.objects.filter(code="bad_token", client=client, at__gte=since).count() >= limit
+
+
 def prune(keep: int = DENIALS_KEPT) -> int:
     cutoff = AccessDenial.objects.order_by("-id").values_list("id", flat=True)[keep:keep + 1].first()
     if cutoff is None:
@@ -63,7 +75,11 @@ def permission_denied(request: HttpRequest, exception: Exception | None = None):
 
 
 def _login_failed(sender, credentials: dict, request: HttpRequest | None = None, **_) -> None:
-    record(request, 401, "login_failed", "wrong user name or password", username=str(credentials.get("username", "")))
+    username = str(credentials.get("username", ""))
+    if getattr(request, "axes_locked_out", False):  # django-axes: refused before the password was checked
+        record(request, 429, "login_blocked", "too many failed logins for this account or address", username=username)
+    else:
+        record(request, 401, "login_failed", "wrong user name or password", username=username)
 
 
 user_login_failed.connect(_login_failed, dispatch_uid="audit.denials.login_failed")
