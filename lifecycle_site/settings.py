@@ -192,7 +192,13 @@ LIFECYCLE = {
     "ROBOT_REFRESH_INTERVAL": env_float("LIFECYCLE_ROBOT_REFRESH_INTERVAL", 2.0),
     # The gateway writes a heartbeat; the site calls it offline when it is older than this.
     "HEARTBEAT_INTERVAL": env_float("LIFECYCLE_HEARTBEAT_INTERVAL", 2.0),
+    # A robot process that misses two get_state probes in a row is unreachable (its host's
+    # link may be down): seen in about 4 s instead of the DDS lease's 20+ s. 0 turns it off.
+    "LIVENESS_INTERVAL": env_float("LIFECYCLE_LIVENESS_INTERVAL", 1.0),
+    "LIVENESS_TIMEOUT": env_float("LIFECYCLE_LIVENESS_TIMEOUT", 1.5),
     "GATEWAY_OFFLINE_AFTER": env_float("LIFECYCLE_GATEWAY_OFFLINE_AFTER", 10.0),
+    # A group run of a gateway silent this long (and whose facts are all stored) ends failed.
+    "RUN_ORPHAN_AFTER": env_float("LIFECYCLE_RUN_ORPHAN_AFTER", 120.0),
     # Extra wait the site grants the gateway beyond the service timeout before giving up.
     "COMMAND_GRACE": env_float("LIFECYCLE_COMMAND_GRACE", 3.0),
     # /rosout history kept server-side: per logger (node) count, and age.

@@ -3,9 +3,16 @@ gateway's own credentials), timings, and the DDS discovery settings it runs with
 to the site and shown on the gateway's page). Checked at start, with a clear error."""
 from __future__ import annotations
 
+import atexit
+import fcntl
+import ipaddress
 import os
+import socket
+import struct
+import tempfile
 from dataclasses import dataclass, field
 from typing import Mapping
+from xml.sax.saxutils import escape
 
 from ros_gateway.shared import protocol
 
@@ -20,6 +27,10 @@ DDS_VARIABLES = (
     "FASTRTPS_DEFAULT_PROFILES_FILE",
 )
 DISCOVERY_RANGES = ("SYSTEM_DEFAULT", "OFF", "LOCALHOST", "SUBNET")
+# Ours: the network interfaces (names or IPv4 addresses, comma-separated) DDS may use; turned
+# into a Fast DDS profile at start (Jazzy has no variable of its own for it).
+INTERFACES_VARIABLE = "LIFECYCLE_DDS_INTERFACES"
+FASTDDS_RMW = "rmw_fastrtps_cpp"
 
 
 class ConfigError(ValueError):
@@ -36,6 +47,10 @@ class GatewayConfig:
     robot_refresh_interval: float = 2.0
     heartbeat_interval: float = 2.0
     log_buffer: int = 20000
+    # One get_state per robot process this often (0: off), bounded by the timeout; two misses
+    # in a row and its nodes are unreachable (see liveness.py).
+    liveness_interval: float = 1.0
+    liveness_timeout: float = 1.5
     dds: dict = field(default_factory=dict)
 
     @property
@@ -51,6 +66,11 @@ class GatewayConfig:
         lifecycle = settings.LIFECYCLE
         dds = {key: environ[key] for key in DDS_VARIABLES if environ.get(key)}
         check_dds(dds)
+        if environ.get(INTERFACES_VARIABLE, "").strip():
+            dds[INTERFACES_VARIABLE] = ",".join(interface_addresses(environ[INTERFACES_VARIABLE], dds))
+        if lifecycle["LIVENESS_INTERVAL"] < 0 or lifecycle["LIVENESS_TIMEOUT"] <= 0:
+            raise ConfigError("LIFECYCLE_LIVENESS_INTERVAL must be 0 (off) or more and LIFECYCLE_LIVENESS_TIMEOUT "
+                              "more than 0 (seconds).")
         return cls(
             name=name,
             redis_url=settings.REDIS_URL,
@@ -60,6 +80,8 @@ class GatewayConfig:
             robot_refresh_interval=lifecycle["ROBOT_REFRESH_INTERVAL"],
             heartbeat_interval=lifecycle["HEARTBEAT_INTERVAL"],
             log_buffer=lifecycle["LOG_BUFFER"],
+            liveness_interval=lifecycle["LIVENESS_INTERVAL"],
+            liveness_timeout=lifecycle["LIVENESS_TIMEOUT"],
             dds=dds,
         )
 
@@ -79,3 +101,70 @@ def check_dds(dds: Mapping[str, str]) -> None:
     super_client = dds.get("ROS_SUPER_CLIENT")
     if super_client is not None and super_client.upper() not in ("TRUE", "FALSE", "1", "0"):
         raise ConfigError(f"ROS_SUPER_CLIENT={super_client!r}: use TRUE or FALSE.")
+
+
+def _ipv4_of(interface: str) -> str | None:
+    """The IPv4 address of a network interface of this host, None if it has none."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        try:
+            packed = fcntl.ioctl(probe.fileno(), 0x8915, struct.pack("256s", interface[:15].encode()))  # SIOCGIFADDR
+        except OSError:
+            return None
+    return socket.inet_ntoa(packed[20:24])
+
+
+def interface_addresses(spec: str, dds: Mapping[str, str]) -> list[str]:
+    """``eth1,10.0.0.5`` -> the IPv4 addresses DDS may use; a clear error for anything else."""
+    if dds.get("RMW_IMPLEMENTATION", FASTDDS_RMW) != FASTDDS_RMW:
+        raise ConfigError(f"{INTERFACES_VARIABLE} works with {FASTDDS_RMW} only, not {dds['RMW_IMPLEMENTATION']}.")
+    if dds.get("FASTRTPS_DEFAULT_PROFILES_FILE"):
+        raise ConfigError(f"Set either {INTERFACES_VARIABLE} or FASTRTPS_DEFAULT_PROFILES_FILE (put the interface "
+                          "white list in your own profile), not both.")
+    names = {name for _index, name in socket.if_nameindex()}
+    addresses = []
+    for item in filter(None, (part.strip() for part in spec.split(","))):
+        try:
+            addresses.append(str(ipaddress.IPv4Address(item)))
+            continue
+        except ValueError:
+            pass
+        if item not in names:
+            raise ConfigError(f"{INTERFACES_VARIABLE}: this host has no network interface {item!r} "
+                              f"(it has {', '.join(sorted(names))}).")
+        address = _ipv4_of(item)
+        if address is None:
+            raise ConfigError(f"{INTERFACES_VARIABLE}: interface {item!r} has no IPv4 address (is it up?).")
+        addresses.append(address)
+    if not addresses:
+        raise ConfigError(f"{INTERFACES_VARIABLE}: name at least one interface or IPv4 address.")
+    return addresses
+
+
+def interfaces_profile(addresses: list[str]) -> str:
+    """A Fast DDS profile whose participants use UDP on these addresses only."""
+    listed = "".join(f"<address>{escape(a)}</address>" for a in addresses)
+    return (
+        '<?xml version="1.0" encoding="UTF-8"?>\n'
+        '<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">\n'
+        "  <transport_descriptors><transport_descriptor>\n"
+        "    <transport_id>lifecycle_udp</transport_id><type>UDPv4</type>\n"
+        f"    <interfaceWhiteList>{listed}</interfaceWhiteList>\n"
+        "  </transport_descriptor></transport_descriptors>\n"
+        '  <participant profile_name="lifecycle_gateway" is_default_profile="true"><rtps>\n'
+        "    <userTransports><transport_id>lifecycle_udp</transport_id></userTransports>\n"
+        "    <useBuiltinTransports>false</useBuiltinTransports>\n"
+        "  </rtps></participant>\n"
+        "</profiles>\n"
+    )
+
+
+def apply_dds(config: GatewayConfig, environ=os.environ) -> None:
+    """Before the first ROS participant: what the configuration asks that ROS reads from files."""
+    spec = config.dds.get(INTERFACES_VARIABLE)
+    if not spec:
+        return
+    handle, path = tempfile.mkstemp(prefix="lifecycle-gateway-dds-", suffix=".xml")
+    with os.fdopen(handle, "w") as profile:
+        profile.write(interfaces_profile(spec.split(",")))
+    atexit.register(lambda: os.path.exists(path) and os.unlink(path))
+    environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = path

@@ -27,6 +27,8 @@ log = logging.getLogger(__name__)
 SNAPSHOT_EVERY_S = 30.0
 
 DomainFactory = Callable[[int], RosDomain]
+# (domain, node name) -> whether the node's process is known not to answer
+HoldsBack = Callable[[RosDomain, str], bool]
 
 
 def robots_from_config(config: dict) -> tuple[dict[int, RobotInfo], dict[int, dict[str, NodeSettings]]]:
@@ -52,10 +54,12 @@ def robots_from_config(config: dict) -> tuple[dict[int, RobotInfo], dict[int, di
 
 class Discovery:
     def __init__(self, registry: NodeRegistry, domains: dict[int, RosDomain], new_domain: DomainFactory,
-                 outbox: Outbox, service_timeout: float, forget_parameters: Callable[[str], None]) -> None:
+                 outbox: Outbox, service_timeout: float, forget_parameters: Callable[[str], None],
+                 holds_back: HoldsBack = lambda domain, name: False) -> None:
         self.registry, self.domains, self.new_domain, self.outbox = registry, domains, new_domain, outbox
         self.service_timeout = service_timeout
         self.forget_parameters = forget_parameters
+        self.holds_back = holds_back
         self.config_version: str | None = None
         self._passes = 0
         self._snapshot_at: dict[int, float] = {}  # robot id -> when its node list was last reported
@@ -99,7 +103,7 @@ class Discovery:
                 node = self.registry.nodes.get((domain_id, name))
                 if node is None or not node.seen:
                     robot = self.registry.robot_for(domain_id, name)
-                    if robot is not None:
+                    if robot is not None and not self.holds_back(domain, name):
                         self._appeared(domain, robot, name)
                 elif not node.state_read:
                     spawn(self.read_state(node))

@@ -46,6 +46,7 @@ class LiveNode:
     robot: RobotInfo
     name: str
     alive: bool = False  # believed running (as the site shows it)
+    gone_reason: str = ""  # why it is not alive: "" (left the graph) or "unreachable"
     seen: bool = False  # found in the ROS graph by this gateway run, and subscribed to
     # Set when this run saw the node go and come back, or its process replaced: worth recovering.
     respawned: bool = False
@@ -68,6 +69,7 @@ class LiveNode:
             name=self.name,
             state_id=self.state_id,
             alive=self.alive,
+            gone_reason=self.gone_reason,
             last_seen=self.last_seen.isoformat() if self.last_seen else None,
         )
 
@@ -84,6 +86,7 @@ class StateChange:
     kind: str  # "seen" | "gone" | "state"
     state_id: int
     respawned: bool = False
+    reason: str = ""  # why a node went: "" (it left the ROS graph) or "unreachable"
     fact: dict | None = None
 
 
@@ -159,7 +162,7 @@ class NodeRegistry:
         if node is None:
             node = LiveNode(robot=robot, name=name)
             self.nodes[(domain_id, name)] = node
-        node.alive, node.seen, node.state_read = True, True, False
+        node.alive, node.seen, node.state_read, node.gone_reason = True, True, False, ""
         node.last_seen = datetime.now(timezone.utc)
         node.tracker = TransitionTracker()
         node.respawned = node.incarnation != frozenset()  # seen before in this run: it came back
@@ -167,9 +170,10 @@ class NodeRegistry:
         self.changes.publish(StateChange(node, "seen", node.state_id))
         return node
 
-    def vanished(self, node: LiveNode) -> None:
+    def vanished(self, node: LiveNode, reason: str = "") -> None:
         node.alive, node.seen, node.last_seen = False, False, datetime.now(timezone.utc)
-        self.changes.publish(StateChange(node, "gone", node.state_id))
+        node.gone_reason = reason
+        self.changes.publish(StateChange(node, "gone", node.state_id, reason=reason))
 
     def set_state(self, node: LiveNode, state_id: int, *, read: bool = False) -> StateChange | None:
         """The node is now in ``state_id``; returns the change, or None if it is no news.

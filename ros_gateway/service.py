@@ -28,6 +28,7 @@ from ros_gateway.discovery import Discovery
 from ros_gateway.domain import RosDomain
 from ros_gateway.groups import GroupRunner
 from ros_gateway.lifecycle import NodeDriver
+from ros_gateway.liveness import Liveness
 from ros_gateway.logs import LogPipeline
 from ros_gateway.outbox import Outbox
 from ros_gateway.param_keeper import ParameterKeeper
@@ -59,8 +60,9 @@ class Gateway:
         self.domains: dict[int, RosDomain] = {}
         self.logs = LogPipeline(self.registry, self.outbox, config.log_buffer)
         self.params = ParameterKeeper(self.domains, self.registry, self.outbox, self.relay)
+        self.liveness = Liveness(self.registry, self.domains, config.liveness_interval, config.liveness_timeout)
         self.discovery = Discovery(self.registry, self.domains, self._new_domain, self.outbox,
-                                   config.service_timeout, self.params.forget)
+                                   config.service_timeout, self.params.forget, self.liveness.holds_back)
         self.driver = NodeDriver(self.domains, self.registry, self.outbox, self.logs, config.service_timeout)
         self.runs = GroupRunner(self.domains, self.registry, self.driver, self.outbox, self.relay)
         self.commands = CommandHandler(Parts(self.relay, self.registry, self.domains, self.driver, self.params,
@@ -81,6 +83,8 @@ class Gateway:
         node = change.node
         kind = {"seen": protocol.NODE_SEEN, "gone": protocol.NODE_GONE, "state": protocol.NODE_STATE}[change.kind]
         fields = {"state_id": change.state_id} if change.kind == "state" else {}
+        if change.reason:
+            fields["reason"] = change.reason
         change.fact = self.outbox.emit(kind, robot=node.robot.name, node=node.name, **fields)
 
     def _push(self, change: StateChange) -> None:
@@ -106,6 +110,8 @@ class Gateway:
             self._every(config.discovery_interval, self.discovery.discover, "discovery"),
             self._every(config.heartbeat_interval, self.heartbeat, "heartbeat"),
             self._every(RESYNC_EVERY_S, self.discovery.resync_states, "state resync"),
+            *([self._every(config.liveness_interval, self.liveness.probe, "liveness probe")]
+              if self.liveness.enabled else []),
             self.logs.run(self._stopping),
             self.commands.run(self._stopping),
         ]
@@ -184,6 +190,7 @@ class Gateway:
             "dds": self.config.dds,
             "robots": len(self.registry.robots),
             "nodes": self.registry.alive_count(),
+            "unreachable_processes": len(self.liveness.unreachable),
             "outbox": self.outbox.counters(),
             "stopped": False,
         }

@@ -60,13 +60,17 @@ docker save -o "$OUT/$tarball" "$IMAGE"
 chmod 0644 "$OUT/$tarball"
 
 size_mb="$(( $(docker image inspect -f '{{.Size}}' "$IMAGE") / 1000000 ))"
+# The memory limits of the app's services, e.g. "144 + 96 + 192 + 64 = 496 MB".
+memory="$(sed -n 's/^ *mem_limit: *\([0-9]*\)mb *$/\1/p' "$EDGE/docker-compose.yml" |
+          awk '{ s += $1; t = t (NR > 1 ? " + " : "") $1 } END { print t " = " s " MB" }')"
 cat > "$OUT/README.md" <<EOF
 # ROS 2 lifecycle manager $VERSION: Industrial Edge app package
 
 Web app that shows and drives the ROS 2 lifecycle nodes of the robots in the plant, with an
-audit log of every state change. Three services, one image (\`$IMAGE\`, $size_mb MB):
+audit log of every state change. Four services, one image (\`$IMAGE\`, $size_mb MB):
 \`web\` (the site, behind the device's reverse proxy at \`https://<device>/lifecycle/\`),
-\`gateway\` (ROS 2 / DDS), \`redis\`. Memory limits: 160 + 256 + 64 = 480 MB.
+\`ingest\` (stores what gateways report), \`gateway\` (the gateway \`local\`: ROS 2 / DDS),
+\`redis\`. Memory limits: $memory.
 
 ## 1. Load the image next to the Publisher
 
@@ -110,8 +114,8 @@ Install the app on the device and fill in the configuration form:
 - **Administrator**: user name and password (at least 12 characters). Changing the password
   in the configuration resets it at the next start. No password: one is generated into the
   data volume (not readable from the IEM, so set one).
-- **Robots**: name (e.g. \`agv-1\`), ROS domain id, optional namespace. More robots can be
-  added later in the app's admin pages.
+- **Robots**: name (e.g. \`agv-1\`), ROS domain id, optional namespace: robots the app's own
+  gateway (\`local\`) watches. More robots can be added later in the app's admin pages.
 - **Web access**: the device's host names/IPs (\`allowedHosts\`; they are also the accepted
   WebSocket origins; empty accepts any), URL prefix \`/lifecycle\` (must match nginx.json).
 - **ROS 2**: DDS discovery range (\`SUBNET\` for robots in containers on the app's \`ros\` network),

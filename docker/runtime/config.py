@@ -13,9 +13,10 @@ Industrial Edge Management writes from the JSON-Forms template (docker/edge/cfg-
 
 Every part is optional; an empty value leaves the environment's value in force.
 
-    config.py env                  print `export NAME='value'` lines for the settings (no Django)
+    config.py env [ROLE]           print `export NAME='value'` lines for the settings (no Django)
     config.py setup                migrate, create/update the admin account, register the robots
-    config.py wait-for-schema N    wait up to N seconds until the web container has migrated
+                                   (all of the gateway "local", the one the site's compose runs)
+    config.py wait-for-schema N    wait up to N seconds until the web container has migrated (ingest)
 """
 from __future__ import annotations
 
@@ -31,6 +32,9 @@ from pathlib import Path
 CONFIG_FILE = Path(os.environ.get("LIFECYCLE_CONFIG_FILE", "/cfg-data/param.json"))
 DISCOVERY_RANGES = ("SUBNET", "LOCALHOST", "OFF", "SYSTEM_DEFAULT")
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
+# The gateway the site's own compose file runs; robots of other gateways (cells) are added with
+# `manage.py add_robot NAME --domain N --gateway CELL` or in the admin.
+LOCAL_GATEWAY = "local"
 
 
 class ConfigError(Exception):
@@ -149,7 +153,7 @@ def robots_wanted(config: dict) -> list[dict]:
     return robots
 
 
-def cmd_env() -> None:
+def cmd_env(role: str = "web") -> None:
     config = read_config()
     env = settings_env(config)
     robots_wanted(config)  # refuse a bad robot list now, in every container, with the reason
@@ -158,9 +162,11 @@ def cmd_env() -> None:
     if CONFIG_FILE.is_file():
         log(f"read {CONFIG_FILE}" + (f" (sets {', '.join(sorted(env))})" if env else ""))
     if not os.environ.get("DJANGO_ALLOWED_HOSTS") and "DJANGO_ALLOWED_HOSTS" not in env:
-        # Behind the Industrial Edge proxy the device's name is not known in advance.
-        log("WARNING: no allowed hosts configured (site.allowedHosts); accepting any Host and any "
-            "WebSocket Origin. Set the device's host name to turn the origin check on.")
+        # Behind the Industrial Edge proxy the device's name is not known in advance. Only
+        # the processes that serve HTTP need to say so (ingest and gateway serve none).
+        if role not in ("ingest", "gateway"):
+            log("WARNING: no allowed hosts configured (site.allowedHosts); accepting any Host and any "
+                "WebSocket Origin. Set the device's host name to turn the origin check on.")
         print("export DJANGO_ALLOWED_HOSTS='*'")
 
 
@@ -238,6 +244,7 @@ def cmd_setup() -> None:
             namespace=robot["namespace"],
             description=robot["description"],
             disabled=not robot["enabled"],
+            gateway=LOCAL_GATEWAY,
         )
 
 
@@ -266,7 +273,7 @@ def cmd_wait_for_schema(seconds: float) -> None:
 def main(argv: list[str]) -> int:
     try:
         if argv[:1] == ["env"]:
-            cmd_env()
+            cmd_env(*argv[1:2])
         elif argv[:1] == ["setup"]:
             cmd_setup()
         elif argv[:1] == ["wait-for-schema"]:

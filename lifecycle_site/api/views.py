@@ -2,19 +2,17 @@
 calls go through each robot's gateway and every transition attempt lands in the audit log."""
 from __future__ import annotations
 
-import math
-
 from django.db.models import Count, Q
 from django.http import Http404, HttpRequest, JsonResponse
 
 from lifecycle_site.api.auth import api_view, error, json_body
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.fleet import gateways as gateway_status
-from lifecycle_site.fleet.gateway_client import GatewayError, call_gateway
+from lifecycle_site.fleet.gateway_client import MAX_SERVICE_TIMEOUT, GatewayError, call_gateway
 from lifecycle_site.fleet.models import Gateway, LogRecord, ManagedNode, Robot
 from lifecycle_site.fleet.serializers import node_dict
 from lifecycle_site.fleet.transitions import request_transition
-from ros_gateway.shared import protocol
+from ros_gateway.shared import param_types, protocol
 from ros_gateway.shared import state_machine as sm
 
 MAX_LIMIT = 1000
@@ -131,10 +129,9 @@ def transition(request: HttpRequest, key: str) -> JsonResponse:
             400,
         )
     timeout = body.get("timeout")
-    if timeout is not None and (
-        not isinstance(timeout, (int, float)) or isinstance(timeout, bool) or not math.isfinite(timeout) or timeout <= 0
-    ):
-        return error("invalid_field", "'timeout' must be a positive number of seconds (at most 25).", 400)
+    if timeout is not None and (not param_types.is_number(timeout) or not 0 < timeout <= MAX_SERVICE_TIMEOUT):
+        return error("invalid_field",
+                     f"'timeout' must be a positive number of seconds, at most {MAX_SERVICE_TIMEOUT:g}.", 400)
     outcome = request_transition(get_node(key), requested, request.user, "api", timeout)
     if outcome.succeeded:
         return JsonResponse(outcome.data)

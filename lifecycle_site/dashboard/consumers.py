@@ -8,16 +8,20 @@ from __future__ import annotations
 
 import asyncio
 import json
+from importlib import import_module
 
 from channels.db import database_sync_to_async
 from channels.generic.websocket import AsyncWebsocketConsumer
+from django.conf import settings
+from django.contrib.auth import HASH_SESSION_KEY, SESSION_KEY, get_user_model
 from django.template.loader import render_to_string
+from django.utils.crypto import constant_time_compare
 
 from lifecycle_site.dashboard import snapshots
 from lifecycle_site.prefix import forwarded_prefix, script_prefix
 from ros_gateway.shared import protocol
 
-GATEWAY_CHECK_S = 3.0
+GATEWAY_CHECK_S = 3.0  # also how soon a socket closes after logout, deactivation or role removal
 NOT_LOGGED_IN = 4401
 NO_ROLE = 4403
 NOT_FOUND = 4404
@@ -38,6 +42,8 @@ class LiveConsumer(AsyncWebsocketConsumer):
             await self.close(code=NO_ROLE)
             return
         self.can_operate = await database_sync_to_async(user.has_perm)("fleet.operate_node")
+        session = self.scope.get("session")
+        self.session_key = getattr(session, "session_key", None)
         headers = dict(self.scope.get("headers", []))
         self.prefix = forwarded_prefix(headers.get(b"x-forwarded-prefix", b"").decode("latin-1"))
         if not await self.prepare():
@@ -66,6 +72,10 @@ class LiveConsumer(AsyncWebsocketConsumer):
     async def watch_gateway(self) -> None:
         """Tell the page when a gateway of what it shows goes offline or comes back."""
         while True:
+            refused = await database_sync_to_async(self.refusal, thread_sensitive=False)()
+            if refused:
+                await self.close(code=refused)
+                return
             views = await database_sync_to_async(self.gateway_views, thread_sensitive=False)()
             offline = [v for v in views if v["robots"] and not v["online"]]
             seen = tuple((v["name"], v["status"], v["last_beat"]) for v in offline)
@@ -74,6 +84,24 @@ class LiveConsumer(AsyncWebsocketConsumer):
                 await self.send_gateway_status(offline)
             await self.gateways_seen(views)
             await asyncio.sleep(GATEWAY_CHECK_S)
+
+    def refusal(self) -> int | None:
+        """Whether this socket may still receive updates, read afresh: the session still
+        exists (no logout), is the same user's (password unchanged), the user is active and
+        still has a role that may view. A close code if not."""
+        if self.session_key is None:
+            return NOT_LOGGED_IN
+        store = import_module(settings.SESSION_ENGINE).SessionStore(self.session_key)
+        data = store.load()  # empty when the session is gone
+        user = get_user_model().objects.filter(pk=data.get(SESSION_KEY), is_active=True).first()
+        if user is None or user.pk != self.scope["user"].pk:
+            return NOT_LOGGED_IN
+        if not constant_time_compare(data.get(HASH_SESSION_KEY, ""), user.get_session_auth_hash()):
+            return NOT_LOGGED_IN
+        if not user.has_perm("fleet.view_managednode"):
+            return NO_ROLE
+        self.can_operate = user.has_perm("fleet.operate_node")
+        return None
 
     def gateway_views(self) -> list[dict]:
         """The gateways of what the page shows (fleet.gateways.describe() dicts)."""

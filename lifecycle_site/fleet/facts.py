@@ -26,6 +26,8 @@ from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 
 log = logging.getLogger(__name__)
+# Why a node.gone fact says a node went (ros_gateway/liveness.py); anything else counts as "".
+GONE_REASONS = ("unreachable",)
 
 DONE = (GroupRun.Status.SUCCEEDED, GroupRun.Status.FAILED, GroupRun.Status.PARTIAL)
 
@@ -139,14 +141,16 @@ def _node_seen(known: _Gateway, fact: dict, at: datetime, applied: Applied) -> N
     if node is None:
         known.new_node(robot, fact["node"], at)
         return
-    ManagedNode.objects.filter(pk=node.pk).update(alive=True, last_seen=at, first_seen=Coalesce("first_seen", at))
+    ManagedNode.objects.filter(pk=node.pk).update(alive=True, gone_reason="", last_seen=at,
+                                                  first_seen=Coalesce("first_seen", at))
 
 
 def _node_gone(known: _Gateway, fact: dict, at: datetime, applied: Applied) -> None:
     robot = known.robot(fact)
     node = known.node(robot, fact["node"])
     if node is not None:
-        ManagedNode.objects.filter(pk=node.pk).update(alive=False, last_seen=at)
+        reason = fact.get("reason") if fact.get("reason") in GONE_REASONS else ""
+        ManagedNode.objects.filter(pk=node.pk).update(alive=False, gone_reason=reason, last_seen=at)
 
 
 def _node_state(known: _Gateway, fact: dict, at: datetime, applied: Applied) -> None:
@@ -171,7 +175,7 @@ def _robot_nodes(known: _Gateway, fact: dict, at: datetime, applied: Applied) ->
         raise FactRejected("nodes must be a list of node names")
     ManagedNode.objects.filter(robot=robot).exclude(name__in=listed).update(alive=False)
     ManagedNode.objects.filter(robot=robot, name__in=listed).update(
-        alive=True, last_seen=at, first_seen=Coalesce("first_seen", at)
+        alive=True, gone_reason="", last_seen=at, first_seen=Coalesce("first_seen", at)
     )
     for name in listed:  # a node.seen that was lost on the way
         if known.node(robot, name) is None:

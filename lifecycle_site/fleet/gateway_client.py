@@ -61,7 +61,10 @@ def call_gateway(gateway: str, command: str, timeout: float | None = None, **arg
     state = gateways.status(gateway)
     if not state.online:
         raise GatewayOffline(state.refusal(robot), gateway)
-    service_timeout = float(timeout if timeout is not None else config["SERVICE_TIMEOUT"])
+    try:
+        service_timeout = float(timeout if timeout is not None else config["SERVICE_TIMEOUT"])
+    except OverflowError:  # a whole number beyond a double: as long as we allow
+        service_timeout = MAX_SERVICE_TIMEOUT
     if not math.isfinite(service_timeout):
         service_timeout = config["SERVICE_TIMEOUT"]
     service_timeout = min(max(service_timeout, 0.1), MAX_SERVICE_TIMEOUT)

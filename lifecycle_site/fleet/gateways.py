@@ -225,6 +225,8 @@ def dds_summary(dds: dict) -> str:
         parts.append(f"discovery server {dds['ROS_DISCOVERY_SERVER']}")
     if dds.get("ROS_SUPER_CLIENT"):
         parts.append("super client")
+    if dds.get("LIFECYCLE_DDS_INTERFACES"):
+        parts.append(f"interfaces {dds['LIFECYCLE_DDS_INTERFACES']}")
     if dds.get("RMW_IMPLEMENTATION"):
         parts.append(dds["RMW_IMPLEMENTATION"])
     return " · ".join(parts)

@@ -132,6 +132,11 @@ class ManagedNode(models.Model):
     state_id = models.PositiveSmallIntegerField(default=sm.UNKNOWN)
     state_label = models.CharField(max_length=32, default="unknown")
     alive = models.BooleanField(default=False)
+    gone_reason = models.CharField(
+        max_length=16, blank=True, default="",
+        help_text="Why a node that is not alive went: empty (it left the ROS graph) or 'unreachable' "
+        "(its process stopped answering the gateway's probes: its host or link may be down).",
+    )
     first_seen = models.DateTimeField(null=True, blank=True)
     last_seen = models.DateTimeField(null=True, blank=True)
     state_changed = models.DateTimeField(null=True, blank=True)

@@ -152,7 +152,7 @@ def node_key(robot_name: str, node_name: str) -> str:
 
 
 def node_payload(
-    *, key: str, robot: str, name: str, state_id: int, alive: bool, last_seen: str | None
+    *, key: str, robot: str, name: str, state_id: int, alive: bool, last_seen: str | None, gone_reason: str = ""
 ) -> dict:
     """How a node is described to the API and to live pages, from the DB or the gateway."""
     from ros_gateway.shared import state_machine as sm
@@ -164,5 +164,6 @@ def node_payload(
         "state": sm.state_dict(state_id),
         "transitions": [t.as_dict() for t in sm.valid_transitions(state_id)] if alive else [],
         "alive": alive,
+        "gone_reason": "" if alive else gone_reason,  # "unreachable": its process stopped answering
         "last_seen": last_seen,
     }

@@ -133,3 +133,17 @@ def test_gateway_records_a_non_finite_value_as_text_and_every_other_value(api, j
     assert (refused.outcome, refused.old_value, refused.new_value) == ("rejected", before["scale_linear"], "nan")
     stack.wait_for(lambda: records("deadman_button").filter(id__gt=refused.id, new_value=wanted).exists(), 10,
                    "the record of the value sent with it")
+
+
+@pytest.mark.parametrize("name, value, says", [
+    ("deadman_button", "9" * 400, "64-bit integer"),
+    ("deadman_button", str(2**63), "64-bit integer"),
+    ("scale_linear", "9" * 400, "too large for a double"),
+])
+def test_numbers_too_large_for_the_parameter_type_are_refused_with_why(api, joy, name, value, says):
+    before = node_values(api)
+    response = api.patch(f"/api/v1/nodes/{KEY}/parameters", '{"%s": %s}' % (name, value),
+                         content_type="application/json")
+    assert 400 <= response.status_code < 500, response.content
+    assert says in json.dumps(response.json()), response.json()
+    assert node_values(api) == before

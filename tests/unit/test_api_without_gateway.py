@@ -66,6 +66,7 @@ def test_viewer_may_read_but_not_operate(viewer_client, node):
         ({"transition": "explode"}, "unknown_transition"),
         ({"transition": 42}, "unknown_transition"),
         ({"transition": "configure", "timeout": -1}, "invalid_field"),
+        ('{"transition": "configure", "timeout": 1%s}' % ("0" * 400), "invalid_field"),
     ],
 )
 def test_malformed_requests_get_400_with_a_readable_message(operator_client, node, body, code):

@@ -157,3 +157,13 @@ def test_the_config_follows_the_robots_of_each_gateway(cells):
     after = config("cell-a")
     assert after["version"] != before
     assert after["robots"][1]["nodes"]["/lidar"] == {"order": 2, "desired_state": "active"}
+
+
+@pytest.mark.parametrize("timeout", ["1" + "0" * 400, "0", "-3", "true", '"5"', "26"])
+def test_a_run_timeout_that_is_no_usable_number_of_seconds_is_refused_before_anything_starts(cells, timeout):
+    _parts, client = cells
+    response = client.post("/api/v1/robots/agv-a/operations", '{"operation": "bringup", "timeout": %s}' % timeout,
+                           content_type="application/json")
+    assert response.status_code == 400, response.content
+    assert response.json()["error"]["code"] == "invalid_field" and "at most 25" in response.json()["error"]["message"]
+    assert not GroupRun.objects.filter(robot__name="agv-a").exists()

@@ -204,5 +204,30 @@ def test_the_ingest_process_catches_up_in_order_after_a_stop(cell):
         row = Gateway.objects.get(name="cell-i")
         assert (row.facts_seq, row.facts_lost, row.facts_rejected) == (1002, 0, 0)
         assert took < 30, f"catching up on 1,000 facts took {took:.1f} s"
+        # What is stored leaves Redis (trimmed by whole blocks of entries, so a few may stay).
+        stack.wait_for(lambda: part.redis.xlen(protocol.facts_stream(part.prefix, "cell-i")) < 200, 10,
+                       "the stored facts trimmed from the stream")
     finally:
         process.stop()
+
+
+def test_runs_of_a_gateway_silent_past_the_bound_end_failed_and_others_stay(cell, settings):
+    from lifecycle_site.fleet.models import GroupRun
+
+    _part, robot = cell
+    other = Robot.objects.create(name="ingest-arm", domain_id=43, gateway=Gateway.objects.create(name="cell-j"))
+    runs = {r.robot.name: r for r in (
+        GroupRun.objects.create(id="run-of-cell-i", robot=robot, operation="bringup", status="running"),
+        GroupRun.objects.create(id="run-of-cell-j", robot=other, operation="bringup", status="running"))}
+    settings.LIFECYCLE = {**settings.LIFECYCLE, "RUN_ORPHAN_AFTER": 60.0}
+    ingest = Ingest()
+    stack.write_beat("cell-i", at=time.time() - 30)  # silent, but not for long enough
+    stack.write_beat("cell-j", at=time.time())
+    ingest.settle_orphaned_runs()
+    assert set(GroupRun.objects.values_list("status", flat=True)) == {"running"}
+    stack.write_beat("cell-i", at=time.time() - 61)
+    ingest.settle_orphaned_runs()
+    failed = GroupRun.objects.get(id=runs["ingest-agv"].id)
+    assert failed.status == "failed" and failed.finished is not None
+    assert failed.message.startswith("the gateway cell-i has been silent since ") and "on record" in failed.message
+    assert GroupRun.objects.get(id=runs["ingest-arm"].id).status == "running"

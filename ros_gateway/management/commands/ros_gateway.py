@@ -30,13 +30,14 @@ class Command(BaseCommand):
         os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
         from django.conf import settings
 
-        from ros_gateway.config import ConfigError, GatewayConfig
+        from ros_gateway.config import ConfigError, GatewayConfig, apply_dds
         from ros_gateway.service import AlreadyRunning, Gateway  # imports rclpy: only in this process
 
         try:
             config = GatewayConfig.load(name, settings)
         except ConfigError as exc:
             raise CommandError(str(exc)) from None
+        apply_dds(config)
 
         async def main() -> None:
             gateway = Gateway(config)
