@@ -83,16 +83,34 @@ class Site:
         return process
 
 
-def robot(host: netns.Host, name: str, domain_id: int, nodes: str = NODES, namespace: str = "",
-          extra: tuple[str, ...] = (), **dds: str) -> netns.NsProcess:
-    """Demo robot nodes on ``host`` with the DDS settings ``dds``."""
-    argv = [sys.executable, "-m", "ros_gateway.demo.robot", "--domain", str(domain_id), "--nodes", nodes, *extra]
+def launch(host: netns.Host, name: str, domain_id: int, nodes: str = NODES, namespace: str = "",
+           **dds: str) -> netns.NsProcess:
+    """Demo robot nodes on ``host`` with the DDS settings ``dds`` (not waiting for them)."""
+    argv = [sys.executable, "-m", "ros_gateway.demo.robot", "--domain", str(domain_id), "--nodes", nodes]
     if namespace:
         argv += ["--namespace", namespace]
-    process = host.start(name, argv, stack.environment(**dds))
-    stack.wait_for(lambda: "demo robot ready" in process.output() or not process.alive(), 30, f"robot {name}")
-    assert process.alive(), process.tail()
-    return process
+    return host.start(name, argv, stack.environment(**dds))
+
+
+def ready(*processes: netns.NsProcess) -> float:
+    """Wait until every robot process has its nodes up; returns when the last one had them."""
+    at: dict[str, float] = {}
+
+    def all_ready() -> bool:
+        for process in processes:
+            if process.name not in at and "demo robot ready" in process.output():
+                at[process.name] = time.monotonic()
+            assert process.alive(), process.tail()
+        return len(at) == len(processes)
+
+    stack.wait_for(all_ready, 30, f"robots {[p.name for p in processes]} ready")
+    return max(at.values())
+
+
+def discovered(node_keys: list[str], since: float, label: str) -> float:
+    """Wait for the nodes alive at the site; record the time from ``since`` (robots ready)."""
+    wait_alive(node_keys)
+    return figure(label, time.monotonic() - since)
 
 
 def keys(robot_name: str, nodes: str = NODES, prefix: str = "") -> list[str]:
@@ -115,15 +133,18 @@ def measure(node_keys: list[str], alive: bool, timeout: float) -> float | None:
         return None
 
 
-def pull_cable(host: netns.Host, node_keys: list[str], layout: str, wait_back: bool = True
+def pull_cable(host: netns.Host, node_keys: list[str], layout: str, wait_back: bool = True, hold: float = 0
                ) -> tuple[float | None, float | None]:
     """Pull the robot host's cable at the switch until its nodes are shown lost (or LOST_WAIT
-    passed), plug it back and (``wait_back``) wait for them to be alive again."""
+    passed) and at least ``hold`` seconds, plug it back and (``wait_back``) wait for them to be
+    alive again."""
     wait_alive(node_keys, timeout=10)
     host.cable(False)
+    pulled = time.monotonic()
     try:
         lost = figure(f"{layout}: cable pulled to nodes shown not alive", measure(node_keys, False, LOST_WAIT),
                       LOST_WAIT)
+        time.sleep(max(0.0, hold - (time.monotonic() - pulled)))
     finally:
         host.cable(True)
     back = None
@@ -207,14 +228,13 @@ def lan(site):
     register("lan-r1", stack.domain(13), gateway="net-lan")
     register("lan-r2", stack.domain(14), gateway="net-lan")
     gateway = site.start_gateway("net-lan", hosts["lan-gw"], ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET")
-    began = time.monotonic()
     robots = {
-        "lan-r1": robot(hosts["lan-r1"], "lan-r1-nodes", stack.domain(13), ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET"),
-        "lan-r2": robot(hosts["lan-r2"], "lan-r2-nodes", stack.domain(14), "lidar_driver,planner",
-                        ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET"),
+        "lan-r1": launch(hosts["lan-r1"], "lan-r1-nodes", stack.domain(13), ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET"),
+        "lan-r2": launch(hosts["lan-r2"], "lan-r2-nodes", stack.domain(14), "lidar_driver,planner",
+                         ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET"),
     }
-    wait_alive(keys("lan-r1") + keys("lan-r2", "lidar_driver,planner"), timeout=30)
-    figure("LAN (multicast, SUBNET): robot start to 4 nodes on 2 hosts alive at the site", time.monotonic() - began)
+    discovered(keys("lan-r1") + keys("lan-r2", "lidar_driver,planner"), ready(*robots.values()),
+               "LAN (multicast, SUBNET): robots ready to 4 nodes on 2 hosts alive at the site")
     yield Lan(site, gateway, hosts, robots)
     for process in robots.values():
         process.stop()
@@ -264,31 +284,30 @@ def test_lan_recovery_after_the_robot_process_is_killed(api, lan):
     assert response.status_code == 200, response.json()
     host = lan.hosts["lan-r1"]
     lan.robots["lan-r1"].stop(signal.SIGKILL)
-    began = time.monotonic()
-    lan.robots["lan-r1"] = robot(host, "lan-r1-nodes-2", stack.domain(13), ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET")
+    lan.robots["lan-r1"] = launch(host, "lan-r1-nodes-2", stack.domain(13), ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET")
+    began = ready(lan.robots["lan-r1"])
     record = stack.wait_for(
         lambda: TransitionRecord.objects.filter(node__key=key, source="recovery", transition_label="activate",
                                                 outcome="succeeded").first(),
         30, "the recovery to bring lan-r1.camera_driver back to active")
     assert record.run_id
     wait_node(None, key, alive=True, state="active", timeout=10)
-    figure("LAN: robot restarted to node recovered (active again)", time.monotonic() - began)
+    figure("LAN: robot restarted (ready) to node recovered (active again)", time.monotonic() - began)
 
 
 def test_robots_on_one_domain_are_told_apart_by_namespace(api, lan):
     domain_id = stack.domain(15)
     register("ns-left", domain_id, namespace="/left", gateway="net-lan")
     register("ns-right", domain_id, namespace="/right", gateway="net-lan")
-    began = time.monotonic()
     processes = [
-        robot(lan.hosts["lan-r1"], "ns-left-nodes", domain_id, namespace="/left",
-              ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET"),
-        robot(lan.hosts["lan-r2"], "ns-right-nodes", domain_id, namespace="/right",
-              ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET"),
+        launch(lan.hosts["lan-r1"], "ns-left-nodes", domain_id, namespace="/left",
+               ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET"),
+        launch(lan.hosts["lan-r2"], "ns-right-nodes", domain_id, namespace="/right",
+               ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET"),
     ]
     try:
-        wait_alive(keys("ns-left", prefix="left.") + keys("ns-right", prefix="right."))
-        figure("LAN: 2 robots on one domain (namespaces), start to 4 nodes alive", time.monotonic() - began)
+        discovered(keys("ns-left", prefix="left.") + keys("ns-right", prefix="right."), ready(*processes),
+                   "LAN: 2 robots on one domain (namespaces), ready to 4 nodes alive")
         for name, prefix in (("ns-left", "left."), ("ns-right", "right.")):
             listed = api.get(f"/api/v1/nodes?robot={name}").json()["nodes"]
             assert sorted(n["id"] for n in listed) == sorted(keys(name, prefix=prefix)), listed
@@ -327,17 +346,15 @@ def test_lan_without_multicast_static_peers(api, site):
     register("quiet-r2", stack.domain(17), gateway="net-quiet")
     site.start_gateway("net-quiet", gw, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                        ROS_STATIC_PEERS=f"{r1.address};{r2.address}")
-    began = time.monotonic()
     processes = [
-        robot(r1, "quiet-r1-nodes", stack.domain(16), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-              ROS_STATIC_PEERS=gw.address),
-        robot(r2, "quiet-r2-nodes", stack.domain(17), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-              ROS_STATIC_PEERS=gw.address),
+        launch(r1, "quiet-r1-nodes", stack.domain(16), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+               ROS_STATIC_PEERS=gw.address),
+        launch(r2, "quiet-r2-nodes", stack.domain(17), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+               ROS_STATIC_PEERS=gw.address),
     ]
     try:
-        wait_alive(keys("quiet-r1") + keys("quiet-r2"))
-        figure("LAN without multicast (static peers): robot start to 4 nodes on 2 hosts alive",
-               time.monotonic() - began)
+        discovered(keys("quiet-r1") + keys("quiet-r2"), ready(*processes),
+                   "LAN without multicast (static peers): robots ready to 4 nodes on 2 hosts alive")
         for name in ("quiet-r1", "quiet-r2"):
             response = transition(api, f"{name}.lidar_driver", "configure")
             assert response.status_code == 200, response.json()
@@ -394,12 +411,10 @@ def test_routed_robot_found_through_a_discovery_server(api, site, routed):
     register("route-ds", stack.domain(18), gateway="net-ds")
     site.start_gateway("net-ds", routed.hosts["gw-a"], ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET",
                        ROS_DISCOVERY_SERVER=f"{router_a}:{DS_PORT}", ROS_SUPER_CLIENT="TRUE")
-    began = time.monotonic()
-    process = robot(routed.hosts["robots-b"], "route-ds-nodes", stack.domain(18),
-                    ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET", ROS_DISCOVERY_SERVER=f"{router_b}:{DS_PORT}")
+    process = launch(routed.hosts["robots-b"], "route-ds-nodes", stack.domain(18),
+                     ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET", ROS_DISCOVERY_SERVER=f"{router_b}:{DS_PORT}")
     try:
-        wait_alive(keys("route-ds"))
-        figure("routed, discovery server: robot start to 2 nodes alive", time.monotonic() - began)
+        discovered(keys("route-ds"), ready(process), "routed, discovery server: robot ready to 2 nodes alive")
         response = transition(api, "route-ds.lidar_driver", "configure")
         assert response.status_code == 200, response.json()
         assert ManagedNode.objects.get(key="route-ds.lidar_driver").state_label == "inactive"
@@ -413,13 +428,13 @@ def test_routed_robot_found_through_a_discovery_server(api, site, routed):
 
 def test_routed_a_gateway_in_the_robots_subnet_dials_the_site_across_the_router(api, site, routed):
     register("route-b", stack.domain(19), gateway="net-b")
-    site.start_gateway("net-b", routed.hosts["gw-b"], ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET")
-    began = time.monotonic()
-    process = robot(routed.hosts["robots-b"], "route-b-nodes", stack.domain(19),
-                    ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET")
+    # DDS on the robots' subnet only (the gateway's interface white list), Redis across the router.
+    site.start_gateway("net-b", routed.hosts["gw-b"], ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET",
+                       LIFECYCLE_DDS_INTERFACES="eth0")
+    process = launch(routed.hosts["robots-b"], "route-b-nodes", stack.domain(19),
+                     ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET")
     try:
-        wait_alive(keys("route-b"))
-        figure("routed, gateway per subnet: robot start to 2 nodes alive", time.monotonic() - began)
+        discovered(keys("route-b"), ready(process), "routed, gateway per subnet: robot ready to 2 nodes alive")
         response = transition(api, "route-b.lidar_driver", "configure")
         assert response.status_code == 200, response.json()
         assert ManagedNode.objects.get(key="route-b.lidar_driver").state_label == "inactive"
