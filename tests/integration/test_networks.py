@@ -327,6 +327,15 @@ def test_lan_a_host_whose_cable_is_pulled_is_shown_lost_within_5_s_and_back_when
     assert back is not None, f"lan-r2's nodes not alive again within {BACK_WAIT} s of the cable plugged back"
 
 
+def test_lan_a_host_back_after_an_outage_longer_than_the_dds_lease(lan):
+    """25 s without the cable: both sides drop the other's DDS participant (lease 20 s); once
+    it is plugged back the robot's nodes must be alive again (a robot back from a dead spot)."""
+    lost, back = pull_cable(lan.hosts["lan-r2"], keys("lan-r2", "lidar_driver,planner"), "LAN, 25 s outage",
+                            hold=25)
+    assert lost is not None
+    assert back is not None, f"lan-r2's nodes not alive again within {BACK_WAIT} s of the cable plugged back"
+
+
 # -- 2: a LAN without multicast: static peers ---------------------------------------------------
 
 def test_lan_without_multicast_static_peers(api, site):
