@@ -128,22 +128,25 @@ def remove_leftovers() -> list[str]:
 
 
 class NsProcess(stack.Process):
-    """A process in a namespace (``ip netns exec NS argv``): output to a log file, and it gets
-    SIGTERM should the test run die without stopping it."""
+    """A process in a namespace (``ip netns exec NS argv``; in the root namespace when ``host``
+    is None): output to a log file, and it gets SIGTERM should the test run die without
+    stopping it."""
 
-    def __init__(self, host: "Host", name: str, argv: list[str], env: dict[str, str], log_dir: Path) -> None:
+    def __init__(self, host: "Host | None", name: str, argv: list[str], env: dict[str, str], log_dir: Path) -> None:
         self.name, self.host = name, host
         self.log_path = log_dir / f"{name}.log"
         log_dir.mkdir(parents=True, exist_ok=True)
+        prefix = ["ip", "netns", "exec", host.ns] if host is not None else []
         with open(self.log_path, "ab") as log:
             self.popen = subprocess.Popen(
-                ["ip", "netns", "exec", host.ns, *argv], cwd=stack.ROOT, env=env, stdout=log,
-                stderr=subprocess.STDOUT, start_new_session=True, preexec_fn=die_with_parent(),
+                [*prefix, *argv], cwd=stack.ROOT, env=env, stdout=log, stderr=subprocess.STDOUT,
+                start_new_session=True, preexec_fn=die_with_parent(),
             )
 
     def tail(self, lines: int = 40) -> str:
+        where = self.host.name if self.host is not None else "the root namespace"
         text = self.output().splitlines()[-lines:]
-        return f"--- {self.name} on {self.host.name} (exit {self.popen.poll()}) ---\n" + "\n".join(text)
+        return f"--- {self.name} on {where} (exit {self.popen.poll()}) ---\n" + "\n".join(text)
 
 
 class Host:

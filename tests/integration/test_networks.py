@@ -181,7 +181,8 @@ def site(live_db, request, tmp_path_factory):
             "--save", "", "--appendonly", "no", "--dir", str(workdir)], stack.environment())
         url = f"redis://{address}:6379/0"
         stack.wait_for(lambda: local_redis.answers(url), 15, f"Redis on {address} (the site's host)")
-        ingest = stack.start_ingest("net-ingest", REDIS_URL=url)
+        ingest = netns.NsProcess(None, "net-ingest", [sys.executable, "manage.py", "ingest"],
+                                 stack.environment(REDIS_URL=url), stack.log_dir())
         stack.wait_for(lambda: "ingest is running" in ingest.output() or not ingest.alive(), 30, "ingest")
         assert ingest.alive(), ingest.output()
         try:
