@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import secrets
+from datetime import timedelta
 from pathlib import Path
 
 import dj_database_url
@@ -69,6 +70,7 @@ INSTALLED_APPS = [
     "django.contrib.staticfiles",
     "channels",
     "django_htmx",
+    "axes",
     "lifecycle_site.fleet",
     "lifecycle_site.audit",
     "lifecycle_site.api",
@@ -87,7 +89,20 @@ MIDDLEWARE = [
     "django.contrib.messages.middleware.MessageMiddleware",
     "django.middleware.clickjacking.XFrameOptionsMiddleware",
     "django_htmx.middleware.HtmxMiddleware",
+    "axes.middleware.AxesMiddleware",  # last: answers a locked-out login with the page below
 ]
+# Brute force (django-axes): after LIFECYCLE_LOGIN_FAILURES wrong passwords for one account,
+# or from one client address, logins of that account / from that address are refused for
+# LIFECYCLE_LOGIN_LOCKOUT_MINUTES (a right password included), on /login/ and /admin/login/.
+AUTHENTICATION_BACKENDS = ["axes.backends.AxesStandaloneBackend", "django.contrib.auth.backends.ModelBackend"]
+AXES_FAILURE_LIMIT = int(os.environ.get("LIFECYCLE_LOGIN_FAILURES", "5"))
+AXES_COOLOFF_TIME = timedelta(minutes=float(os.environ.get("LIFECYCLE_LOGIN_LOCKOUT_MINUTES", "15")))
+AXES_LOCKOUT_PARAMETERS = ["username", "ip_address"]
+AXES_RESET_ON_SUCCESS = True
+AXES_LOCKOUT_TEMPLATE = "registration/locked_out.html"
+AXES_VERBOSE = True
+# Refused form posts (a stale page, a forged request) are on record like other refusals.
+CSRF_FAILURE_VIEW = "lifecycle_site.audit.denials.csrf_failure"
 
 ROOT_URLCONF = "lifecycle_site.urls"
 ASGI_APPLICATION = "lifecycle_site.asgi.application"

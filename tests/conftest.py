@@ -70,6 +70,13 @@ def ingest(redis_server, live_db):
     holder.stop()
 
 
+def session_of(user):
+    """A logged-in session of ``user`` (what a WebSocket's scope carries from the browser)."""
+    client = Client()
+    client.force_login(user)
+    return client.session
+
+
 def make_user(username: str, role: str | None):
     user = get_user_model().objects.filter(username=username).first()
     if user is None:

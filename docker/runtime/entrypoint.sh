@@ -3,7 +3,8 @@
 #
 #   web [DAPHNE ARGS]   apply the configuration (migrate, admin, robots), then serve on :8000
 #   ingest [ARGS]       wait until web has migrated the database, then store what gateways report
-#   gateway [ARGS]      the ROS gateway LIFECYCLE_GATEWAY_NAME (default local): Redis only, no database
+#   gateway [ARGS]      the ROS gateway LIFECYCLE_GATEWAY_NAME (default local): Redis only, no database;
+#                       name and Redis URL also from cfg-data (gateway.name, redis.url: docker/edge-cell/)
 #   redis [ARGS]        redis-server: channel layer, command queues, the gateways' fact streams
 #                       (append-only file in $REDIS_DATA_DIR, default /data; password: $REDIS_PASSWORD)
 #   robot ARGS          a simulated robot: python -m ros_gateway.demo.robot ARGS
@@ -78,7 +79,8 @@ case "$role" in
         export LIFECYCLE_DATA_DIR=/tmp/gateway
         DJANGO_SECRET_KEY="$(od -An -N32 -tx1 /dev/urandom | tr -d ' \n')"  # signs nothing; written nowhere
         export DJANGO_SECRET_KEY
-        [ -n "${REDIS_URL:-}" ] || { log "REDIS_URL is not set (the output of manage.py add_gateway on the site)"; exit 78; }
+        [ -n "${REDIS_URL:-}" ] || { log "no Redis URL: set redis.url in cfg-data/param.json or REDIS_URL" \
+            "(what manage.py add_gateway printed on the site)"; exit 78; }
         health_info
         log "gateway $LIFECYCLE_GATEWAY_NAME, Redis at ${REDIS_URL##*@}; ROS discovery range" \
             "${ROS_AUTOMATIC_DISCOVERY_RANGE:-SYSTEM_DEFAULT}${ROS_STATIC_PEERS:+, static peers $ROS_STATIC_PEERS}"

@@ -61,6 +61,17 @@ def _prefix(details: dict[str, str]) -> str:
     return details.get("prefix") or os.environ.get("LIFECYCLE_CHANNEL_PREFIX", "lifecycle")
 
 
+def gateway_redis_url() -> str:
+    """The Redis URL the gateway process got: from the app configuration (cfg-data: redis.*,
+    which wins, as in the entrypoint) or the container's environment. Read again here rather
+    than written anywhere by the entrypoint: the URL holds the gateway's password."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import config
+
+    return config.gateway_env(config.read_config()).get("REDIS_URL") or os.environ.get(
+        "REDIS_URL", "redis://127.0.0.1:6379/0")
+
+
 def check_gateway(details: dict[str, str]) -> str | None:
     """Its heartbeat key in Redis is fresh (as the site judges it) and written from this
     container. With the gateway's own Redis user: it may read its own keys, nothing else.
@@ -71,7 +82,11 @@ def check_gateway(details: dict[str, str]) -> str | None:
     limit = float(os.environ.get("LIFECYCLE_GATEWAY_OFFLINE_AFTER", 10))
     key = f"{_prefix(details)}:gw:{name}:beat"
     try:
-        raw = _redis(os.environ.get("REDIS_URL", "redis://127.0.0.1:6379/0")).get(key)
+        url = gateway_redis_url()
+    except Exception as exc:  # noqa: BLE001 - config.ConfigError: the entrypoint refused it too
+        return f"the configuration is not usable: {exc}"
+    try:
+        raw = _redis(url).get(key)
     except redis.RedisError as exc:
         return f"cannot read the heartbeat {key}: {exc}"
     if raw is None:

@@ -10,6 +10,7 @@ from django.shortcuts import redirect, render
 from django.views.decorators.http import require_POST
 from django_htmx.http import HttpResponseClientRefresh
 
+from lifecycle_site.audit import denials
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.dashboard import snapshots
 from lifecycle_site.dashboard.access import viewer_required
@@ -77,6 +78,7 @@ def node_transition(request: HttpRequest, key: str) -> HttpResponse:
     the WebSocket is down)."""
     node = node_or_404(key)
     if not _can_operate(request):
+        denials.record(request, 403, "forbidden", "operator needed")
         outcome_context = {"ok": False, "message": "Your role may view but not operate nodes (operator needed)."}
         return render(request, "dashboard/_transition_result.html", outcome_context, status=403)
     requested = request.POST.get("transition", "")

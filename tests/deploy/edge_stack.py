@@ -206,7 +206,18 @@ def stop_process(process: subprocess.Popen | None, timeout: float = 10) -> None:
         process.wait(5)
 
 
-def yaml_services(path: Path) -> dict:
+def yaml_services(*paths: Path) -> dict:
+    """The services of compose files merged as docker-compose merges an override into the file
+    before it: a service's keys replaced, its lists of networks joined."""
     import yaml
 
-    return yaml.safe_load(path.read_text())["services"]
+    services: dict = {}
+    for path in paths:
+        for name, service in yaml.safe_load(path.read_text())["services"].items():
+            merged = services.setdefault(name, {})
+            for key, value in service.items():
+                if key == "networks" and isinstance(merged.get(key), list) and isinstance(value, list):
+                    merged[key] = merged[key] + [n for n in value if n not in merged[key]]
+                else:
+                    merged[key] = value
+    return services

@@ -11,7 +11,7 @@ import pytest
 
 from tests.deploy import edge_stack, engine
 from tests.deploy.client import Browser, insecure_context
-from tests.deploy.engine import DEMO_ROBOT, DOCKER_DIR, EDGE_DIR, IMAGE, VERSION
+from tests.deploy.engine import DEMO_ROBOT, DOCKER_DIR, EDGE_DIR, IMAGE, PLANT_ROBOT, VERSION
 
 PREFIX = "/lifecycle"
 # The lifecycle nodes of the demo robot container (its joystick is a plain node).
@@ -62,7 +62,21 @@ def test_package_for_the_publisher(image, scratch, timings):
     readme = (out / "README.md").read_text()
     assert "iectl" in readme and "docker load" in readme and "JSON schema" in readme
     assert (out.parent / "package.tar.gz").exists()
+    assert "docker-compose.no-layer2.yml" in files and "zzz_layer2_net1" in readme
     timings.record("package_mb", round(sum(p.stat().st_size for p in out.rglob("*") if p.is_file()) / 1e6))
+
+
+def test_package_of_a_cells_gateway(image, scratch):
+    """package.sh --app edge-cell: the gateway-only app, no reverse-proxy entry."""
+    out = scratch / "package-cell"
+    engine.run([str(EDGE_DIR / "package.sh"), "--app", "edge-cell", "--no-build", "--output", str(out)], timeout=600)
+    files = {p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()}
+    assert files == {"docker-compose.yml", "README.md", "SHA256SUMS", "cfg-data/param.json",
+                     "cfg-data-template/param.json", f"images/lifecycle-manager_{VERSION}.tar"}, files
+    assert (out / "docker-compose.yml").read_text() == (DOCKER_DIR / "edge-cell" / "docker-compose.yml").read_text()
+    readme = (out / "README.md").read_text()
+    assert "add_gateway" in readme and "zzz_layer2_net1" in readme and "Memory limit: 192 MB" in readme
+    assert (out.parent / "package-cell.tar.gz").exists()
 
 
 # ---------------------------------------------------------------------------------------
@@ -154,7 +168,8 @@ def test_login_through_the_proxy(stack, logged_in):
 def test_demo_robot_nodes_listed(logged_in):
     """The gateway container finds the robot container's lifecycle nodes over DDS (compose network)."""
     nodes = wait_nodes_alive(logged_in)
-    assert {n["robot"] for n in nodes.values()} == {DEMO_ROBOT}
+    robots = {n["robot"] for n in nodes.values()}
+    assert DEMO_ROBOT in robots and robots <= {DEMO_ROBOT, PLANT_ROBOT}, robots
 
 
 def test_site_processes_and_the_gateway_local(stack, logged_in):
@@ -170,7 +185,7 @@ def test_site_processes_and_the_gateway_local(stack, logged_in):
         return gateways if gateways.get("local", {}).get("online") else None
 
     gateways = engine.wait_for(local_online, 60, "gateway local online in /api/v1/gateways", interval=1)
-    assert set(gateways) == {"local"} and gateways["local"]["robots"] == [DEMO_ROBOT], gateways
+    assert set(gateways) == {"local"} and gateways["local"]["robots"] == sorted([DEMO_ROBOT, PLANT_ROBOT]), gateways
     gateway = stack.container("gateway")
     mounts = json.loads(engine.run(["docker", "inspect", "-f", "{{json .Mounts}}", gateway], timeout=30).stdout)
     assert [m["Destination"] for m in mounts] == ["/cfg-data"], f"the gateway mounts only cfg-data: {mounts}"
@@ -254,9 +269,7 @@ def test_websocket_refuses_a_foreign_origin(stack, logged_in):
 
 def test_memory_within_limits(stack, timings):
     """Every container under its mem_limit (which Docker enforces: the limit shows in stats)."""
-    compose = {}
-    for name in ("docker-compose.yml", "docker-compose.demo.yml"):
-        compose.update(edge_stack.yaml_services(EDGE_DIR / name))
+    compose = edge_stack.yaml_services(EDGE_DIR / "docker-compose.yml", EDGE_DIR / "docker-compose.demo.yml")
     ids = {service: stack.container(service) for service in compose}
     stats = engine.run(
         ["docker", "stats", "--no-stream", "--format", "{{.ID}}\t{{.MemUsage}}", *ids.values()], timeout=60

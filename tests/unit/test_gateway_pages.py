@@ -14,7 +14,7 @@ from django.test import Client
 from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
 from ros_gateway.shared import state_machine as sm
 from tests import stack
-from tests.conftest import make_user
+from tests.conftest import make_user, session_of
 
 
 @pytest.fixture
@@ -97,6 +97,7 @@ def test_a_live_fleet_page_follows_a_gateway_going_away(transactional_db, redis_
     ManagedNode.objects.create(robot=robot, name="/lidar", alive=True, state_id=sm.ACTIVE, state_label="active")
     stack.write_beat("cell-live")
     user = make_user("olga-live", "operator")
+    session = session_of(user)
 
     async def receive_until(communicator, text: str) -> str:
         while True:
@@ -107,6 +108,7 @@ def test_a_live_fleet_page_follows_a_gateway_going_away(transactional_db, redis_
     async def scenario():
         communicator = WebsocketCommunicator(URLRouter(websocket_urlpatterns), "/ws/fleet/")
         communicator.scope["user"] = user
+        communicator.scope["session"] = session
         assert (await communicator.connect(timeout=5))[0]
         try:
             banner = await receive_until(communicator, 'id="gateway-banner"')

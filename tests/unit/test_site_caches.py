@@ -29,7 +29,7 @@ from lifecycle_site.prefix import script_prefix
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 from tests import stack
-from tests.conftest import make_user
+from tests.conftest import make_user, session_of
 
 AUTH_TABLES = ("api_apitoken", "auth_user", "auth_permission", "auth_group")
 
@@ -248,6 +248,7 @@ def test_fleet_socket_snapshot_is_rendered_off_the_event_loop_under_the_prefix(t
     robot = Robot.objects.create(name="ws-agv", domain_id=96)
     ManagedNode.objects.create(robot=robot, name="/lidar", alive=True, state_id=sm.ACTIVE, state_label="active")
     user = make_user("olga-socket", "operator")
+    session = session_of(user)
     threads = {}
     fleet, render = snapshots.fleet, consumers.render_to_string
 
@@ -273,6 +274,7 @@ def test_fleet_socket_snapshot_is_rendered_off_the_event_loop_under_the_prefix(t
         communicator = WebsocketCommunicator(URLRouter(websocket_urlpatterns), "/ws/fleet/",
                                              headers=[(b"x-forwarded-prefix", b"/lifecycle")])
         communicator.scope["user"] = user
+        communicator.scope["session"] = session
         connected, _ = await communicator.connect(timeout=5)
         assert connected
         try:
