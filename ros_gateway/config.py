@@ -66,6 +66,10 @@ class GatewayConfig:
         lifecycle = settings.LIFECYCLE
         dds = {key: environ[key] for key in DDS_VARIABLES if environ.get(key)}
         check_dds(dds)
+        if dds.get("ROS_DISCOVERY_SERVER") and "ROS_SUPER_CLIENT" not in dds:
+            # A plain client of a discovery server learns only what it subscribes to: no
+            # robot's services, so no lifecycle node. The gateway must see the whole graph.
+            dds["ROS_SUPER_CLIENT"] = "TRUE"
         if environ.get(INTERFACES_VARIABLE, "").strip():
             dds[INTERFACES_VARIABLE] = ",".join(interface_addresses(environ[INTERFACES_VARIABLE], dds))
         if lifecycle["LIVENESS_INTERVAL"] < 0 or lifecycle["LIVENESS_TIMEOUT"] <= 0:
@@ -101,6 +105,9 @@ def check_dds(dds: Mapping[str, str]) -> None:
     super_client = dds.get("ROS_SUPER_CLIENT")
     if super_client is not None and super_client.upper() not in ("TRUE", "FALSE", "1", "0"):
         raise ConfigError(f"ROS_SUPER_CLIENT={super_client!r}: use TRUE or FALSE.")
+    if dds.get("ROS_DISCOVERY_SERVER") and super_client is not None and super_client.upper() in ("FALSE", "0"):
+        raise ConfigError("ROS_SUPER_CLIENT=FALSE with ROS_DISCOVERY_SERVER: the gateway would see no robot's "
+                          "services (hence no lifecycle node); leave ROS_SUPER_CLIENT unset or set it TRUE.")
 
 
 def _ipv4_of(interface: str) -> str | None:
@@ -159,7 +166,9 @@ def interfaces_profile(addresses: list[str]) -> str:
 
 
 def apply_dds(config: GatewayConfig, environ=os.environ) -> None:
-    """Before the first ROS participant: what the configuration asks that ROS reads from files."""
+    """Before the first ROS participant: what the configuration adds to what ROS reads."""
+    if config.dds.get("ROS_SUPER_CLIENT"):
+        environ["ROS_SUPER_CLIENT"] = config.dds["ROS_SUPER_CLIENT"]
     spec = config.dds.get(INTERFACES_VARIABLE)
     if not spec:
         return

@@ -98,7 +98,7 @@ class Discovery:
         self._passes += 1
         check_incarnations = self._passes % 4 == 0
         for domain_id, domain in list(self.domains.items()):
-            present = domain.lifecycle_node_names()
+            present = domain.lifecycle_node_names(name for d, name in self.registry.nodes if d == domain_id)
             for name in present:
                 node = self.registry.nodes.get((domain_id, name))
                 if node is None or not node.seen:

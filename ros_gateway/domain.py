@@ -19,7 +19,7 @@ import os
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterable
 
 import rclpy
 from lifecycle_msgs.msg import TransitionEvent
@@ -212,15 +212,22 @@ class RosDomain:
         return time.monotonic() - self.started_at < DISCOVERY_SETTLE_S
 
     # -- graph ----------------------------------------------------------------------
-    def lifecycle_node_names(self) -> set[str]:
+    def lifecycle_node_names(self, known: Iterable[str] = ()) -> set[str]:
         """Fully qualified names of running nodes offering lifecycle_msgs/srv/GetState.
 
         A service name alone is not proof of life: our own clients keep ``X/get_state`` in
         the graph after X is gone, so the node must also be listed as a running node. The
         node list is cheap and read every time; the service list only when needed (above).
+
+        ``known`` nodes that still publish their transition events count as running even when
+        the node list lacks them: rmw_fastrtps does not list again the nodes of a participant
+        that was dropped for its lease (a host away longer than ~20 s) and then found again.
         """
         running = {
             f"{namespace.rstrip('/')}/{name}" for name, namespace in self.node.get_node_names_and_namespaces()
+        }
+        running |= {
+            fqn for fqn in known if fqn not in running and self.node.count_publishers(f"{fqn}/transition_event")
         }
         now = time.monotonic()
         if running != self._running:

@@ -41,6 +41,10 @@ PREFIX = "lcn"
 NAME = re.compile(rf"^{PREFIX}(\d+)-")
 ROOT_LINK = re.compile(rf"^{PREFIX}(\d+)u\d+$")
 UPLINK_NET = ipaddress.ip_network("10.231.0.0/24")
+# Every address the fabrics use. While a fabric exists, the root namespace has an "unreachable"
+# route for all of it: a packet for a test host that is not on the one uplink (a stale DDS
+# locator, say) is dropped here instead of taking the default route out of a real interface.
+FABRIC_NET = "10.231.0.0/16"
 
 _open: list["Fabric"] = []
 _count = 0
@@ -111,6 +115,14 @@ def ours(pid: int | None = None) -> tuple[list[str], list[str]]:
     return spaces, links
 
 
+def guard_root(on: bool) -> None:
+    """The root namespace's unreachable route for FABRIC_NET (removed when no run uses it)."""
+    if on:
+        ip("route", "replace", "unreachable", FABRIC_NET)
+    elif not any(ROOT_LINK.match(link) for link in root_links()):
+        ip("route", "del", "unreachable", FABRIC_NET, check=False)
+
+
 def remove_leftovers() -> list[str]:
     """Remove the namespaces and root links of earlier runs whose process is gone; returns them."""
     removed = []
@@ -124,6 +136,7 @@ def remove_leftovers() -> list[str]:
         if m and int(m.group(1)) != os.getpid() and not _pid_alive(int(m.group(1))):
             ip("link", "del", link, check=False)
             removed.append(link)
+    guard_root(False)
     return removed
 
 
@@ -281,6 +294,7 @@ class Fabric:
             raise NetError("no free /30 left in 10.231.0.0/24 in the root namespace")
         root_address, host_address = (str(a) for a in list(network.hosts())[:2])
         name = f"{PREFIX}{os.getpid()}u{self.index}"
+        guard_root(True)
         ip("link", "add", "name", name, "type", "veth", "peer", "name", "uplink", "netns", host.ns)
         self.root_link = name
         for key in ("disable_ipv6",):
@@ -315,6 +329,7 @@ class Fabric:
             remove_namespace(ns)
         if self.root_link:
             ip("link", "del", self.root_link, check=False)  # gone with its peer's namespace, normally
+            guard_root(False)
         if self in _open:
             _open.remove(self)
 
@@ -328,6 +343,7 @@ def close_all() -> None:
         remove_namespace(ns)
     for link in links:
         ip("link", "del", link, check=False)
+    guard_root(False)
 
 
 atexit.register(close_all)

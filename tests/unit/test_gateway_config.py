@@ -21,6 +21,7 @@ def load(**environ: str) -> GatewayConfig:
     ({"ROS_STATIC_PEERS": "10.0.0.5; bad peer"}, "is not a host name or address"),
     ({"ROS_DISCOVERY_SERVER": "10.0.0.1:port"}, "is not ADDRESS[:PORT]"),
     ({"ROS_SUPER_CLIENT": "yes"}, "use TRUE or FALSE"),
+    ({"ROS_DISCOVERY_SERVER": "10.0.0.1:11811", "ROS_SUPER_CLIENT": "FALSE"}, "would see no robot's services"),
     ({"LIFECYCLE_DDS_INTERFACES": "no-such-if0"}, "this host has no network interface 'no-such-if0'"),
     ({"LIFECYCLE_DDS_INTERFACES": " , "}, "name at least one interface"),
     ({"LIFECYCLE_DDS_INTERFACES": "lo", "RMW_IMPLEMENTATION": "rmw_cyclonedds_cpp"}, "with rmw_fastrtps_cpp only"),
@@ -49,3 +50,8 @@ def test_the_profile_lists_only_those_addresses_and_replaces_the_builtin_transpo
     assert participant.get("is_default_profile") == "true"
     assert participant.find(".//f:useBuiltinTransports", NS).text == "false"
     assert participant.find(".//f:userTransports/f:transport_id", NS).text == "lifecycle_udp"
+
+
+def test_a_discovery_server_makes_the_gateway_a_super_client_unless_told_otherwise():
+    assert load(ROS_DISCOVERY_SERVER="10.0.0.1:11811").dds == {"ROS_DISCOVERY_SERVER": "10.0.0.1:11811",
+                                                              "ROS_SUPER_CLIENT": "TRUE"}

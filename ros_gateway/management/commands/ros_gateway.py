@@ -37,7 +37,7 @@ class Command(BaseCommand):
             config = GatewayConfig.load(name, settings)
         except ConfigError as exc:
             raise CommandError(str(exc)) from None
-        apply_dds(config)
+        apply_dds(config)  # before the first ROS participant reads the environment
 
         async def main() -> None:
             gateway = Gateway(config)
