@@ -148,11 +148,14 @@ def interface_addresses(spec: str, dds: Mapping[str, str]) -> list[str]:
 
 
 def interfaces_profile(addresses: list[str]) -> str:
-    """A Fast DDS profile whose participants use UDP on these addresses only."""
+    """A Fast DDS profile whose participants use UDP on these addresses only; it also keeps the
+    gateway's own endpoints from pre-allocating samples, as ros_gateway/fastdds_gateway.xml does
+    (it replaces that file)."""
     listed = "".join(f"<address>{escape(a)}</address>" for a in addresses)
+    unallocated = "<topic><resourceLimitsQos><allocated_samples>0</allocated_samples></resourceLimitsQos></topic>"
     return (
         '<?xml version="1.0" encoding="UTF-8"?>\n'
-        '<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">\n'
+        '<dds xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"><profiles>\n'
         "  <transport_descriptors><transport_descriptor>\n"
         "    <transport_id>lifecycle_udp</transport_id><type>UDPv4</type>\n"
         f"    <interfaceWhiteList>{listed}</interfaceWhiteList>\n"
@@ -161,7 +164,11 @@ def interfaces_profile(addresses: list[str]) -> str:
         "    <userTransports><transport_id>lifecycle_udp</transport_id></userTransports>\n"
         "    <useBuiltinTransports>false</useBuiltinTransports>\n"
         "  </rtps></participant>\n"
-        "</profiles>\n"
+        f'  <data_writer profile_name="lifecycle_gateway_writer" is_default_profile="true">'
+        f"{unallocated}</data_writer>\n"
+        f'  <data_reader profile_name="lifecycle_gateway_reader" is_default_profile="true">'
+        f"{unallocated}</data_reader>\n"
+        "</profiles></dds>\n"
     )
 
 

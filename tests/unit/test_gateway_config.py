@@ -46,10 +46,13 @@ def test_interfaces_by_name_or_address_are_reported_as_addresses():
 def test_the_profile_lists_only_those_addresses_and_replaces_the_builtin_transports():
     root = ET.fromstring(interfaces_profile(["127.0.0.1", "10.1.2.3"]))
     assert [a.text for a in root.findall(".//f:interfaceWhiteList/f:address", NS)] == ["127.0.0.1", "10.1.2.3"]
-    participant = root.find("f:participant", NS)
+    participant = root.find(".//f:participant", NS)
     assert participant.get("is_default_profile") == "true"
     assert participant.find(".//f:useBuiltinTransports", NS).text == "false"
     assert participant.find(".//f:userTransports/f:transport_id", NS).text == "lifecycle_udp"
+    # It replaces fastdds_gateway.xml, so it keeps that file's memory setting too.
+    for kind in ("data_writer", "data_reader"):
+        assert root.find(f".//f:{kind}//f:allocated_samples", NS).text == "0"
 
 
 def test_a_discovery_server_makes_the_gateway_a_super_client_unless_told_otherwise():
