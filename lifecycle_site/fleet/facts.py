@@ -339,6 +339,10 @@ def record_messages(records: Iterable[TransitionRecord]) -> list[tuple[str, dict
     ]
 
 
+# Live updates sent side by side (fewer than the channel layer's Redis pool of 100 connections).
+PUSH_CONCURRENCY = 50
+
+
 def push(messages: list[tuple[str, dict]]) -> None:
     """Send (group, message) pairs to the Channels layer; a failure is logged, never raised
     (what was stored is there for the next page load)."""
@@ -351,7 +355,13 @@ def push(messages: list[tuple[str, dict]]) -> None:
     async def send_all() -> list:
         import asyncio
 
-        return await asyncio.gather(*(layer.group_send(g, m) for g, m in messages), return_exceptions=True)
+        # A few at a time: the channel layer's Redis pool holds at most 100 connections, and a
+        # group_send beyond them fails ("Too many connections"), losing its message.
+        results: list = []
+        for start in range(0, len(messages), PUSH_CONCURRENCY):
+            chunk = messages[start : start + PUSH_CONCURRENCY]
+            results += await asyncio.gather(*(layer.group_send(g, m) for g, m in chunk), return_exceptions=True)
+        return results
 
     try:
         failures = [r for r in async_to_sync(send_all)() if isinstance(r, Exception)]

@@ -47,6 +47,11 @@ CONFIG_EVERY_S = 60.0  # publish configs even when unchanged
 USERS_S = 10.0  # check the gateways' Redis users
 PRUNE_S = 60.0
 COMPLAIN_EVERY_S = 30.0
+# A gateway appends a request's facts to its stream just before its reply carries the same facts
+# to the site, which applies them at once. Reading them, ingest waits this long before applying
+# them, so that the two do not write at the same moment: SQLite takes one writer at a time and
+# the other sleeps in its busy handler (1, 2, 5, 10 ms ...), which the requester would wait for.
+SETTLE_S = 0.03
 
 RENEW = "if redis.call('get', KEYS[1]) == ARGV[1] then return redis.call('pexpire', KEYS[1], ARGV[2]) end return 0"
 RELEASE = "if redis.call('get', KEYS[1]) == ARGV[1] then return redis.call('del', KEYS[1]) end return 0"
@@ -56,6 +61,10 @@ def entry_id(raw: bytes | str) -> tuple[int, int]:
     text = raw.decode() if isinstance(raw, bytes) else raw
     ms, _, seq = text.partition("-")
     return int(ms), int(seq or 0)
+
+
+def _text(raw: bytes | str) -> str:
+    return raw.decode() if isinstance(raw, bytes) else raw
 
 
 def is_after(raw: bytes | str, cursor: str) -> bool:
@@ -218,6 +227,7 @@ class Ingest:
                 self.due.pop("refresh", None)
                 return 0
             raise
+        self.settle(replies or [])
         applied = 0
         for raw_stream, entries in replies or []:
             stream = raw_stream.decode() if isinstance(raw_stream, bytes) else raw_stream
@@ -233,6 +243,15 @@ class Ingest:
                 raise
         self.applied += applied
         return applied
+
+    def settle(self, replies: list) -> None:
+        """Wait until the newest facts entry read is SETTLE_S old (by its id, Redis's clock in ms;
+        never longer than SETTLE_S, whatever the clocks say): the site applies a reply's facts
+        first (see SETTLE_S)."""
+        newest = max((entry_id(entries[-1][0])[0] for s, entries in replies
+                      if entries and self.streams.get(_text(s), ("", ""))[1] == "facts"), default=None)
+        if newest is not None:
+            time.sleep(min(max(SETTLE_S - (time.time() - newest / 1000), 0.0), SETTLE_S))
 
     def apply(self, stream: str, entries: list) -> int:
         """Apply one stream's entries in one transaction, then acknowledge them."""
