@@ -23,7 +23,7 @@ from tests.benchmarks.web import Http, ws_connect
 
 NAME = "flood"
 TITLE = "4. Log flood: one node logging as fast as it can"
-DOMAIN = 112
+DOMAIN = 122
 ROBOT = "bench-flood"
 NODE = "log_flooder"
 DRAIN_TIMEOUT_S = 90.0

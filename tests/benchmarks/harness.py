@@ -3,7 +3,7 @@ subprocesses the site's ingest process, one registered gateway (with its own Red
 no database) and daphne; robot processes on demand. Everything is stopped on exit.
 
 DDS stays on this machine (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST) and the benchmark uses
-ROS domains 110-119 only, apart from the tests (30-109, 150-160) and the demo (21, 22). Each
+ROS domains 120-129 only, apart from the tests (30-119) and the demo (21, 22). Each
 scenario claims its domains (tests/domains.py), so two runs on one machine cannot share one.
 """
 from __future__ import annotations
@@ -95,7 +95,7 @@ def environment(data_dir: Path, redis_port: int, **extra: str) -> dict[str, str]
         REDIS_URL=f"redis://127.0.0.1:{redis_port}/0",
         LIFECYCLE_CHANNEL_PREFIX=CHANNEL_PREFIX,
         ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-        ROS_DOMAIN_ID="119",  # anything that forgets its domain stays in ours
+        ROS_DOMAIN_ID="129",  # anything that forgets its domain stays in ours
         PYTHONUNBUFFERED="1",
     )
     env.update(extra)

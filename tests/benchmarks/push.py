@@ -26,7 +26,7 @@ from tests.benchmarks.web import Http, ws_connect
 
 NAME = "push"
 TITLE = "2. Push latency: transition_event published -> WebSocket message at the browser"
-DOMAIN = 111
+DOMAIN = 121
 ROBOT = "bench-push"
 NODE = "push_node_000"
 CYCLE_IDS = [1, 3, 4, 2]  # configure, activate, deactivate, cleanup

@@ -23,7 +23,7 @@ from tests.benchmarks.web import Http, ws_connect
 
 NAME = "quiet"
 TITLE = "5. Quiet fleet: live-update WebSockets held open, none may close"
-DOMAIN = 116
+DOMAIN = 126
 ROBOT = "bench-quiet"
 NODES = 4
 FLEET_SOCKETS = 10

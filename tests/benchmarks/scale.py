@@ -18,7 +18,7 @@ from tests.benchmarks.system import cpu_seconds, loadavg, rss_mb
 
 NAME = "scale"
 TITLE = "3. Scale: 300 nodes on 3 robots; listing, fleet page, bring-up, memory"
-ROBOTS = [("bench-s1", 113), ("bench-s2", 114), ("bench-s3", 115)]
+ROBOTS = [("bench-s1", 123), ("bench-s2", 124), ("bench-s3", 125)]
 DISCOVERY_TIMEOUT_S = 180.0
 POLL_S = 0.25
 

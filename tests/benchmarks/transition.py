@@ -28,7 +28,7 @@ from tests.benchmarks.web import Http
 
 NAME = "transition"
 TITLE = "1. Transition latency: API vs direct rclpy (floor) vs fresh process per call"
-DOMAIN = 110
+DOMAIN = 120
 ROBOT = "bench-tr"
 NODE = "bench_node_000"
 CYCLE = [("configure", 1), ("activate", 3), ("deactivate", 4), ("cleanup", 2)]
