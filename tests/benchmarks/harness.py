@@ -277,8 +277,8 @@ class Stack:
     def ingest_stats(self) -> dict:
         """What the ingest process has stored, read where it stores it (the database; read-only
         queries, WAL lets them run beside its writes): log records ever stored (the highest id:
-        pruning deletes old rows, never the newest), audit records, and the gateway row's
-        accounts of what was lost on the way."""
+        pruning deletes old rows, never the newest), audit records by source, and the gateway
+        row's accounts of what was lost on the way and its node count (copied from its beat)."""
         if self._db is None:
             self._db = sqlite3.connect(self.db_path, timeout=10, isolation_level=None, check_same_thread=False)
         db = self._db
@@ -286,12 +286,11 @@ class Stack:
             "logs_stored": db.execute("SELECT coalesce(max(id), 0) FROM fleet_logrecord").fetchone()[0],
             "audit_records": dict(db.execute("SELECT source, count(*) FROM audit_transitionrecord GROUP BY source")),
         }
-        row = db.execute(
-            "SELECT logs_lost, logs_dropped, facts_lost, facts_rejected FROM fleet_gateway WHERE name = ?",
-            (self.gateway_name,),
-        ).fetchone()
+        columns = ("logs_lost", "logs_dropped", "facts_lost", "facts_rejected", "node_count")
+        row = db.execute(f"SELECT {', '.join(columns)} FROM fleet_gateway WHERE name = ?",
+                         (self.gateway_name,)).fetchone()
         if row is not None:
-            stats.update(zip(("logs_lost", "logs_dropped", "facts_lost", "facts_rejected"), row, strict=True))
+            stats.update(zip(columns, row, strict=True))
         return stats
 
     def stream_backlog(self, kind: str = "logs") -> int:
