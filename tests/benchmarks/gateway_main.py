@@ -1,6 +1,7 @@
 """The product's gateway (ros_gateway.service.Gateway, as ``manage.py ros_gateway`` runs it)
 plus a JSON file of its own counters, rewritten every half second, so the benchmark can see
-what it received, dropped, stored and published. Nothing of the gateway is changed.
+what it received, dropped, handed to its outbox and published. Nothing of the gateway is
+changed. (What is stored, the ingest process stores: see Stack.ingest_stats.)
 
     python -m tests.benchmarks.gateway_main NAME STATS_PATH
 """
