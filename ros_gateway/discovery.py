@@ -72,7 +72,12 @@ class Discovery:
             return
         robots, settings = robots_from_config(config)
         for robot_id, old in list(self.registry.robots.items()):
-            if robots.get(robot_id) != old:  # removed, disabled or changed: forget its nodes
+            new = robots.get(robot_id)
+            if new is not None and (new.domain_id, new.namespace) == (old.domain_id, old.namespace):
+                for node in self.registry.of_robot(robot_id):  # renamed, recovery switched: same nodes
+                    node.robot = new
+                continue
+            if new != old:  # removed, disabled, or its nodes are elsewhere now: forget its nodes
                 for node in self.registry.of_robot(robot_id):
                     if node.alive:  # no longer watched: the site shows it lost until seen again
                         self.registry.vanished(node)

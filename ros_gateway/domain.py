@@ -290,17 +290,20 @@ class RosDomain:
         if client is None:
             client = self._shard_for(fqn).node.create_client(srv_type, f"{fqn}/{service}")
             self._clients[(fqn, service)] = client
-        # A fresh client needs a moment to match the server (about 0.25 s on loopback).
-        while not client.service_is_ready():
-            if time.monotonic() >= deadline:
-                raise ServiceUnavailable(f"{fqn}/{service} is not available")
-            await asyncio.sleep(0.02)
-        result: asyncio.Future = self.loop.create_future()
+        try:
+            # A fresh client needs a moment to match the server (about 0.25 s on loopback).
+            while not client.service_is_ready():
+                if time.monotonic() >= deadline:
+                    raise ServiceUnavailable(f"{fqn}/{service} is not available")
+                await asyncio.sleep(0.02)
+            result: asyncio.Future = self.loop.create_future()
 
-        def done(ros_future) -> None:
-            self.loop.call_soon_threadsafe(_settle, result, ros_future)
+            def done(ros_future) -> None:
+                self.loop.call_soon_threadsafe(_settle, result, ros_future)
 
-        ros_future = client.call_async(request)
+            ros_future = client.call_async(request)
+        except _rclpy.InvalidHandle:  # the node was forgotten (gone) meanwhile, and its client with it
+            raise ServiceUnavailable(f"{fqn}/{service} is no longer watched (the node went)") from None
         ros_future.add_done_callback(done)
         try:
             return await asyncio.wait_for(result, max(deadline - time.monotonic(), 0.001))

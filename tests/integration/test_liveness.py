@@ -59,3 +59,15 @@ def test_a_process_that_stops_answering_is_unreachable_within_five_seconds(api, 
     assert api.get(f"/api/v1/nodes/{ROBOT}.lidar_driver").json()["gone_reason"] == ""
     assert transition(api, f"{ROBOT}.camera_driver", "configure").status_code == 200
     wait_node(api, f"{ROBOT}.camera_driver", alive=True, state="inactive")
+
+
+def test_editing_a_robot_without_moving_its_nodes_keeps_them_alive(api, robots):
+    from lifecycle_site.fleet.models import Robot
+
+    robot = Robot.objects.get(name=OTHER)
+    robot.auto_recover = not robot.auto_recover
+    robot.save()  # the site publishes the gateway's new configuration
+    ends = time.monotonic() + 6  # three configuration reads of the gateway
+    while time.monotonic() < ends:
+        assert ManagedNode.objects.get(key=f"{OTHER}.lidar_driver").alive, "the edit made the node flap lost"
+        time.sleep(0.1)
