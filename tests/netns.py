@@ -199,8 +199,9 @@ class Host:
         switch, port = self.ports[interface]
         ip("link", "set", port, "up" if plugged else "down", ns=switch.ns)
 
-    def start(self, name: str, argv: list[str], env: dict[str, str]) -> NsProcess:
-        process = NsProcess(self, name, argv, env, stack.log_dir())
+    def start(self, name: str, argv: list[str], env: dict[str, str], log_dir: Path | None = None) -> NsProcess:
+        """``argv`` in this namespace; its output goes to ``log_dir`` (default: the test run's logs)."""
+        process = NsProcess(self, name, argv, env, log_dir or stack.log_dir())
         self.fabric.processes.append(process)
         return process
 

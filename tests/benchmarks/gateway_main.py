@@ -39,6 +39,7 @@ def snapshot(gateway) -> dict:
         "nodes_alive": sum(1 for n in gateway.registry.nodes.values() if n.alive),
         "nodes_state_read": sum(1 for n in gateway.registry.nodes.values() if n.alive and n.state_read),
         "background_tasks": len(tasks._running),
+        "liveness_probes": gateway.liveness.probes,
     }
 
 
