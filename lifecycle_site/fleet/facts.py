@@ -72,7 +72,27 @@ class _Gateway:
     def __init__(self, name: str) -> None:
         self.name = name
         self.robots = {r.name: r for r in Robot.objects.filter(gateway__name=name).select_related("gateway")}
-        self.nodes: dict[int, dict[str, ManagedNode]] = {}
+        self.nodes: dict[int, dict[str, ManagedNode | None]] = {}  # None: known not to exist
+
+    def prefetch(self, facts: list) -> None:
+        """Read the nodes the facts name, in one query (not all nodes of their robots: a
+        reply's three facts on a robot of 100 nodes read 1 node, not 100)."""
+        wanted: dict[int, set[str]] = {}
+        for fact in facts:
+            if isinstance(fact, dict) and isinstance(fact.get("node"), str):
+                robot = self.robots.get(fact.get("robot"))
+                if robot is not None:
+                    wanted.setdefault(robot.id, set()).add(fact["node"])
+        if not wanted:
+            return
+        query = Q()
+        for robot_id, names in wanted.items():
+            query |= Q(robot_id=robot_id, name__in=names)
+            known = self.nodes.setdefault(robot_id, {})
+            for name in names:
+                known.setdefault(name, None)
+        for node in ManagedNode.objects.filter(query):
+            self.nodes[node.robot_id][node.name] = node
 
     def robot(self, fact: dict, required: bool = True) -> Robot | None:
         """The fact's robot; it must be one of this gateway's. ``required=False`` allows a robot
@@ -83,10 +103,16 @@ class _Gateway:
             raise FactRejected(f"robot {name!r} is not one of gateway {self.name}'s robots")
         return robot
 
+    def load_robot(self, robot: Robot) -> None:
+        """Every node of the robot (for a fact about all of them)."""
+        known = self.nodes.setdefault(robot.id, {})
+        known.update({n.name: n for n in ManagedNode.objects.filter(robot=robot)})
+
     def node(self, robot: Robot, name: str) -> ManagedNode | None:
-        if robot.id not in self.nodes:
-            self.nodes[robot.id] = {n.name: n for n in ManagedNode.objects.filter(robot=robot)}
-        node = self.nodes[robot.id].get(name)
+        known = self.nodes.setdefault(robot.id, {})
+        if name not in known:
+            known[name] = ManagedNode.objects.filter(robot=robot, name=name).first()
+        node = known[name]
         if node is not None:
             node.robot = robot  # as_dict and key need no query
         return node
@@ -107,7 +133,9 @@ def apply_facts(gateway: str, facts: Iterable[dict]) -> Applied:
     logged, counted in ``rejected`` and skipped (the others still are)."""
     applied = Applied()
     with transaction.atomic():
+        facts = list(facts)
         known = _Gateway(gateway)
+        known.prefetch(facts)
         for fact in facts:
             try:
                 with transaction.atomic():  # a savepoint: a fact that fails, fails alone
@@ -177,6 +205,7 @@ def _robot_nodes(known: _Gateway, fact: dict, at: datetime, applied: Applied) ->
     ManagedNode.objects.filter(robot=robot, name__in=listed).update(
         alive=True, gone_reason="", last_seen=at, first_seen=Coalesce("first_seen", at)
     )
+    known.load_robot(robot)
     for name in listed:  # a node.seen that was lost on the way
         if known.node(robot, name) is None:
             known.new_node(robot, name, at)
