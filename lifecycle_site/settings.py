@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import secrets
+from datetime import timedelta
 from pathlib import Path
 
 import dj_database_url
@@ -69,6 +70,7 @@ INSTALLED_APPS = [
     "django.contrib.staticfiles",
     "channels",
     "django_htmx",
+    "axes",
     "lifecycle_site.fleet",
     "lifecycle_site.audit",
     "lifecycle_site.api",
@@ -87,7 +89,20 @@ MIDDLEWARE = [
     "django.contrib.messages.middleware.MessageMiddleware",
     "django.middleware.clickjacking.XFrameOptionsMiddleware",
     "django_htmx.middleware.HtmxMiddleware",
+    "axes.middleware.AxesMiddleware",  # last: answers a locked-out login with the page below
 ]
+# Brute force (django-axes): after LIFECYCLE_LOGIN_FAILURES wrong passwords for one account,
+# or from one client address, logins of that account / from that address are refused for
+# LIFECYCLE_LOGIN_LOCKOUT_MINUTES (a right password included), on /login/ and /admin/login/.
+AUTHENTICATION_BACKENDS = ["axes.backends.AxesStandaloneBackend", "django.contrib.auth.backends.ModelBackend"]
+AXES_FAILURE_LIMIT = int(os.environ.get("LIFECYCLE_LOGIN_FAILURES", "5"))
+AXES_COOLOFF_TIME = timedelta(minutes=float(os.environ.get("LIFECYCLE_LOGIN_LOCKOUT_MINUTES", "15")))
+AXES_LOCKOUT_PARAMETERS = ["username", "ip_address"]
+AXES_RESET_ON_SUCCESS = True
+AXES_LOCKOUT_TEMPLATE = "registration/locked_out.html"
+AXES_VERBOSE = True
+# Refused form posts (a stale page, a forged request) are on record like other refusals.
+CSRF_FAILURE_VIEW = "lifecycle_site.audit.denials.csrf_failure"
 
 ROOT_URLCONF = "lifecycle_site.urls"
 ASGI_APPLICATION = "lifecycle_site.asgi.application"
@@ -180,7 +195,8 @@ LOGGING = {
     "formatters": {"plain": {"format": "%(asctime)s %(levelname)s %(name)s: %(message)s"}},
     "handlers": {"console": {"class": "logging.StreamHandler", "formatter": "plain"}},
     "root": {"handlers": ["console"], "level": os.environ.get("LIFECYCLE_LOG_LEVEL", "INFO")},
-    "loggers": {"daphne": {"level": "WARNING"}},
+    # axes: its start banner in every process; failed logins are logged by lifecycle.denials.
+    "loggers": {"daphne": {"level": "WARNING"}, "axes": {"level": "WARNING"}},
 }
 
 # What the ROS gateway and the site agree on. Times in seconds.
@@ -192,7 +208,13 @@ LIFECYCLE = {
     "ROBOT_REFRESH_INTERVAL": env_float("LIFECYCLE_ROBOT_REFRESH_INTERVAL", 2.0),
     # The gateway writes a heartbeat; the site calls it offline when it is older than this.
     "HEARTBEAT_INTERVAL": env_float("LIFECYCLE_HEARTBEAT_INTERVAL", 2.0),
+    # A robot process that misses two get_state probes in a row is unreachable (its host's
+    # link may be down): seen in about 4 s instead of the DDS lease's 20+ s. 0 turns it off.
+    "LIVENESS_INTERVAL": env_float("LIFECYCLE_LIVENESS_INTERVAL", 1.0),
+    "LIVENESS_TIMEOUT": env_float("LIFECYCLE_LIVENESS_TIMEOUT", 1.5),
     "GATEWAY_OFFLINE_AFTER": env_float("LIFECYCLE_GATEWAY_OFFLINE_AFTER", 10.0),
+    # A group run of a gateway silent this long (and whose facts are all stored) ends failed.
+    "RUN_ORPHAN_AFTER": env_float("LIFECYCLE_RUN_ORPHAN_AFTER", 120.0),
     # Extra wait the site grants the gateway beyond the service timeout before giving up.
     "COMMAND_GRACE": env_float("LIFECYCLE_COMMAND_GRACE", 3.0),
     # /rosout history kept server-side: per logger (node) count, and age.

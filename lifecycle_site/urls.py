@@ -12,3 +12,6 @@ urlpatterns = [
     path("api/v1/", include("lifecycle_site.api.urls")),
     path("", include("lifecycle_site.dashboard.urls")),
 ]
+
+# Refused changes (PermissionDenied anywhere, the admin included) are on record.
+handler403 = "lifecycle_site.audit.denials.permission_denied"

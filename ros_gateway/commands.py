@@ -5,19 +5,24 @@ import asyncio
 import logging
 import time
 from collections import deque
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
 
+from ros_gateway.domain import RosDomain
+from ros_gateway.groups import GroupRunner
 from ros_gateway.lifecycle import (
+    NodeDriver,
     NodeUnreachable,
+    NodeUnreachableRecorded,
     available_states,
     available_transitions,
     read_state,
 )
+from ros_gateway.param_keeper import ParameterKeeper
+from ros_gateway.registry import LiveNode, NodeRegistry
+from ros_gateway.relay import Relay
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
-
-if TYPE_CHECKING:
-    from ros_gateway.service import Gateway, LiveNode
+from ros_gateway.tasks import spawn
 
 log = logging.getLogger(__name__)
 
@@ -26,15 +31,29 @@ MAX_CONCURRENT = 64
 
 
 class CommandError(Exception):
-    def __init__(self, code: str, message: str) -> None:
+    def __init__(self, code: str, message: str, **details) -> None:
         super().__init__(message)
         self.code = code
         self.message = message
+        self.details = details
+
+
+@dataclass
+class Parts:
+    """What serving commands takes, and nothing more."""
+
+    relay: Relay
+    registry: NodeRegistry
+    domains: dict[int, RosDomain]
+    driver: NodeDriver
+    params: ParameterKeeper
+    runs: GroupRunner
+    service_timeout: float
 
 
 class CommandHandler:
-    def __init__(self, gateway: "Gateway") -> None:
-        self.gateway = gateway
+    def __init__(self, parts: Parts) -> None:
+        self.parts = parts
         self._slots = asyncio.Semaphore(MAX_CONCURRENT)
         self._seen: deque[str] = deque(maxlen=1000)
         self.handled = 0
@@ -53,7 +72,7 @@ class CommandHandler:
 
     async def run(self, stopping: asyncio.Event) -> None:
         while not stopping.is_set():
-            command = await self.gateway.relay.next_command(wait=1.0)
+            command = await self.parts.relay.next_command()
             if command is None:
                 continue
             if not self._current(command):
@@ -62,34 +81,35 @@ class CommandHandler:
                 continue  # a retried push after a lost connection: carried out once only
             self._seen.append(command["request_id"])
             await self._slots.acquire()
-            self.gateway.spawn(self._serve(command))
+            spawn(self._serve(command))
 
     async def _serve(self, command: dict) -> None:
         try:
             reply = await self.handle(command)
         except CommandError as exc:
-            reply = {"ok": False, "error": {"code": exc.code, "message": exc.message}}
+            reply = {"ok": False, "error": {"code": exc.code, "message": exc.message}, **exc.details}
         except Exception as exc:
             log.exception("command %s failed", command.get("command"))
             reply = {"ok": False, "error": {"code": "gateway_error", "message": f"The ROS gateway failed: {exc}"}}
         finally:
             self._slots.release()
         self.handled += 1
-        await self.gateway.relay.reply(command["request_id"], reply)
+        await self.parts.relay.reply(command["request_id"], reply)
 
     async def handle(self, command: dict) -> dict:
+        parts = self.parts
         name = command.get("command")
-        timeout = float(command.get("timeout") or self.gateway.config["SERVICE_TIMEOUT"])
+        timeout = _timeout(command.get("timeout"), parts.service_timeout)
         if name == protocol.PING:
-            return {"ok": True, "domains": sorted(self.gateway.domains), "nodes": len(self.gateway.nodes)}
+            return {"ok": True, "domains": sorted(parts.domains), "nodes": len(parts.registry.nodes)}
         if name == protocol.START_RUN:
-            return await self.gateway.groups.start(str(command.get("run_id", "")))
-        node = self._node(command)
-        domain = self.gateway.domains[node.robot.domain_id]
+            return parts.runs.start(command.get("run"))
+        node = await self._node(command)
+        domain = parts.domains[node.robot.domain_id]
         try:
             if name == protocol.GET_STATE:
                 state_id = await read_state(domain, node.name, timeout)
-                await self.gateway.set_state(node, state_id)
+                parts.registry.set_state(node, state_id)
                 return {"ok": True, "state": sm.state_dict(state_id)}
             if name == protocol.GET_AVAILABLE_STATES:
                 return {"ok": True, "states": await available_states(domain, node.name, timeout)}
@@ -98,31 +118,38 @@ class CommandHandler:
             if name == protocol.GET_TRANSITION_GRAPH:
                 return {"ok": True, "graph": await available_transitions(domain, node.name, timeout, graph=True)}
             if name == protocol.GET_PARAMETERS:
-                return {"ok": True, "parameters": await self.gateway.params.listing(node, timeout)}
+                return {"ok": True, "parameters": await parts.params.listing(node, timeout)}
             if name == protocol.SET_PARAMETERS:
                 values = command.get("values")
                 if not isinstance(values, dict) or not values:
                     raise CommandError("bad_request", "Give the parameters to set as {name: value}.")
-                results = await self.gateway.params.set(
-                    node, values, timeout, command.get("source") or "api", command.get("user_id")
+                results, facts = await parts.params.set(
+                    node, values, timeout, str(command.get("source") or "api"), _user(command)
                 )
-                return {"ok": True, "results": results}
+                return {"ok": True, "results": results, "facts": facts}
         except NodeUnreachable as exc:
             raise CommandError("node_unreachable", f"{node.name} on {node.robot.name} did not answer: {exc}.")
         if name == protocol.CHANGE_STATE:
             return await self.change_state(node, command, timeout)
         raise CommandError("unknown_command", f"The gateway has no command {name!r}.")
 
-    def _node(self, command: dict) -> "LiveNode":
-        robot, name = command.get("robot"), command.get("node")
-        if not any(r.name == robot for r in self.gateway.robots.values()):
-            raise CommandError("robot_not_watched", f"Robot {robot!r} is not watched (unknown or disabled).")
-        node = self.gateway.find_node(robot, name)
+    async def _node(self, command: dict) -> LiveNode:
+        robot_name, name = command.get("robot"), command.get("node")
+        robot = self.parts.registry.robot_named(str(robot_name))
+        if robot is None:
+            raise CommandError("robot_not_watched", f"Robot {robot_name!r} is not watched (unknown or disabled).")
+        node = self.parts.registry.find(robot.name, name)
+        # Just after this gateway (or the robot's domain) started, discovery has not had its
+        # chance yet: wait for it (bounded) rather than call a running node "not running".
+        domain = self.parts.domains.get(robot.domain_id)
+        while (node is None or not node.alive) and domain is not None and domain.settling():
+            await asyncio.sleep(0.1)
+            node = self.parts.registry.find(robot.name, name)
         if node is None or not node.alive:
-            raise CommandError("node_offline", f"{name} is not running on {robot} (not in its ROS graph).")
+            raise CommandError("node_offline", f"{name} is not running on {robot_name} (not in its ROS graph).")
         return node
 
-    async def change_state(self, node: "LiveNode", command: dict, timeout: float) -> dict:
+    async def change_state(self, node: LiveNode, command: dict, timeout: float) -> dict:
         requested = command.get("transition")
         try:
             sm.resolve_transition(requested, sm.UNCONFIGURED)  # only checks that the name exists
@@ -140,12 +167,13 @@ class CommandHandler:
             )
         async with node.lock:  # one transition per node at a time
             try:
-                result, record = await self.gateway.driver.transition(
-                    node, requested, timeout, source=command.get("source") or "api",
-                    user_id=command.get("user_id"), run_id=command.get("run_id") or "",
+                driven = await self.parts.driver.transition(
+                    node, requested, timeout, source=str(command.get("source") or "api"),
+                    user_id=_user(command), run_id=str(command.get("run_id") or ""),
                 )
-            except NodeUnreachable as exc:
-                raise CommandError("node_unreachable", str(exc)) from None
+            except NodeUnreachableRecorded as exc:
+                raise CommandError("node_unreachable", str(exc), facts=[exc.fact]) from None
+        result = driven.result
         return {
             "ok": True,
             "outcome": result.outcome,
@@ -155,5 +183,20 @@ class CommandHandler:
             "duration_ms": round(result.duration_ms, 2),
             "message": result.message,
             "valid_transitions": result.valid,
-            "record_id": record["id"],
+            "fact_id": driven.record["id"],
+            "facts": driven.facts,
         }
+
+
+def _timeout(value: object, default: float) -> float:
+    """The command's service timeout, if it is a sane number of seconds, else the default."""
+    try:
+        timeout = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return default
+    return timeout if 0 < timeout <= 60 else default
+
+
+def _user(command: dict) -> int | None:
+    user_id = command.get("user_id")
+    return user_id if isinstance(user_id, int) and not isinstance(user_id, bool) else None

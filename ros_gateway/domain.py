@@ -19,7 +19,7 @@ import os
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterable
 
 import rclpy
 from lifecycle_msgs.msg import TransitionEvent
@@ -40,6 +40,8 @@ log = logging.getLogger(__name__)
 GET_STATE_TYPE = "lifecycle_msgs/srv/GetState"
 # The gateway's Fast DDS defaults (see the file for why); read when the first Context starts.
 FASTDDS_PROFILES = Path(__file__).with_name("fastdds_gateway.xml")
+# After a domain starts, discovery needs a moment before "not in the graph" means "gone".
+DISCOVERY_SETTLE_S = 3.0
 # Watched nodes per shard (its own rclpy node, executor and thread).
 NODES_PER_SHARD = 12
 # The service list (thousands of entries in a big domain) is re-read on each discovery pass
@@ -205,16 +207,27 @@ class RosDomain:
                 shard.thread.join(timeout=3.0)
         log.info("stopped watching ROS domain %d", self.domain_id)
 
+    def settling(self) -> bool:
+        """Whether discovery in this domain is too young to call a node missing."""
+        return time.monotonic() - self.started_at < DISCOVERY_SETTLE_S
+
     # -- graph ----------------------------------------------------------------------
-    def lifecycle_node_names(self) -> set[str]:
+    def lifecycle_node_names(self, known: Iterable[str] = ()) -> set[str]:
         """Fully qualified names of running nodes offering lifecycle_msgs/srv/GetState.
 
         A service name alone is not proof of life: our own clients keep ``X/get_state`` in
         the graph after X is gone, so the node must also be listed as a running node. The
         node list is cheap and read every time; the service list only when needed (above).
+
+        ``known`` nodes that still publish their transition events count as running even when
+        the node list lacks them: rmw_fastrtps does not list again the nodes of a participant
+        that was dropped for its lease (a host away longer than ~20 s) and then found again.
         """
         running = {
             f"{namespace.rstrip('/')}/{name}" for name, namespace in self.node.get_node_names_and_namespaces()
+        }
+        running |= {
+            fqn for fqn in known if fqn not in running and self.node.count_publishers(f"{fqn}/transition_event")
         }
         now = time.monotonic()
         if running != self._running:
@@ -277,17 +290,20 @@ class RosDomain:
         if client is None:
             client = self._shard_for(fqn).node.create_client(srv_type, f"{fqn}/{service}")
             self._clients[(fqn, service)] = client
-        # A fresh client needs a moment to match the server (about 0.25 s on loopback).
-        while not client.service_is_ready():
-            if time.monotonic() >= deadline:
-                raise ServiceUnavailable(f"{fqn}/{service} is not available")
-            await asyncio.sleep(0.02)
-        result: asyncio.Future = self.loop.create_future()
+        try:
+            # A fresh client needs a moment to match the server (about 0.25 s on loopback).
+            while not client.service_is_ready():
+                if time.monotonic() >= deadline:
+                    raise ServiceUnavailable(f"{fqn}/{service} is not available")
+                await asyncio.sleep(0.02)
+            result: asyncio.Future = self.loop.create_future()
 
-        def done(ros_future) -> None:
-            self.loop.call_soon_threadsafe(_settle, result, ros_future)
+            def done(ros_future) -> None:
+                self.loop.call_soon_threadsafe(_settle, result, ros_future)
 
-        ros_future = client.call_async(request)
+            ros_future = client.call_async(request)
+        except _rclpy.InvalidHandle:  # the node was forgotten (gone) meanwhile, and its client with it
+            raise ServiceUnavailable(f"{fqn}/{service} is no longer watched (the node went)") from None
         ros_future.add_done_callback(done)
         try:
             return await asyncio.wait_for(result, max(deadline - time.monotonic(), 0.001))

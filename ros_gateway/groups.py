@@ -10,20 +10,17 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-import uuid
+from dataclasses import dataclass, field
 from datetime import datetime, timezone
-from typing import TYPE_CHECKING
 
-from django.db.models import F
-
-from lifecycle_site.fleet.models import GroupRun, ManagedNode
-from ros_gateway.lifecycle import NodeUnreachable, read_state
+from ros_gateway.domain import RosDomain
+from ros_gateway.lifecycle import NodeDriver, NodeUnreachable, read_state
+from ros_gateway.outbox import Outbox
+from ros_gateway.registry import LiveNode, NodeRegistry, RobotInfo
+from ros_gateway.relay import Relay
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
-from ros_gateway.store import db
-
-if TYPE_CHECKING:
-    from ros_gateway.service import Gateway, LiveNode
+from ros_gateway.tasks import spawn
 
 log = logging.getLogger(__name__)
 
@@ -42,97 +39,129 @@ DESIRED = {"unconfigured": sm.UNCONFIGURED, "inactive": sm.INACTIVE, "active": s
 SETTLE_TIMEOUTS = 3
 # Nodes of one tier driven at the same time, at most.
 TIER_CONCURRENCY = 8
-# A run's progress goes out (push and save) at most this often, and at its end.
+# A run's progress goes out (push and fact) at most this often, and at its end.
 PROGRESS_INTERVAL_S = 0.25
 # Crash-loop guard: at most this many recoveries of one node within the window.
 RECOVERY_LIMIT, RECOVERY_WINDOW_S = 3, 300.0
+MAX_NODE_TIMEOUT_S = 60.0
 
 
-def _load(run_id: str) -> GroupRun | None:
-    return GroupRun.objects.select_related("robot").filter(pk=run_id).first()
+class BadRun(ValueError):
+    """The site's description of a run cannot be carried out; the message says why."""
 
 
-def _tiers(robot_id: int, only: list[str]) -> list[list[str]]:
-    """The robot's bring-up order as tiers run one after the other: one tier per position
-    (nodes sharing a position go together), then every node without a position. Nodes within
-    a tier have no order between them. ``only`` narrows the run to those nodes."""
-    rows = ManagedNode.objects.filter(robot_id=robot_id).order_by(F("order").asc(nulls_last=True), "name")
-    wanted = set(only)
-    tiers: dict[int | None, list[str]] = {}
-    for name, position in rows.values_list("name", "order"):
-        if not only or name in wanted:
-            tiers.setdefault(position, []).append(name)
-    listed = {name for tier in tiers.values() for name in tier}
-    # Named but unknown by now (removed meanwhile): still reported, as "not running".
-    missing = [name for name in only if name not in listed]
-    return [*tiers.values(), *([missing] if missing else [])]
+@dataclass
+class Run:
+    """A group run as the site described it (or as recovery made it)."""
 
+    id: str
+    robot: RobotInfo
+    operation: str
+    policy: str = "stop"
+    node_timeout: float = 5.0
+    tiers: list[list[str]] = field(default_factory=list)
+    source: str = "api"
+    user_id: int | None = None
 
-def _save(run_id: str, **fields) -> None:
-    GroupRun.objects.filter(pk=run_id).update(**fields)
-
-
-def _create_recovery(robot_id: int, node_name: str, target: str, gave_up: str = "") -> str:
-    run = GroupRun.objects.create(
-        id=uuid.uuid4().hex, robot_id=robot_id, operation=GroupRun.Operation.RECOVER, only_nodes=[node_name],
-        source="recovery", status=GroupRun.Status.FAILED if gave_up else GroupRun.Status.QUEUED,
-        message=gave_up or f"back to {target}",
-    )
-    return run.id
+    @classmethod
+    def from_spec(cls, spec: object, registry: NodeRegistry) -> "Run":
+        if not isinstance(spec, dict):
+            raise BadRun("The run is missing from the command.")
+        robot = registry.robot_named(str(spec.get("robot", "")))
+        if robot is None:
+            raise BadRun(f"Robot {spec.get('robot')!r} is not watched (disabled or just added); try again in a moment.")
+        operation = spec.get("operation")
+        if operation not in PLANS:
+            raise BadRun(f"{operation!r} is not an operation this gateway knows.")
+        tiers = spec.get("tiers")
+        if not isinstance(tiers, list) or not all(isinstance(t, list) and all(isinstance(n, str) for n in t)
+                                                  for t in tiers):
+            raise BadRun("The run's node order (tiers) must be a list of lists of node names.")
+        try:
+            timeout = float(spec.get("node_timeout", 5.0))
+        except (TypeError, ValueError):
+            raise BadRun("node_timeout must be a number of seconds.") from None
+        if not 0 < timeout <= MAX_NODE_TIMEOUT_S:
+            raise BadRun(f"node_timeout must be more than 0 and at most {MAX_NODE_TIMEOUT_S:g} s.")
+        user_id = spec.get("user_id")
+        return cls(id=str(spec.get("id") or protocol.new_id()), robot=robot, operation=operation,
+                   policy="continue" if spec.get("policy") == "continue" else "stop", node_timeout=timeout,
+                   tiers=tiers, source=str(spec.get("source") or "api"),
+                   user_id=user_id if isinstance(user_id, int) else None)
 
 
 class GroupRunner:
-    def __init__(self, gateway: "Gateway") -> None:
-        self.gateway = gateway
+    def __init__(self, domains: dict[int, RosDomain], registry: NodeRegistry, driver: NodeDriver, outbox: Outbox,
+                 relay: Relay) -> None:
+        self.domains, self.registry, self.driver, self.outbox, self.relay = domains, registry, driver, outbox, relay
         self.recovering: set[str] = set()  # node keys with a recovery under way
         self.recent_recoveries: dict[str, list[float]] = {}
 
-    async def start(self, run_id: str) -> dict:
-        """Accept a recorded run and carry it out in the background."""
-        run = await db(_load)(run_id)
-        if run is None:
-            return {"ok": False, "error": {"code": "not_found", "message": f"There is no run {run_id}."}}
-        if run.robot_id not in self.gateway.robots:
-            message = f"Robot {run.robot.name} is not watched (disabled or just added); try again in a moment."
-            await db(_save)(run_id, status=GroupRun.Status.FAILED, message=message)
-            return {"ok": False, "error": {"code": "robot_not_watched", "message": message}}
-        self.gateway.spawn(self._execute(run))
-        return {"ok": True, "run_id": run_id}
+    def start(self, spec: object) -> dict:
+        """Accept a run the site recorded and carry it out in the background."""
+        try:
+            run = Run.from_spec(spec, self.registry)
+        except BadRun as exc:
+            return {"ok": False, "error": {"code": "bad_run", "message": str(exc)}}
+        spawn(self._execute(run))
+        return {"ok": True, "run_id": run.id}
 
-    async def recover(self, node: "LiveNode", desired: str) -> None:
+    def on_change(self, change) -> None:
+        """State-change listener: a node whose process was restarted comes back unconfigured;
+        if its robot wants it, bring it back to the state an operator asked for."""
+        node = change.node
+        if not change.respawned or not node.robot.auto_recover:
+            return
+        desired = self.registry.node_settings(node.robot.id, node.name).desired_state
+        state_id = change.state_id
+        wanted = desired in DESIRED and sm.state_label(state_id) != desired
+        if wanted and sm.is_primary(state_id) and state_id != sm.FINALIZED:
+            spawn(self.recover(node, desired))
+
+    async def recover(self, node: LiveNode, desired: str) -> None:
         """Drive a node that came back (after its process was restarted) to its desired state."""
         if node.key in self.recovering:
             return
         now = time.monotonic()
         recent = [t for t in self.recent_recoveries.get(node.key, []) if now - t < RECOVERY_WINDOW_S]
+        run = Run(id=protocol.new_id(), robot=node.robot, operation="recover", tiers=[[node.name]], source="recovery")
+        spec = {"operation": "recover", "only_nodes": [node.name], "source": "recovery", "policy": "stop",
+                "node_timeout": run.node_timeout}
         if len(recent) >= RECOVERY_LIMIT:
             message = (f"gave up: {len(recent)} recoveries in the last {RECOVERY_WINDOW_S / 60:.0f} min "
                        "(the node keeps dying); bring it up by hand once the cause is fixed")
             log.error("not recovering %s:%s: %s", node.robot.name, node.name, message)
-            await db(_create_recovery)(node.robot.id, node.name, desired, gave_up=message)
+            self._report(run, "failed", message, [], finished=True, **spec)
             return
         self.recent_recoveries[node.key] = [*recent, now]
         self.recovering.add(node.key)
         try:
             log.info("recovering %s:%s to %s", node.robot.name, node.name, desired)
-            run_id = await db(_create_recovery)(node.robot.id, node.name, desired)
-            run = await db(_load)(run_id)
+            self._report(run, "queued", f"back to {desired}", [], **spec)
             await self._execute(run, target_override=DESIRED[desired])
         finally:
             self.recovering.discard(node.key)
 
-    async def _execute(self, run: GroupRun, target_override: int | None = None) -> None:
-        started = datetime.now(timezone.utc)
-        await db(_save)(run.id, status=GroupRun.Status.RUNNING, started=started)
+    def _report(self, run: Run, status: str, message: str, results: list[dict], *, started: str | None = None,
+                finished: bool = False, **spec) -> dict:
+        """A run fact for the site (``spec`` for runs the gateway starts itself)."""
+        return self.outbox.emit(
+            protocol.RUN, run_id=run.id, robot=run.robot.name, status=status, message=message, results=results,
+            started=started, finished=datetime.now(timezone.utc).isoformat() if finished else None, **spec,
+        )
+
+    async def _execute(self, run: Run, target_override: int | None = None) -> None:
+        started = datetime.now(timezone.utc).isoformat()
+        self._report(run, "running", "", [], started=started)
         plan = PLANS.get(run.operation)
         target, reverse, leave_alone = plan if plan else (target_override, False, ())
         if target_override is not None:
             target = target_override
-        tiers = await db(_tiers)(run.robot_id, run.only_nodes)
+        tiers = [list(tier) for tier in run.tiers]
         if reverse:
             tiers = [list(reversed(tier)) for tier in reversed(tiers)]
         names = [name for tier in tiers for name in tier]
-        progress = _Progress(self.gateway, run, names)
+        progress = _Progress(self, run, names, started)
         limit = asyncio.Semaphore(TIER_CONCURRENCY)
         stopped_by: list[str] = []  # the node whose failure stopped the run
 
@@ -142,14 +171,14 @@ class GroupRunner:
                     result = {"node": name, "outcome": "not_run", "steps": [],
                               "message": f"not run: the run stopped after {stopped_by[0]} failed"}
                 else:
-                    node = self.gateway.find_node(run.robot.name, name)
+                    node = self.registry.find(run.robot.name, name)
                     try:
                         result = await self._drive_node(run, node, name, target, leave_alone)
-                    except Exception as exc:  # a bug or the database: this node fails, the run ends cleanly
+                    except Exception as exc:  # a bug: this node fails, the run ends cleanly
                         log.exception("run %s: driving %s failed", run.id, name)
                         result = {"node": name, "node_id": node.key if node else None, "outcome": "failed",
                                   "steps": [], "message": f"the gateway could not drive it ({exc})"}
-                    if result["outcome"] == "failed" and run.policy == GroupRun.Policy.STOP and not stopped_by:
+                    if result["outcome"] == "failed" and run.policy == "stop" and not stopped_by:
                         stopped_by.append(name)
             progress.finished(result)
 
@@ -158,21 +187,20 @@ class GroupRunner:
         results = progress.results()
         failed = sum(r["outcome"] == "failed" for r in results)
         if not failed:
-            status = GroupRun.Status.SUCCEEDED
+            status = "succeeded"
         elif stopped_by or failed == len(results):
-            status = GroupRun.Status.FAILED
+            status = "failed"
         else:
-            status = GroupRun.Status.PARTIAL
+            status = "partial"
         summary = ", ".join(f"{sum(r['outcome'] == o for r in results)} {o.replace('_', ' ')}"
                             for o in ("succeeded", "skipped", "failed", "not_run")
                             if any(r["outcome"] == o for r in results))
         await progress.close()
-        await db(_save)(run.id, status=status, results=results, finished=datetime.now(timezone.utc),
-                        message=summary or "no nodes")
+        self._report(run, status, summary or "no nodes", results, started=started, finished=True)
         await progress.push(status=status, message=summary)
         log.info("run %s (%s of %s): %s", run.id, run.operation, run.robot.name, summary)
 
-    async def _drive_node(self, run: GroupRun, node: "LiveNode | None", name: str, target: int,
+    async def _drive_node(self, run: Run, node: LiveNode | None, name: str, target: int,
                           leave_alone: tuple[int, ...]) -> dict:
         result = {"node": name, "node_id": node.key if node else None, "steps": [], "outcome": "succeeded",
                   "message": ""}
@@ -213,12 +241,17 @@ class GroupRunner:
         result["duration_ms"] = round((time.perf_counter() - began) * 1000, 1)
         return result
 
-    async def _step(self, run: GroupRun, node: "LiveNode", label: str, state: int) -> dict:
+    async def _step(self, run: Run, node: LiveNode, label: str, state: int) -> dict:
         """One transition; ``state`` is the node's state as just read or reached (no re-read)."""
-        outcome, record = await self.gateway.driver.transition(
-            node, label, run.node_timeout, source=run.source, user_id=run.requested_by_id, run_id=run.id,
-            known_state=state if sm.is_primary(state) else None,
-        )
+        try:
+            driven = await self.driver.transition(
+                node, label, run.node_timeout, source=run.source, user_id=run.user_id, run_id=run.id,
+                known_state=state if sm.is_primary(state) else None,
+            )
+        except NodeUnreachable as exc:
+            return {"transition": label, "outcome": "failed", "message": str(exc), "duration_ms": 0.0,
+                    "fact_id": getattr(exc, "fact", {}).get("id"), "to": sm.state_dict(node.state_id)}
+        outcome = driven.result
         status, message = outcome.outcome, outcome.message
         if status == "timed_out":
             # Nav2 calls this a failure without looking; the node may just have been slow.
@@ -227,17 +260,17 @@ class GroupRunner:
             if state == goal:
                 status, message = "succeeded", f"slow: answered after the timeout, but reached {sm.state_label(state)}"
         return {"transition": label, "outcome": status, "message": message,
-                "duration_ms": round(outcome.duration_ms, 1), "record_id": record["id"],
+                "duration_ms": round(outcome.duration_ms, 1), "fact_id": driven.record["id"],
                 "to": sm.state_dict(node.state_id)}
 
-    async def _settled_state(self, node: "LiveNode", timeout: float) -> int:
+    async def _settled_state(self, node: LiveNode, timeout: float) -> int:
         """The node's real state, waiting (bounded) while it is inside a transition."""
-        domain = self.gateway.domains[node.robot.domain_id]
+        domain = self.domains[node.robot.domain_id]
         deadline = time.monotonic() + timeout
         while True:
             state = await read_state(domain, node.name, timeout)
             if sm.is_primary(state) or time.monotonic() >= deadline:
-                await self.gateway.set_state(node, state)
+                self.registry.set_state(node, state)
                 return state
             await asyncio.sleep(0.1)
 
@@ -246,8 +279,8 @@ class _Progress:
     """A run's results as its nodes finish, saved and pushed at most every PROGRESS_INTERVAL_S
     (a 100-node run sends a handful of updates, not a hundred)."""
 
-    def __init__(self, gateway: "Gateway", run: GroupRun, names: list[str]) -> None:
-        self.gateway, self.run, self.names = gateway, run, names
+    def __init__(self, runner: GroupRunner, run: Run, names: list[str], started: str) -> None:
+        self.runner, self.run, self.names, self.started = runner, run, names, started
         self.done: dict[str, dict] = {}
         self.fresh_nodes: list[str] = []  # node keys finished since the last push
         self.last_push = 0.0
@@ -273,7 +306,7 @@ class _Progress:
                 self.waiting = True
                 await asyncio.sleep(max(0.0, self.last_push + PROGRESS_INTERVAL_S - time.monotonic()))
                 self.waiting, self.changed = False, False
-                await db(_save)(self.run.id, results=self.results())
+                self.runner._report(self.run, "running", "", self.results(), started=self.started)
                 await self.push()
         finally:
             self.waiting = False
@@ -296,8 +329,9 @@ class _Progress:
         # (always so for a restart or recovery, which are about one node).
         node_groups = [protocol.node_group(key) for key in dict.fromkeys(self.fresh_nodes)]
         self.fresh_nodes = []
-        await self.gateway.relay.publish(
-            [protocol.robot_group(run.robot_id), protocol.FLEET_GROUP, *node_groups],
+        await self.runner.relay.publish(
+            [protocol.robot_group(run.robot.id), protocol.FLEET_GROUP, *node_groups],
             {"type": "run.progress", "run": {"id": run.id, "robot": run.robot.name, "operation": run.operation,
-                                             "status": status, "message": message, "results": self.results()}},
+                                             "policy": run.policy, "status": status, "message": message,
+                                             "results": self.results()}},
         )

@@ -1,40 +1,34 @@
 """/rosout records: from the executor threads into a bounded buffer, then in batches to the
-database (pruned to a bounded history) and to the robots' and nodes' live groups."""
+site's log stream (outbox.py), where the ingest process stores and relays them. The latest
+ERROR/FATAL lines of each node stay here too: they are the "why" of a failed transition."""
 from __future__ import annotations
 
 import asyncio
 import logging
-import time
 from collections import deque
 from datetime import datetime, timedelta
-from typing import TYPE_CHECKING
 
-from lifecycle_site.fleet.models import LogRecord
-from ros_gateway import store
+from ros_gateway.outbox import Outbox
+from ros_gateway.registry import LiveNode, NodeRegistry
 from ros_gateway.shared import protocol
-from ros_gateway.store import LogRow, db
 from ros_gateway.streams import LogBuffer, LogEntry, logger_to_node_name, owning_node
-
-if TYPE_CHECKING:
-    from ros_gateway.service import Gateway, LiveNode
 
 log = logging.getLogger(__name__)
 
-FLUSH_INTERVAL_S = 0.1
-BATCH_LIMIT = 2000
-PUSH_CHUNK = 200
-PRUNE_INTERVAL_S = 60.0
+COLLECT_INTERVAL_S = 0.1
 ERROR_LEVEL = 40
-LEVEL_NAMES = dict(LogRecord.LEVELS)
+LEVELS = (10, 20, 30, 40, 50)
+INFO = 20
 
 
 class LogPipeline:
-    def __init__(self, gateway: "Gateway") -> None:
-        self.gateway = gateway
-        self.buffer = LogBuffer(gateway.config["LOG_BUFFER"])
-        # Latest ERROR/FATAL lines per node key: the "why" of a failed transition.
+    def __init__(self, registry: NodeRegistry, outbox: Outbox, buffer_limit: int) -> None:
+        self.registry = registry
+        self.outbox = outbox
+        self.buffer = LogBuffer(buffer_limit)
         self.recent_errors: dict[str, deque[LogEntry]] = {}
-        self.stored = 0
+        self.collected = 0
+        self._reported_drops = 0
 
     def on_log(self, domain_id: int, msg) -> None:
         """Called on an executor thread for every /rosout message: copy and hand over."""
@@ -44,37 +38,30 @@ class LogPipeline:
             log.exception("ignored a malformed /rosout message")
 
     async def run(self, stopping: asyncio.Event) -> None:
-        last_prune = time.monotonic()
         while not stopping.is_set():
             try:
-                await self.flush()
-                if time.monotonic() - last_prune > PRUNE_INTERVAL_S:
-                    last_prune = time.monotonic()
-                    config = self.gateway.config
-                    deleted = await db(store.prune_logs)(config["LOG_KEEP_PER_NODE"], config["LOG_KEEP_HOURS"])
-                    if deleted:
-                        log.info("pruned %d old log records", deleted)
+                self.collect()
             except Exception:
-                log.exception("storing log records failed; continuing")
-            await asyncio.sleep(FLUSH_INTERVAL_S)
+                log.exception("collecting log records failed; continuing")
+            await asyncio.sleep(COLLECT_INTERVAL_S)
 
-    async def flush(self) -> None:
+    def collect(self) -> None:
+        """Move what the buffer holds into log batches for the site (never blocks)."""
         while len(self.buffer):
-            batch = self.buffer.drain(BATCH_LIMIT)
-            rows, nodes = self._to_rows(batch)
-            if not rows:
-                continue
-            ids = await db(store.insert_logs)(rows)
-            self.stored += len(ids)
-            await self._push(rows, ids, nodes)
+            rows = self._to_rows(self.buffer.drain(protocol.LOG_BATCH))
+            dropped = self.buffer.dropped - self._reported_drops
+            self._reported_drops += dropped
+            if rows or dropped:
+                self.outbox.emit_logs(rows, dropped=dropped)
+                self.collected += len(rows)
 
-    def _to_rows(self, batch: list[LogEntry]) -> tuple[list[LogRow], list["LiveNode | None"]]:
-        rows, nodes = [], []
-        by_robot: dict[int, dict[str, "LiveNode"]] = {}
-        for node in self.gateway.nodes.values():
+    def _to_rows(self, batch: list[LogEntry]) -> list[list]:
+        rows = []
+        by_robot: dict[int, dict[str, LiveNode]] = {}
+        for node in self.registry.nodes.values():
             by_robot.setdefault(node.robot.id, {})[node.name] = node
         for entry in batch:
-            robot = self.gateway.robot_for(entry.domain_id, logger_to_node_name(entry.logger))
+            robot = self.registry.robot_for(entry.domain_id, logger_to_node_name(entry.logger))
             if robot is None:
                 continue
             robot_nodes = by_robot.get(robot.id, {})
@@ -82,44 +69,18 @@ class LogPipeline:
             node = robot_nodes.get(owner) if owner else None
             if node is not None and entry.level >= ERROR_LEVEL:
                 self.recent_errors.setdefault(node.key, deque(maxlen=20)).append(entry)
-            rows.append(
-                LogRow(
-                    robot.id,
-                    node.row.id if node else None,
-                    entry.logger[:255],
-                    entry.stamp,
-                    entry.level if entry.level in LEVEL_NAMES else LogRecord.INFO,
-                    entry.message,
-                    entry.file[:255],
-                    entry.function[:255],
-                    max(entry.line, 0),
-                )
-            )
-            nodes.append(node)
-        return rows, nodes
-
-    async def _push(self, rows: list[LogRow], ids: list[int], nodes: list["LiveNode | None"]) -> None:
-        per_group: dict[str, list[dict]] = {}
-        for row, row_id, node in zip(rows, ids, nodes, strict=True):
-            # LogRecord.as_dict() of the stored record, plus the node's key (no model instances).
-            payload = {
-                "id": row_id,
-                "stamp": row.stamp.isoformat(),
-                "level": LEVEL_NAMES[row.level],
-                "logger": row.logger,
-                "message": row.message,
-                "file": row.file,
-                "function": row.function,
-                "line": row.line,
-                "node_id": node.key if node else None,
-            }
-            per_group.setdefault(protocol.robot_group(row.robot_id), []).append(payload)
-            if node is not None:
-                per_group.setdefault(protocol.node_group(node.key), []).append(payload)
-        for group, records in per_group.items():
-            for start in range(0, len(records), PUSH_CHUNK):
-                chunk = records[start : start + PUSH_CHUNK]
-                await self.gateway.relay.publish([group], {"type": "node.logs", "records": chunk})
+            rows.append([
+                robot.name,
+                node.name if node else "",
+                entry.logger[:255],
+                entry.stamp.isoformat(),
+                entry.level if entry.level in LEVELS else INFO,
+                entry.message,
+                entry.file[:255],
+                entry.function[:255],
+                max(entry.line, 0),
+            ])
+        return rows
 
     def errors_since(self, node_key: str, since: datetime) -> list[LogEntry]:
         slack = since - timedelta(milliseconds=100)

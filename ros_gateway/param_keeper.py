@@ -4,17 +4,16 @@ from __future__ import annotations
 
 import logging
 import time
-from datetime import datetime, timezone
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-from lifecycle_site.audit.models import ParameterRecord
-from ros_gateway.parameters import from_msg, list_parameters, set_parameters, type_of
+from ros_gateway.domain import RosDomain
+from ros_gateway.outbox import Outbox
+from ros_gateway.parameters import NoAnswer, from_msg, list_parameters, set_parameters, type_of
+from ros_gateway.registry import LiveNode, NodeRegistry
+from ros_gateway.relay import Relay
 from ros_gateway.shared import param_types as pt
 from ros_gateway.shared import protocol
-from ros_gateway.store import db
-
-if TYPE_CHECKING:
-    from ros_gateway.service import Gateway, LiveNode
+from ros_gateway.tasks import spawn
 
 log = logging.getLogger(__name__)
 
@@ -22,36 +21,31 @@ log = logging.getLogger(__name__)
 ECHO_WINDOW_S = 10.0
 
 
-def _record(node: "LiveNode", name: str, old: Any, new: Any, outcome: str, reason: str, source: str,
-            user_id: int | None) -> dict:
-    # A NaN or infinite value (a dynamically typed parameter may hold one) is kept as its text:
-    # the JSON columns refuse it, and the record must not be lost.
-    record = ParameterRecord(
-        node_id=node.row.id, robot_name=node.robot.name, node_name=node.name, name=name, old_value=pt.storable(old),
-        new_value=pt.storable(new), outcome=outcome, reason=reason, source=source, requested_by_id=user_id,
-        at=datetime.now(timezone.utc),
-    )
-    record.save()  # fills in the user's name
-    return record.as_dict()
-
-
 class ParameterKeeper:
-    def __init__(self, gateway: "Gateway") -> None:
-        self.gateway = gateway
+    def __init__(self, domains: dict[int, RosDomain], registry: NodeRegistry, outbox: Outbox, relay: Relay) -> None:
+        self.domains, self.registry, self.outbox, self.relay = domains, registry, outbox, relay
         # node key -> {parameter name: listing entry}; filled on first use
         self.cache: dict[str, dict[str, dict]] = {}
         # node key -> {parameter name: (value we set, until when we expect its echo)}
         self.expected: dict[str, dict[str, tuple[Any, float]]] = {}
 
-    async def listing(self, node: "LiveNode", timeout: float) -> list[dict]:
-        domain = self.gateway.domains[node.robot.domain_id]
+    async def listing(self, node: LiveNode, timeout: float) -> list[dict]:
+        domain = self.domains[node.robot.domain_id]
         parameters = await list_parameters(domain, node.name, timeout)
         self.cache[node.key] = {p["name"]: p for p in parameters}
         return parameters
 
-    async def set(self, node: "LiveNode", values: dict, timeout: float, source: str, user_id: int | None) -> list[dict]:
+    def _record(self, node: LiveNode, name: str, old: Any, new: Any, outcome: str, reason: str, source: str,
+                user_id: int | None) -> dict:
+        """Report one parameter change or refused attempt to the site (an audit fact)."""
+        return self.outbox.emit(protocol.PARAMETER, robot=node.robot.name, node=node.name, name=name, old=old,
+                                new=new, outcome=outcome, reason=reason, source=source, user_id=user_id)
+
+    async def set(self, node: LiveNode, values: dict, timeout: float, source: str,
+                  user_id: int | None) -> tuple[list[dict], list[dict]]:
         """Check each value against the node's descriptors, send the good ones together, and
-        record every outcome. Returns one result per requested name, in request order."""
+        record every outcome. Returns one result per requested name, in request order, and
+        the audit facts reporting them."""
         known = self.cache.get(node.key) or {p["name"]: p for p in await self.listing(node, timeout)}
         # Taken now: the node's /parameter_events echo may update the cache before it answers.
         olds = {name: known.get(name, {}).get("value") for name in values}
@@ -72,14 +66,24 @@ class ParameterKeeper:
         if to_send:
             until = time.monotonic() + ECHO_WINDOW_S
             self.expected.setdefault(node.key, {}).update({n: (v, until) for n, (v, _) in to_send.items()})
-            domain = self.gateway.domains[node.robot.domain_id]
-            for answer in await set_parameters(domain, node.name, to_send, timeout):
+            domain = self.domains[node.robot.domain_id]
+            try:
+                answers = await set_parameters(domain, node.name, to_send, timeout)
+            except NoAnswer as exc:
+                # Sent, but no answer: the node may have taken the values. Said so, and recorded.
+                answers = [{"name": name, "successful": False, "unknown": True,
+                            "reason": f"no answer from the node ({exc}); the value may or may not be set"}
+                           for name in to_send]
+            for answer in answers:
                 name = answer["name"]
                 results[name] = {"successful": answer["successful"],
                                  "reason": answer["reason"] or ("" if answer["successful"] else "refused by the node")}
-                if not answer["successful"]:
+                if answer.get("unknown"):
+                    results[name]["outcome"] = "timed_out"
+                elif not answer["successful"]:
                     self.expected.get(node.key, {}).pop(name, None)
         ordered = []
+        facts: list[dict] = []
         changes = []
         for name, value in values.items():
             result = results[name]
@@ -88,27 +92,23 @@ class ParameterKeeper:
             if result["successful"]:
                 known[name] = {**known[name], "value": new}
                 changes.append({"name": name, "old": old, "new": new})
-            try:
-                await db(_record)(node, name, old, new, "succeeded" if result["successful"] else "rejected",
-                                  result["reason"], source, user_id)
-            except Exception:  # the database: the records of the other values must still be written
-                log.exception("the change of parameter %r of %s:%s (%s) could not be recorded in the audit log",
-                              name, node.robot.name, node.name, "set" if result["successful"] else "refused")
+            outcome = result.pop("outcome", "succeeded" if result["successful"] else "rejected")
+            facts.append(self._record(node, name, old, new, outcome, result["reason"], source, user_id))
             ordered.append({"name": name, "old": old, "new": new, **result})
         if changes:
-            await self._push(node, changes)
-        return ordered
+            self._push(node, changes)
+        return ordered, facts
 
     def on_event(self, domain_id: int, msg) -> None:
         """/parameter_events of one domain (on the gateway loop)."""
-        node = self.gateway.nodes.get((domain_id, msg.node))
+        node = self.registry.nodes.get((domain_id, msg.node))
         if node is None or not node.alive:
             return
         changed = [(p.name, from_msg(p.value)) for p in list(msg.new_parameters) + list(msg.changed_parameters)]
         changed += [(p.name, None) for p in msg.deleted_parameters]
-        self.gateway.spawn(self._observed(node, changed))
+        self._observed(node, changed)
 
-    async def _observed(self, node: "LiveNode", changed: list[tuple[str, Any]]) -> None:
+    def _observed(self, node: LiveNode, changed: list[tuple[str, Any]]) -> None:
         known = self.cache.get(node.key, {})
         expected = self.expected.get(node.key, {})
         now = time.monotonic()
@@ -124,16 +124,16 @@ class ParameterKeeper:
             if old == value and name in known:
                 continue
             changes.append({"name": name, "old": old, "new": value})
-            await db(_record)(node, name, old, value, "succeeded", "", "external", None)
+            self._record(node, name, old, value, "succeeded", "", "external", None)
         if changes:
             log.info("parameters of %s:%s changed by another tool: %s", node.robot.name, node.name,
                      ", ".join(c["name"] for c in changes))
-            await self._push(node, changes)
+            self._push(node, changes)
 
-    async def _push(self, node: "LiveNode", changes: list[dict]) -> None:
-        await self.gateway.relay.publish(
+    def _push(self, node: LiveNode, changes: list[dict]) -> None:
+        spawn(self.relay.publish(
             [protocol.node_group(node.key)], {"type": "node.parameters", "node": node.key, "changes": changes}
-        )
+        ))
 
     def forget(self, node_key: str) -> None:
         self.cache.pop(node_key, None)

@@ -61,10 +61,16 @@ def type_of(value: Any) -> str:
     raise pt.InvalidValue("cannot tell the type of this value")
 
 
+class NoAnswer(NodeUnreachable):
+    """The request was sent but not answered in time: the node may have carried it out."""
+
+
 async def _call(domain: RosDomain, fqn: str, service: str, srv_type, request, timeout: float):
     try:
         return await domain.call(fqn, service, srv_type, request, timeout)
-    except (ServiceTimeout, ServiceUnavailable) as exc:
+    except ServiceTimeout as exc:
+        raise NoAnswer(str(exc)) from None
+    except ServiceUnavailable as exc:
         raise NodeUnreachable(str(exc)) from None
 
 

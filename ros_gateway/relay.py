@@ -1,6 +1,10 @@
-"""The gateway's links to the site: commands in and replies out (Redis lists), live
-updates out (Channels groups). Redis being down is survived: calls fail, are logged at
-most once per ``quiet`` seconds, and work resumes when it is back."""
+"""The gateway's only link to the site: Redis, with this gateway's own keys and credentials.
+
+Commands in and replies out (lists), the heartbeat and the lease (strings), the robots to
+watch (the config key the site writes), facts out (streams, through outbox.py) and live
+updates to browsers (Channels groups). Redis being down is survived: calls fail, are logged
+at most once per ``quiet`` seconds, and work resumes when it is back.
+"""
 from __future__ import annotations
 
 import asyncio
@@ -10,7 +14,6 @@ import time
 
 import redis.asyncio as aioredis
 from channels.layers import get_channel_layer
-from django.conf import settings
 from redis.asyncio.retry import Retry
 from redis.backoff import ExponentialBackoff
 from redis.exceptions import ConnectionError, TimeoutError
@@ -19,31 +22,54 @@ from ros_gateway.shared import protocol
 
 log = logging.getLogger(__name__)
 
+# Longest a blocking read of the command queue waits; the socket timeout must outlast it.
+COMMAND_WAIT_S = 1.0
+
+
+def redis_client(url: str) -> aioredis.Redis:
+    return aioredis.Redis.from_url(
+        url,
+        socket_connect_timeout=2,
+        socket_timeout=10,
+        # After a Redis restart the pooled connections are dead: retry on a fresh one.
+        retry_on_error=[ConnectionError, TimeoutError],
+        retry=Retry(ExponentialBackoff(cap=0.5, base=0.05), 3),
+        health_check_interval=15,
+    )
+
+
+def safe_url(url: str) -> str:
+    """The Redis URL without its password, for messages."""
+    head, sep, tail = url.partition("@")
+    if not sep:
+        return url
+    scheme, _, credentials = head.partition("://")
+    user = credentials.split(":", 1)[0]
+    return f"{scheme}://{user + ':***' if user else '***'}@{tail}"
+
 
 class Relay:
-    def __init__(self, quiet: float = 30.0) -> None:
-        self.prefix = settings.CHANNEL_LAYERS["default"]["CONFIG"].get("prefix", "lifecycle")
+    def __init__(self, gateway: str, redis_url: str, prefix: str, quiet: float = 30.0) -> None:
+        self.gateway = gateway
+        self.prefix = prefix
+        self.url = safe_url(redis_url)
+        self.redis = redis_client(redis_url)
         self.layer = get_channel_layer()
-        self.redis = aioredis.Redis.from_url(
-            settings.REDIS_URL,
-            socket_connect_timeout=2,
-            socket_timeout=10,
-            # After a Redis restart the pooled connections are dead: retry on a fresh one.
-            retry_on_error=[ConnectionError, TimeoutError],
-            retry=Retry(ExponentialBackoff(cap=0.5, base=0.05), 3),
-            health_check_interval=15,
-        )
         self._quiet = quiet
         self._last_complaint = 0.0
         self.published = 0
         self.publish_failures = 0
 
-    def _complain(self, what: str, exc: Exception) -> None:
+    def key(self, what: str) -> str:
+        return protocol.gateway_key(self.prefix, self.gateway, what)
+
+    def complain(self, what: str, exc: Exception) -> None:
         now = time.monotonic()
         if now - self._last_complaint > self._quiet:
             self._last_complaint = now
-            log.warning("%s failed (Redis at %s): %s", what, settings.REDIS_URL, exc)
+            log.warning("%s failed (Redis at %s): %s", what, self.url, exc)
 
+    # -- live updates -----------------------------------------------------------------
     async def publish(self, groups: list[str], message: dict) -> None:
         """Send ``message`` to the groups (together: one round trip's wait, not one per group);
         a failure is counted, never raised."""
@@ -51,23 +77,24 @@ class Relay:
         for result in results:
             if isinstance(result, Exception):  # Redis down, message too large: the gateway goes on
                 self.publish_failures += 1
-                self._complain("publishing an update", result)
+                self.complain("publishing an update", result)
             else:
                 self.published += 1
 
-    async def next_command(self, wait: float = 1.0) -> dict | None:
-        """The next command for the gateway, or None after ``wait`` seconds or on bad input."""
+    # -- commands -----------------------------------------------------------------------
+    async def next_command(self, wait: float = COMMAND_WAIT_S) -> dict | None:
+        """The next command for this gateway, or None after ``wait`` seconds or on bad input."""
         try:
-            popped = await self.redis.brpop([protocol.command_queue(self.prefix)], timeout=wait)
+            popped = await self.redis.brpop([self.key("commands")], timeout=wait)
         except Exception as exc:
-            self._complain("reading commands", exc)
+            self.complain("reading commands", exc)
             await asyncio.sleep(min(wait, 1.0))
             return None
         if popped is None:
             return None
         try:
             command = json.loads(popped[1])
-            if not isinstance(command, dict) or "request_id" not in command:
+            if not isinstance(command, dict) or not isinstance(command.get("request_id"), str):
                 raise ValueError("not a command object")
             return command
         except ValueError as exc:
@@ -76,8 +103,8 @@ class Relay:
 
     async def reply(self, request_id: str, payload: dict) -> None:
         """Hand the reply over; tried a few times, since the site is waiting for it."""
-        key = protocol.reply_key(self.prefix, request_id)
-        message = json.dumps({"request_id": request_id, **payload})
+        key = protocol.reply_key(self.prefix, self.gateway, request_id)
+        message = protocol.encode({"request_id": request_id, **payload})
         for attempt in range(3):
             try:
                 async with self.redis.pipeline(transaction=True) as pipe:
@@ -87,8 +114,64 @@ class Relay:
                 return
             except Exception as exc:
                 if attempt == 2:
-                    log.error("could not reply to request %s (Redis at %s): %s", request_id, settings.REDIS_URL, exc)
+                    log.error("could not reply to request %s (Redis at %s): %s", request_id, self.url, exc)
                 await asyncio.sleep(0.2 * (attempt + 1))
+
+    # -- configuration, heartbeat, lease ----------------------------------------------
+    async def read_config(self) -> dict | None:
+        """The site's description of this gateway's robots, or None if there is none (yet)
+        or Redis cannot be read (the caller keeps what it has)."""
+        try:
+            raw = await self.redis.get(self.key("config"))
+        except Exception as exc:
+            self.complain("reading the robots to watch", exc)
+            return None
+        if raw is None:
+            return None
+        try:
+            config = json.loads(raw)
+            if not isinstance(config, dict) or not isinstance(config.get("robots"), list):
+                raise ValueError("no robot list")
+            return config
+        except ValueError as exc:
+            log.warning("ignored the site's configuration for this gateway: %s", exc)
+            return None
+
+    async def beat(self, beat: dict) -> None:
+        try:
+            await self.redis.set(self.key("beat"), protocol.encode(beat))
+        except Exception as exc:
+            self.complain("writing the heartbeat", exc)
+
+    async def take_lease(self, instance: str, ttl: float) -> str | None:
+        """Hold this gateway's lease for ``ttl`` seconds; returns None when held, else the
+        holder's description (another live instance of the same gateway)."""
+        key = self.key("lease")
+        holder = json.dumps({"instance": instance})
+        if await self.redis.set(key, holder, nx=True, px=int(ttl * 1000)):
+            return None
+        current = await self.redis.get(key)
+        if current is not None and json.loads(current).get("instance") == instance:
+            await self.redis.pexpire(key, int(ttl * 1000))
+            return None
+        return current.decode() if isinstance(current, bytes) else current
+
+    async def renew_lease(self, instance: str, ttl: float) -> bool:
+        """Extend the lease; False if another instance holds it now (this one was frozen or
+        cut off for longer than its lease)."""
+        try:
+            return await self.take_lease(instance, ttl) is None
+        except Exception as exc:
+            self.complain("renewing the lease", exc)
+            return True  # Redis unreachable: nobody else can take it over meanwhile either
+
+    async def release_lease(self, instance: str) -> None:
+        try:
+            current = await self.redis.get(self.key("lease"))
+            if current is not None and json.loads(current).get("instance") == instance:
+                await self.redis.delete(self.key("lease"))
+        except Exception:
+            pass
 
     async def close(self) -> None:
         try:

@@ -23,11 +23,17 @@ def django_db_setup(django_test_environment, django_db_blocker):
 
 @pytest.fixture(scope="session")
 def redis_server():
-    """A real Redis of this test run's own, on a free loopback port."""
-    process = stack.start_redis()
-    yield process
-    process.terminate()
-    process.wait(5)
+    """A real Redis of this test run's own, on a free loopback port (a test may stop it and
+    start it again: same port, empty, as after a restart without persistence)."""
+
+    def stop(process) -> None:
+        process.terminate()
+        process.wait(5)
+
+    server = stack.Restartable(stack.start_redis, stop, "Redis")
+    server.start()
+    yield server
+    server.stop()
 
 
 @pytest.fixture(scope="session")
@@ -37,6 +43,38 @@ def live_db(django_db_setup, django_db_blocker):
     django_db_blocker.unblock()
     yield
     django_db_blocker.restore()
+
+
+@pytest.fixture(scope="session")
+def ingest(redis_server, live_db):
+    """The site's ingest process, one for the whole run (defined here, once, so that every
+    test directory shares it): it stores what every gateway reports
+    (a test may stop it for a while and start it again)."""
+    count = 0
+
+    def start() -> stack.Process:
+        nonlocal count
+        count += 1
+        process = stack.start_ingest(f"ingest-{count}")
+        stack.wait_for(lambda: "ingest is running" in process.output() or not process.alive(), 30,
+                       "the ingest process to start")
+        assert process.alive(), process.output()
+        return process
+
+    def stop(process: stack.Process) -> None:
+        assert process.stop() == 0, process.output()
+
+    holder = stack.Restartable(start, stop, "the ingest process")
+    holder.start()
+    yield holder
+    holder.stop()
+
+
+def session_of(user):
+    """A logged-in session of ``user`` (what a WebSocket's scope carries from the browser)."""
+    client = Client()
+    client.force_login(user)
+    return client.session
 
 
 def make_user(username: str, role: str | None):

@@ -57,13 +57,17 @@ def _release_all() -> None:
     release(list(_held))
 
 
-def claim_block(low: int, high: int, size: int, attempts: int = 200) -> int:
-    """Claim ``size`` consecutive domains starting at a random base in [low, high); returns the base."""
-    for _ in range(attempts):
-        base = random.randrange(low, high)
+def claim_block(low: int, high: int, size: int) -> int:
+    """Claim ``size`` consecutive domains in one of the slots low, low + size, ... (each ending
+    by ``high``), tried in random order; returns the base. Slots, not any base: one run at a
+    random base could otherwise leave no room for a second one."""
+    bases = list(range(low, high - size + 1, size))
+    random.shuffle(bases)
+    for base in bases:
         try:
             claim(list(range(base, base + size)))
         except DomainInUse:
             continue
         return base
-    raise DomainInUse(f"no {size} free consecutive ROS domains between {low} and {high + size}")
+    raise DomainInUse(f"all {len(bases)} blocks of {size} ROS domains between {low} and {high - 1} are in use "
+                      "by other test runs on this machine")

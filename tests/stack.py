@@ -7,6 +7,8 @@ import socket
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
+from copy import deepcopy
 from pathlib import Path
 from typing import Callable
 from urllib.parse import urlparse
@@ -111,10 +113,79 @@ def start_redis():
     return local_redis.start(port, Path(settings.DATA_DIR) / "redis")
 
 
-def start_gateway(name: str = "test-gateway", **env: str) -> Process:
+def redis_client():
+    """The test run's Redis, as the site's default user sees it."""
+    import redis
+
+    return redis.Redis.from_url(settings.REDIS_URL)
+
+
+def write_beat(gateway: str, *, at: float | None = None, stopped: bool = False, **fields) -> dict:
+    """Play a gateway's part: write its heartbeat as the wire contract says (and make the site
+    read it afresh)."""
+    import socket as _socket
+
+    from lifecycle_site.fleet import gateways
+    from ros_gateway.shared import protocol
+
+    beat = {
+        "name": gateway, "instance": "test-instance", "version": "test", "host": _socket.gethostname(),
+        "pid": os.getpid(), "started": "2026-01-01T00:00:00+00:00", "at": time.time() if at is None else at,
+        "domains": [], "dds": {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}, "robots": 0, "nodes": 0,
+        "outbox": {"facts": 0, "log_batches": 0, "facts_dropped": 0, "logs_dropped": 0}, "stopped": stopped,
+        **fields,
+    }
+    redis_client().set(protocol.beat_key(gateways.channel_prefix(), gateway), protocol.encode(beat))
+    gateways.forget()
+    return beat
+
+
+def start_ingest(name: str = "ingest", **env: str) -> Process:
+    """The site's ingest process (``manage.py ingest``): stores what gateways report."""
+    return Process(name, [sys.executable, "manage.py", "ingest"], environment(**env), log_dir())
+
+
+# Every gateway of the test run gets a database it cannot open: a gateway needs only Redis,
+# and any attempt to open the database would fail loudly.
+GATEWAY_DATABASE_URL = "sqlite:////nonexistent-lifecycle-test-dir/no-database-for-gateways.sqlite3"
+
+
+def start_gateway(name: str = "local", **env: str) -> Process:
+    """``manage.py ros_gateway --name NAME``, with no usable database."""
     return Process(
-        name, [sys.executable, "manage.py", "ros_gateway", "--name", name], environment(**env), log_dir()
+        name, [sys.executable, "manage.py", "ros_gateway", "--name", name],
+        environment(**{"DATABASE_URL": GATEWAY_DATABASE_URL, **env}), log_dir(),
     )
+
+
+class Restartable:
+    """A process that a test may stop and start again (the ingest process, Redis), under one
+    object that the session fixture stops at the end, whichever instance is running then."""
+
+    def __init__(self, start: Callable[[], object], stop: Callable[[object], None], what: str) -> None:
+        self._start, self._stop, self.what = start, stop, what
+        self.current: object | None = None
+
+    def start(self) -> None:
+        assert self.current is None, f"{self.what} is already running"
+        self.current = self._start()
+
+    def stop(self) -> None:
+        if self.current is not None:
+            self._stop(self.current)
+            self.current = None
+
+
+@contextmanager
+def settings_redis(url: str):
+    """The site (this test process) talks to another Redis for the block: commands, beats,
+    configuration and Redis users all go there."""
+    from django.test import override_settings
+
+    layers = deepcopy(settings.CHANNEL_LAYERS)
+    layers["default"]["CONFIG"]["hosts"] = [{**host, "address": url} for host in layers["default"]["CONFIG"]["hosts"]]
+    with override_settings(REDIS_URL=url, CHANNEL_LAYERS=layers):
+        yield
 
 
 def start_robot(

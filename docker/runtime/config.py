@@ -7,15 +7,28 @@ Industrial Edge Management writes from the JSON-Forms template (docker/edge/cfg-
       "admin":  {"username": "admin", "password": "...", "email": ""},
       "site":   {"allowedHosts": "ied-1.plant.local", "csrfTrustedOrigins": "", "urlPrefix": "/lifecycle",
                  "behindTlsProxy": true, "timeZone": "Europe/Berlin", "logLevel": "INFO"},
-      "ros":    {"discoveryRange": "SUBNET", "staticPeers": "", "serviceTimeout": 5},
+      "ros":    {"discoveryRange": "SUBNET", "staticPeers": "", "discoveryServer": "", "superClient": true,
+                 "serviceTimeout": 5},
       "robots": [{"name": "agv-1", "domainId": 21, "namespace": "", "description": "", "enabled": true}]
     }
 
+A gateway of its own (docker/edge-cell: no site, it dials out to the central site's Redis)
+takes its name and Redis from two more parts, which only the gateway role reads:
+
+      "gateway": {"name": "cell-a", "channelPrefix": "lifecycle", "timeZone": "UTC", "logLevel": "INFO"},
+      "redis":   {"url": "redis://site.plant.local:6379/0", "username": "gw-cell-a", "password": "...",
+                  "caCertificate": "-----BEGIN CERTIFICATE-----..."}
+
+`redis.url` may instead be the whole REDIS_URL that `manage.py add_gateway` printed (with the
+gateway's user and password in it); `username`/`password`, when given, replace what the URL holds.
+
 Every part is optional; an empty value leaves the environment's value in force.
 
-    config.py env                  print `export NAME='value'` lines for the settings (no Django)
+    config.py env [ROLE]           print `export NAME='value'` lines for the settings (no Django);
+                                   ROLE gateway also gets its name and Redis URL (gateway, redis)
     config.py setup                migrate, create/update the admin account, register the robots
-    config.py wait-for-schema N    wait up to N seconds until the web container has migrated
+                                   (all of the gateway "local", the one the site's compose runs)
+    config.py wait-for-schema N    wait up to N seconds until the web container has migrated (ingest)
 """
 from __future__ import annotations
 
@@ -27,10 +40,21 @@ import shlex
 import sys
 import time
 from pathlib import Path
+from urllib.parse import parse_qsl, quote, unquote, urlencode, urlsplit, urlunsplit
 
 CONFIG_FILE = Path(os.environ.get("LIFECYCLE_CONFIG_FILE", "/cfg-data/param.json"))
 DISCOVERY_RANGES = ("SUBNET", "LOCALHOST", "OFF", "SYSTEM_DEFAULT")
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
+# The gateway the site's own compose file runs; robots of other gateways (cells) are added with
+# `manage.py add_robot NAME --domain N --gateway CELL` or in the admin.
+LOCAL_GATEWAY = "local"
+# As the site names gateways (ros_gateway/shared/protocol.py) and their Redis users (gw-NAME).
+GATEWAY_NAME = re.compile(r"[a-z0-9][a-z0-9_-]{0,62}")
+CHANNEL_PREFIX = re.compile(r"[A-Za-z0-9_.-]{1,64}")
+# A DDS peer (ROS_STATIC_PEERS): a host name, an IPv4 or IPv6 address.
+DDS_PEER = re.compile(r"[A-Za-z0-9][A-Za-z0-9.:-]*|\[[0-9A-Fa-f:.]+\]")
+# The CA certificate of a rediss:// URL (redis.caCertificate) is written here for redis-py.
+REDIS_CA_FILE = Path(os.environ.get("LIFECYCLE_REDIS_CA_FILE", "/tmp/lifecycle-redis-ca.crt"))
 
 
 class ConfigError(Exception):
@@ -50,7 +74,7 @@ def read_config() -> dict:
         raise ConfigError(f"{CONFIG_FILE} is not valid JSON: {exc}") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{CONFIG_FILE} must hold a JSON object")
-    for part in ("admin", "site", "ros"):
+    for part in ("admin", "site", "ros", "gateway", "redis"):
         if not isinstance(data.get(part, {}), dict):
             raise ConfigError(f"{CONFIG_FILE}: '{part}' must be an object")
     if not isinstance(data.get("robots", []), list):
@@ -88,12 +112,7 @@ def settings_env(config: dict) -> dict[str, str]:
         env["LIFECYCLE_URL_PREFIX"] = prefix.rstrip("/")
     if isinstance(site.get("behindTlsProxy"), bool):
         env["LIFECYCLE_BEHIND_TLS_PROXY"] = "1" if site["behindTlsProxy"] else "0"
-    put("TZ", site.get("timeZone"))
-    level = _text(site.get("logLevel")).upper()
-    if level:
-        if level not in LOG_LEVELS:
-            raise ConfigError(f"site.logLevel must be one of {', '.join(LOG_LEVELS)}")
-        env["LIFECYCLE_LOG_LEVEL"] = level
+    env.update(_log_env(site, "site"))
     scope = _text(ros.get("discoveryRange")).upper()
     if scope:
         if scope not in DISCOVERY_RANGES:
@@ -102,7 +121,28 @@ def settings_env(config: dict) -> dict[str, str]:
     peers = ros.get("staticPeers")
     if isinstance(peers, list):
         peers = ";".join(str(p).strip() for p in peers if str(p).strip())
-    put("ROS_STATIC_PEERS", _text(peers).replace(",", ";"))
+    peers = ";".join(p.strip() for p in _text(peers).replace(",", ";").split(";") if p.strip())
+    for peer in filter(None, peers.split(";")):
+        if not DDS_PEER.fullmatch(peer):
+            raise ConfigError(f"ros.staticPeers: {peer!r} is not a host name or address (separate peers with ';')")
+    put("ROS_STATIC_PEERS", peers)
+    servers = ros.get("discoveryServer")
+    if isinstance(servers, list):
+        servers = ";".join(str(p).strip() for p in servers)
+    # Fast DDS: ';' separates servers and an entry's position is its server id (empty ones allowed).
+    servers = ";".join(part.strip() for part in _text(servers).split(";"))
+    if servers.strip(";"):
+        for server in filter(None, servers.split(";")):
+            if not _server_address(server):
+                raise ConfigError(f"ros.discoveryServer: {server!r} is not ADDRESS[:PORT] (e.g. 10.1.2.3:11811; "
+                                  "separate servers with ';')")
+        env["ROS_DISCOVERY_SERVER"] = servers
+        super_client = ros.get("superClient", True)
+        if not isinstance(super_client, bool):
+            raise ConfigError("ros.superClient must be true or false")
+        # A super client learns every participant from the server, as the gateway must to list
+        # all nodes; a plain client only those it has matching endpoints with.
+        env["ROS_SUPER_CLIENT"] = "TRUE" if super_client else "FALSE"
     timeout = ros.get("serviceTimeout")
     if timeout not in (None, ""):
         try:
@@ -111,6 +151,88 @@ def settings_env(config: dict) -> dict[str, str]:
         except (TypeError, ValueError):
             raise ConfigError("ros.serviceTimeout must be a positive number of seconds") from None
         env["LIFECYCLE_SERVICE_TIMEOUT"] = str(float(timeout))
+    return env
+
+
+def _log_env(part: dict, where: str) -> dict[str, str]:
+    """timeZone and logLevel of a part of the configuration."""
+    env = {"TZ": _text(part.get("timeZone"))} if _text(part.get("timeZone")) else {}
+    level = _text(part.get("logLevel")).upper()
+    if level:
+        if level not in LOG_LEVELS:
+            raise ConfigError(f"{where}.logLevel must be one of {', '.join(LOG_LEVELS)}")
+        env["LIFECYCLE_LOG_LEVEL"] = level
+    return env
+
+
+def _server_address(text: str) -> bool:
+    """HOST[:PORT] of a Fast DDS discovery server (an IPv6 address in brackets)."""
+    match = re.fullmatch(r"(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9][A-Za-z0-9.-]*)(?::(\d{1,5}))?", text)
+    return bool(match) and (match.group(2) is None or 0 < int(match.group(2)) < 65536)
+
+
+def gateway_env(config: dict, write_files: bool = False) -> dict[str, str]:
+    """The gateway's own settings (parts "gateway" and "redis"): its name, the site's Redis
+    URL with the gateway's credentials, the key prefix. Only the gateway role reads them, so a
+    site's web and ingest never follow a Redis URL meant for its gateway. With ``write_files``
+    the CA certificate of a rediss:// URL is written to REDIS_CA_FILE."""
+    gateway, redis = config.get("gateway", {}), config.get("redis", {})
+    env = _log_env(gateway, "gateway")
+    name = _text(gateway.get("name"))
+    if name:
+        if not GATEWAY_NAME.fullmatch(name):
+            raise ConfigError(f"gateway.name {name!r}: lower-case letters, digits, '-' and '_' (e.g. cell-a), "
+                              "as registered on the site with manage.py add_gateway")
+        env["LIFECYCLE_GATEWAY_NAME"] = name
+    prefix = _text(gateway.get("channelPrefix"))
+    if prefix:
+        if not CHANNEL_PREFIX.fullmatch(prefix):
+            raise ConfigError(f"gateway.channelPrefix {prefix!r}: letters, digits, '.', '_' and '-' "
+                              "(the site's LIFECYCLE_CHANNEL_PREFIX, usually lifecycle)")
+        env["LIFECYCLE_CHANNEL_PREFIX"] = prefix
+    url = _text(redis.get("url"))
+    username = _text(redis.get("username"))
+    password = redis.get("password")
+    password = "" if password is None else str(password).strip()
+    certificate = _text(redis.get("caCertificate"))
+    if not url:
+        if username or password or certificate:
+            raise ConfigError("redis.url is missing: the site's Redis, e.g. redis://site.plant.local:6379/0 "
+                              "(or the whole REDIS_URL that manage.py add_gateway printed)")
+        return env
+    if not name:
+        raise ConfigError("gateway.name is missing: the name the gateway was registered with on the site "
+                          "(manage.py add_gateway NAME)")
+    try:
+        parts = urlsplit(url)
+        port = parts.port
+    except ValueError as exc:
+        raise ConfigError(f"redis.url is not a Redis URL ({exc})") from None
+    if parts.scheme not in ("redis", "rediss") or not parts.hostname:
+        raise ConfigError("redis.url must look like redis://HOST:6379/0 or rediss://HOST:6380/0 (TLS)")
+    if parts.path not in ("", "/") and not re.fullmatch(r"/\d{1,2}", parts.path):
+        raise ConfigError(f"redis.url: {parts.path!r} is not a database number such as /0")
+    user = username or unquote(parts.username or "")
+    secret = password or unquote(parts.password or "")
+    if user.startswith("gw-") and user != f"gw-{name}":
+        raise ConfigError(f"the Redis user {user!r} belongs to the gateway {user[3:]!r}, not to gateway.name "
+                          f"{name!r}: take both from the same add_gateway run")
+    if not secret:
+        raise ConfigError(f"redis: no password for the gateway {name!r}; it is in the REDIS_URL that "
+                          "manage.py add_gateway printed on the site (or give redis.username and redis.password)")
+    host = f"[{parts.hostname}]" if ":" in parts.hostname else parts.hostname
+    netloc = f"{quote(user, safe='')}:{quote(secret, safe='')}@{host}" + (f":{port}" if port else "")
+    query = parse_qsl(parts.query, keep_blank_values=True)
+    if certificate:
+        if parts.scheme != "rediss":
+            raise ConfigError("redis.caCertificate is for TLS: the URL must start with rediss://")
+        if "-----BEGIN CERTIFICATE-----" not in certificate or "-----END CERTIFICATE-----" not in certificate:
+            raise ConfigError("redis.caCertificate must be a PEM certificate (-----BEGIN CERTIFICATE----- ...)")
+        if write_files:
+            REDIS_CA_FILE.parent.mkdir(parents=True, exist_ok=True)
+            REDIS_CA_FILE.write_text(certificate.strip() + "\n")
+        query = [(k, v) for k, v in query if k != "ssl_ca_certs"] + [("ssl_ca_certs", str(REDIS_CA_FILE))]
+    env["REDIS_URL"] = urlunsplit(parts._replace(netloc=netloc, query=urlencode(query, safe="/")))
     return env
 
 
@@ -149,18 +271,22 @@ def robots_wanted(config: dict) -> list[dict]:
     return robots
 
 
-def cmd_env() -> None:
+def cmd_env(role: str = "web") -> None:
     config = read_config()
     env = settings_env(config)
+    if role == "gateway":
+        env.update(gateway_env(config, write_files=True))
     robots_wanted(config)  # refuse a bad robot list now, in every container, with the reason
     for name, value in env.items():
         print(f"export {name}={shlex.quote(value)}")
     if CONFIG_FILE.is_file():
         log(f"read {CONFIG_FILE}" + (f" (sets {', '.join(sorted(env))})" if env else ""))
     if not os.environ.get("DJANGO_ALLOWED_HOSTS") and "DJANGO_ALLOWED_HOSTS" not in env:
-        # Behind the Industrial Edge proxy the device's name is not known in advance.
-        log("WARNING: no allowed hosts configured (site.allowedHosts); accepting any Host and any "
-            "WebSocket Origin. Set the device's host name to turn the origin check on.")
+        # Behind the Industrial Edge proxy the device's name is not known in advance. Only
+        # the processes that serve HTTP need to say so (ingest and gateway serve none).
+        if role not in ("ingest", "gateway"):
+            log("WARNING: no allowed hosts configured (site.allowedHosts); accepting any Host and any "
+                "WebSocket Origin. Set the device's host name to turn the origin check on.")
         print("export DJANGO_ALLOWED_HOSTS='*'")
 
 
@@ -238,6 +364,7 @@ def cmd_setup() -> None:
             namespace=robot["namespace"],
             description=robot["description"],
             disabled=not robot["enabled"],
+            gateway=LOCAL_GATEWAY,
         )
 
 
@@ -266,7 +393,7 @@ def cmd_wait_for_schema(seconds: float) -> None:
 def main(argv: list[str]) -> int:
     try:
         if argv[:1] == ["env"]:
-            cmd_env()
+            cmd_env(*argv[1:2])
         elif argv[:1] == ["setup"]:
             cmd_setup()
         elif argv[:1] == ["wait-for-schema"]:

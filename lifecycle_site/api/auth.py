@@ -13,6 +13,7 @@ from django.views.decorators.csrf import csrf_exempt
 
 from lifecycle_site.api import grants
 from lifecycle_site.api.models import ApiToken, hash_token
+from lifecycle_site.audit import denials
 from lifecycle_site.fleet.gateway_client import GatewayError
 from ros_gateway.shared import param_types as pt
 
@@ -128,19 +129,28 @@ def api_view(methods: tuple[str, ...] = ("GET",), permission: str = VIEW_PERMISS
                 return error("method_not_allowed", f"Use {' or '.join(methods)} here.", 405)
             user = _token_user(request)
             if user is None and "Authorization" in request.headers:
+                # Checked on a bad token only: a valid one costs no extra query.
+                if denials.too_many_bad_tokens(request):
+                    return error("too_many_attempts", "Too many invalid tokens from this address: they are refused "
+                                 "unchecked for a while (an admin sees them under Refused attempts).", 429)
+                denials.record(request, 401, "bad_token", "the bearer token is not valid (or revoked)")
                 return error("unauthorized", "The bearer token is not valid.", 401)
             if user is None:
                 if not request.user.is_authenticated:
+                    if request.method in UNSAFE_METHODS:
+                        denials.record(request, 401, "unauthorized", "neither a session nor a token")
                     return error("unauthorized", "Log in or send 'Authorization: Bearer TOKEN'.", 401)
                 if request.method in UNSAFE_METHODS:
                     failure = _csrf_failure(request)
-                    if failure is not None:
+                    if failure is not None:  # on record already (CSRF_FAILURE_VIEW)
                         return failure
                 user = request.user
             request.user = user
             request.api_source = "api"
             if not user.has_perm(permission):
                 needed = "viewer" if permission == VIEW_PERMISSION else "operator or admin"
+                if request.method in UNSAFE_METHODS or permission != VIEW_PERMISSION:
+                    denials.record(request, 403, "forbidden", f"{needed} needed")
                 return error("forbidden", f"Your account lacks the role for this ({needed} needed).", 403)
             try:
                 return view(request, *args, **kwargs)

@@ -7,8 +7,10 @@ from django.http import Http404, HttpRequest, JsonResponse
 
 from lifecycle_site.api.auth import api_view, error, json_body
 from lifecycle_site.api.views import get_node
+from lifecycle_site.fleet.gateway_client import MAX_SERVICE_TIMEOUT
 from lifecycle_site.fleet.models import GroupRun, Robot
 from lifecycle_site.fleet.runs import RunRefused, start_run, wait_for
+from ros_gateway.shared import param_types
 
 OPERATE = "fleet.operate_node"
 
@@ -25,8 +27,9 @@ def _body(request: HttpRequest) -> dict | JsonResponse:
 def _positive(value, name: str, default: float) -> float:
     if value is None:
         return default
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-        raise RunRefused("invalid_field", f"'{name}' must be a positive number of seconds.")
+    if not param_types.is_number(value) or not 0 < value <= MAX_SERVICE_TIMEOUT:
+        raise RunRefused("invalid_field", f"'{name}' must be a positive number of seconds, at most "
+                         f"{MAX_SERVICE_TIMEOUT:g} (per node).")
     return float(value)
 
 

@@ -5,6 +5,7 @@ from lifecycle_site.api.auth import not_found
 
 app_name = "api"
 urlpatterns = [
+    path("gateways", views.gateways, name="gateways"),
     path("robots", views.robots, name="robots"),
     path("nodes", views.nodes, name="nodes"),
     path("nodes/<str:key>", views.node_detail, name="node"),

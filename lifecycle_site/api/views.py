@@ -1,19 +1,18 @@
-"""JSON API v1 (docs/api.md). Reads come from the database; lifecycle calls go through
-the ROS gateway and every transition attempt lands in the audit log."""
+"""JSON API v1 (docs/api.md). Reads come from the database (and gateways' heartbeats); lifecycle
+calls go through each robot's gateway and every transition attempt lands in the audit log."""
 from __future__ import annotations
-
-import math
 
 from django.db.models import Count, Q
 from django.http import Http404, HttpRequest, JsonResponse
 
 from lifecycle_site.api.auth import api_view, error, json_body
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.fleet.gateway_client import GatewayError, call_gateway
-from lifecycle_site.fleet.models import GatewayHeartbeat, LogRecord, ManagedNode, Robot
+from lifecycle_site.fleet import gateways as gateway_status
+from lifecycle_site.fleet.gateway_client import MAX_SERVICE_TIMEOUT, GatewayError, call_gateway
+from lifecycle_site.fleet.models import Gateway, LogRecord, ManagedNode, Robot
 from lifecycle_site.fleet.serializers import node_dict
 from lifecycle_site.fleet.transitions import request_transition
-from ros_gateway.shared import protocol
+from ros_gateway.shared import param_types, protocol
 from ros_gateway.shared import state_machine as sm
 
 MAX_LIMIT = 1000
@@ -29,13 +28,17 @@ def _limit(request: HttpRequest, default: int) -> int:
 
 @api_view()
 def robots(request: HttpRequest) -> JsonResponse:
-    gateway_online = GatewayHeartbeat.online()
-    rows = Robot.objects.annotate(
-        node_count=Count("nodes"), alive_count=Count("nodes", filter=Q(nodes__alive=True))
+    rows = list(
+        Robot.objects.select_related("gateway").annotate(
+            node_count=Count("nodes"), alive_count=Count("nodes", filter=Q(nodes__alive=True))
+        )
     )
+    used = list({r.gateway_id: r.gateway for r in rows}.values())
+    online = {s.name: s.online for s in gateway_status.statuses(used)}
     return JsonResponse(
         {
-            "gateway_online": gateway_online,
+            # Every gateway that has robots is online (true without robots).
+            "gateway_online": all(online.values()),
             "robots": [
                 {
                     "name": r.name,
@@ -43,12 +46,28 @@ def robots(request: HttpRequest) -> JsonResponse:
                     "namespace": r.namespace,
                     "description": r.description,
                     "enabled": r.enabled,
-                    "online": gateway_online and r.enabled and r.alive_count > 0,
+                    "gateway": r.gateway.name,
+                    "gateway_online": online[r.gateway.name],
+                    "online": online[r.gateway.name] and r.enabled and r.alive_count > 0,
                     "node_count": r.node_count,
                     "alive_node_count": r.alive_count,
                 }
                 for r in rows
             ],
+        }
+    )
+
+
+@api_view()
+def gateways(request: HttpRequest) -> JsonResponse:
+    rows = list(Gateway.objects.prefetch_related("robots"))
+    states = gateway_status.statuses(rows)
+    return JsonResponse(
+        {
+            "gateways": [
+                gateway_status.describe(row, state, sorted(r.name for r in row.robots.all()))
+                for row, state in zip(rows, states, strict=True)
+            ]
         }
     )
 
@@ -73,8 +92,9 @@ def node_detail(request: HttpRequest, key: str) -> JsonResponse:
     body["described_by"] = "state machine"
     if node.alive:
         try:  # the node's own answer, when it can give one
-            states = call_gateway(protocol.GET_AVAILABLE_STATES, robot=node.robot.name, node=node.name)
-            graph = call_gateway(protocol.GET_TRANSITION_GRAPH, robot=node.robot.name, node=node.name)
+            gateway = node.robot.gateway.name
+            states = call_gateway(gateway, protocol.GET_AVAILABLE_STATES, robot=node.robot.name, node=node.name)
+            graph = call_gateway(gateway, protocol.GET_TRANSITION_GRAPH, robot=node.robot.name, node=node.name)
             body["available_states"], body["transition_graph"] = states["states"], graph["graph"]
             body["described_by"] = "node"
         except GatewayError as exc:
@@ -83,7 +103,7 @@ def node_detail(request: HttpRequest, key: str) -> JsonResponse:
 
 
 def get_node(key: str) -> ManagedNode:
-    node = ManagedNode.objects.select_related("robot").filter(key=key).first()
+    node = ManagedNode.objects.select_related("robot__gateway").filter(key=key).first()
     if node is None:
         raise Http404(f"There is no node with id {key!r}; GET /api/v1/nodes lists them.")
     return node
@@ -109,10 +129,9 @@ def transition(request: HttpRequest, key: str) -> JsonResponse:
             400,
         )
     timeout = body.get("timeout")
-    if timeout is not None and (
-        not isinstance(timeout, (int, float)) or isinstance(timeout, bool) or not math.isfinite(timeout) or timeout <= 0
-    ):
-        return error("invalid_field", "'timeout' must be a positive number of seconds (at most 25).", 400)
+    if timeout is not None and (not param_types.is_number(timeout) or not 0 < timeout <= MAX_SERVICE_TIMEOUT):
+        return error("invalid_field",
+                     f"'timeout' must be a positive number of seconds, at most {MAX_SERVICE_TIMEOUT:g}.", 400)
     outcome = request_transition(get_node(key), requested, request.user, "api", timeout)
     if outcome.succeeded:
         return JsonResponse(outcome.data)

@@ -1,6 +1,6 @@
 from django.contrib import admin
 
-from lifecycle_site.audit.models import ParameterRecord, TransitionRecord
+from lifecycle_site.audit.models import AccessDenial, ParameterRecord, TransitionRecord
 
 
 class ReadOnlyAdmin(admin.ModelAdmin):
@@ -37,4 +37,14 @@ class ParameterRecordAdmin(ReadOnlyAdmin):
                     "requested_by_name")
     list_filter = ("outcome", "source", "robot_name")
     search_fields = ("node_name", "name", "requested_by_name", "reason")
+    date_hierarchy = "at"
+
+
+@admin.register(AccessDenial)
+class AccessDenialAdmin(ReadOnlyAdmin):
+    """Refused attempts (the newest 10,000): who, from where, what, why."""
+
+    list_display = ("at", "code", "status", "username", "client", "method", "path", "detail")
+    list_filter = ("code", "status")
+    search_fields = ("username", "client", "path")
     date_hierarchy = "at"

@@ -80,6 +80,8 @@ class TransitionRecord(AppendOnlyRecord):
     duration_ms = models.FloatField(null=True, blank=True)
     error = models.TextField(blank=True)
     run_id = models.CharField(max_length=64, blank=True, help_text="Groups the steps of one group operation.")
+    # The id of the gateway's fact this record was made from: applying a fact twice makes one record.
+    fact_id = models.CharField(max_length=32, null=True, blank=True, unique=True, editable=False)
 
     class Meta:
         ordering = ["-requested_at", "-id"]
@@ -133,6 +135,7 @@ class ParameterRecord(AppendOnlyRecord):
     reason = models.TextField(blank=True)
     source = models.CharField(max_length=16, choices=TransitionRecord.Source.choices)
     at = models.DateTimeField()
+    fact_id = models.CharField(max_length=32, null=True, blank=True, unique=True, editable=False)
 
     class Meta:
         ordering = ["-at", "-id"]
@@ -152,3 +155,26 @@ class ParameterRecord(AppendOnlyRecord):
             "requested_by": self.requested_by_name or None,
             "at": self.at.isoformat(),
         }
+
+
+class AccessDenial(models.Model):
+    """A refused attempt: a change without the role for it, a bad token or session, a failed
+    login. Kept for review by admins, bounded (audit/denials.py prunes the oldest)."""
+
+    at = models.DateTimeField(auto_now_add=True, db_index=True)
+    user = models.ForeignKey(settings.AUTH_USER_MODEL, null=True, blank=True, on_delete=models.SET_NULL,
+                             related_name="+")
+    username = models.CharField(max_length=150, blank=True, help_text="The account, or the name tried at login.")
+    client = models.CharField(max_length=64, blank=True, help_text="The client's address as the site saw it.")
+    method = models.CharField(max_length=8)
+    path = models.CharField(max_length=300)
+    status = models.PositiveSmallIntegerField()
+    code = models.CharField(max_length=32, help_text="unauthorized, forbidden, csrf_failed, bad_token, login_failed")
+    detail = models.CharField(max_length=200, blank=True)
+
+    class Meta:
+        ordering = ["-at"]
+        verbose_name = "refused attempt"
+
+    def __str__(self) -> str:
+        return f"{self.at:%Y-%m-%d %H:%M:%S} {self.code} {self.username or self.client} {self.method} {self.path}"

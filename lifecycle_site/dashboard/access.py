@@ -7,6 +7,8 @@ from django.contrib.auth.decorators import login_required
 from django.http import HttpResponse
 from django.shortcuts import render
 
+from lifecycle_site.audit import denials
+
 VIEW_PERMISSION = "fleet.view_managednode"
 
 
@@ -28,6 +30,7 @@ def operator_required(view):
     @wraps(view)
     def wrapper(request, *args, **kwargs):
         if not request.user.has_perm("fleet.operate_node"):
+            denials.record(request, 403, "forbidden", "operator needed")
             return HttpResponse(
                 '<p class="result fail" role="alert">Your role may view but not operate nodes (operator needed).</p>',
                 status=403,

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 
 from django import forms
 from django.core.paginator import Paginator
@@ -16,6 +17,26 @@ from lifecycle_site.dashboard.access import viewer_required
 
 PAGE_SIZE = 50
 CSV_LIMIT = 100_000
+# A spreadsheet runs a cell starting with one of these as a formula (OWASP "CSV injection"):
+# such cells get a leading apostrophe. Plain numbers ("-0.5") are left as they are.
+FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
+PLAIN_NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?")
+
+
+def _cell(value: object) -> object:
+    if isinstance(value, str) and value.startswith(FORMULA_START) and not PLAIN_NUMBER.fullmatch(value):
+        return "'" + value
+    return value
+
+
+class _SafeWriter:
+    """csv.writer whose text cells cannot start a formula in a spreadsheet."""
+
+    def __init__(self, out) -> None:
+        self._writer = csv.writer(out)
+
+    def writerow(self, row: list) -> None:
+        self._writer.writerow([_cell(value) for value in row])
 
 
 class AuditFilter(forms.Form):
@@ -90,7 +111,7 @@ def audit_csv(request: HttpRequest) -> HttpResponse:
     response = HttpResponse(content_type="text/csv; charset=utf-8")
     kind = "parameters" if form.parameters else "transitions"
     response["Content-Disposition"] = f'attachment; filename="audit-{kind}-{timezone.now():%Y%m%d-%H%M%S}.csv"'
-    writer = csv.writer(response)
+    writer = _SafeWriter(response)
     if form.parameters:
         writer.writerow(["at", "robot", "node", "parameter", "old", "new", "outcome", "source", "user", "reason"])
         for r in records[:CSV_LIMIT].iterator(chunk_size=2000):

@@ -1,4 +1,4 @@
-"""Channels consumers: subscribe a browser to the gateway's groups and forward what matters.
+"""Channels consumers: subscribe a browser to the gateways' groups and forward what matters.
 
 Fleet and node pages get HTML fragments that htmx swaps in by id (hx-swap-oob), rendered
 from the same partial templates as the first page load. Log consoles get JSON, because
@@ -8,24 +8,28 @@ from __future__ import annotations
 
 import asyncio
 import json
+from importlib import import_module
 
 from channels.db import database_sync_to_async
 from channels.generic.websocket import AsyncWebsocketConsumer
+from django.conf import settings
+from django.contrib.auth import HASH_SESSION_KEY, SESSION_KEY, get_user_model
 from django.template.loader import render_to_string
+from django.utils.crypto import constant_time_compare
 
 from lifecycle_site.dashboard import snapshots
-from lifecycle_site.fleet.models import GatewayHeartbeat
 from lifecycle_site.prefix import forwarded_prefix, script_prefix
 from ros_gateway.shared import protocol
 
-GATEWAY_CHECK_S = 3.0
+GATEWAY_CHECK_S = 3.0  # also how soon a socket closes after logout, deactivation or role removal
 NOT_LOGGED_IN = 4401
 NO_ROLE = 4403
 NOT_FOUND = 4404
 
 
 class LiveConsumer(AsyncWebsocketConsumer):
-    """Common ground: login required, group membership, gateway banner upkeep."""
+    """Common ground: login required, group membership, upkeep of the banner that names the
+    offline gateways of what the page shows."""
 
     groups_to_join: list[str]
 
@@ -38,6 +42,8 @@ class LiveConsumer(AsyncWebsocketConsumer):
             await self.close(code=NO_ROLE)
             return
         self.can_operate = await database_sync_to_async(user.has_perm)("fleet.operate_node")
+        session = self.scope.get("session")
+        self.session_key = getattr(session, "session_key", None)
         headers = dict(self.scope.get("headers", []))
         self.prefix = forwarded_prefix(headers.get(b"x-forwarded-prefix", b"").decode("latin-1"))
         if not await self.prepare():
@@ -46,7 +52,7 @@ class LiveConsumer(AsyncWebsocketConsumer):
         for group in self.groups_to_join:
             await self.channel_layer.group_add(group, self.channel_name)
         await self.accept()
-        self.gateway_online: bool | None = None
+        self.offline_seen: tuple | None = None
         await self.send_snapshot()
         self.watcher = asyncio.ensure_future(self.watch_gateway())
 
@@ -64,16 +70,48 @@ class LiveConsumer(AsyncWebsocketConsumer):
         pass
 
     async def watch_gateway(self) -> None:
-        """Tell the page when the gateway goes offline or comes back."""
+        """Tell the page when a gateway of what it shows goes offline or comes back."""
         while True:
-            online = await database_sync_to_async(GatewayHeartbeat.online)()
-            if online != self.gateway_online:
-                self.gateway_online = online
-                await self.send_gateway_status(online)
+            refused = await database_sync_to_async(self.refusal, thread_sensitive=False)()
+            if refused:
+                await self.close(code=refused)
+                return
+            views = await database_sync_to_async(self.gateway_views, thread_sensitive=False)()
+            offline = [v for v in views if v["robots"] and not v["online"]]
+            seen = tuple((v["name"], v["status"], v["last_beat"]) for v in offline)
+            if seen != self.offline_seen:
+                self.offline_seen = seen
+                await self.send_gateway_status(offline)
+            await self.gateways_seen(views)
             await asyncio.sleep(GATEWAY_CHECK_S)
 
-    async def send_gateway_status(self, online: bool) -> None:
-        await self.send_html("dashboard/_gateway_banner.html", {"gateway_online": online, "oob": True})
+    def refusal(self) -> int | None:
+        """Whether this socket may still receive updates, read afresh: the session still
+        exists (no logout), is the same user's (password unchanged), the user is active and
+        still has a role that may view. A close code if not."""
+        if self.session_key is None:
+            return NOT_LOGGED_IN
+        store = import_module(settings.SESSION_ENGINE).SessionStore(self.session_key)
+        data = store.load()  # empty when the session is gone
+        user = get_user_model().objects.filter(pk=data.get(SESSION_KEY), is_active=True).first()
+        if user is None or user.pk != self.scope["user"].pk:
+            return NOT_LOGGED_IN
+        if not constant_time_compare(data.get(HASH_SESSION_KEY, ""), user.get_session_auth_hash()):
+            return NOT_LOGGED_IN
+        if not user.has_perm("fleet.view_managednode"):
+            return NO_ROLE
+        self.can_operate = user.has_perm("fleet.operate_node")
+        return None
+
+    def gateway_views(self) -> list[dict]:
+        """The gateways of what the page shows (fleet.gateways.describe() dicts)."""
+        return []
+
+    async def gateways_seen(self, views: list[dict]) -> None:
+        pass
+
+    async def send_gateway_status(self, offline: list[dict]) -> None:
+        await self.send_html("dashboard/_gateway_banner.html", {"offline_gateways": offline, "oob": True})
 
     async def send_html(self, template: str, context: dict) -> None:
         with script_prefix(self.prefix):
@@ -111,11 +149,23 @@ class FleetConsumer(RunProgressMixin, LiveConsumer):
 
     def fleet_html(self) -> tuple[str, set[str]]:
         with script_prefix(self.prefix):
-            robots = snapshots.fleet()  # the links it puts in carry the prefix
+            groups = snapshots.fleet()  # the links it puts in carry the prefix
             html = render_to_string(
-                "dashboard/_robots.html", {"robots": robots, "can_operate": self.can_operate, "oob": True}
+                "dashboard/_robots.html", {"gateways": groups, "can_operate": self.can_operate, "oob": True}
             )
-        return html, {n["id"] for _, nodes in robots for n in nodes}
+        self.heads = {g["gateway"]["name"]: _head(g["gateway"]) for g in groups}
+        return html, {n["id"] for group in groups for _, nodes in group["robots"] for n in nodes}
+
+    def gateway_views(self) -> list[dict]:
+        return snapshots.gateway_views()
+
+    async def gateways_seen(self, views: list[dict]) -> None:
+        """Each gateway's header follows its health and counters (a new gateway needs a reload)."""
+        for view in views:
+            head = _head(view)
+            if view["name"] in self.heads and self.heads[view["name"]] != head:
+                self.heads[view["name"]] = head
+                await self.send_html("dashboard/_gateway_head.html", {"gateway": view, "oob": True})
 
     async def node_state(self, event: dict) -> None:
         node = event["node"]
@@ -132,6 +182,9 @@ class NodeConsumer(RunProgressMixin, LiveConsumer):
         self.key = self.scope["url_route"]["kwargs"]["key"]
         self.groups_to_join = [protocol.node_group(self.key)]
         return await database_sync_to_async(snapshots.node_exists)(self.key)
+
+    def gateway_views(self) -> list[dict]:
+        return snapshots.node_gateway(self.key)
 
     async def send_snapshot(self) -> None:
         node = await database_sync_to_async(snapshots.one_node)(self.key)
@@ -156,9 +209,14 @@ class LogConsumer(LiveConsumer):
 
     async def prepare(self) -> bool:
         kwargs = self.scope["url_route"]["kwargs"]
-        group = await database_sync_to_async(snapshots.log_group)(kwargs["scope"], kwargs["name"])
+        self.target = (kwargs["scope"], kwargs["name"])
+        group = await database_sync_to_async(snapshots.log_group)(*self.target)
         self.groups_to_join = [group] if group else []
         return group is not None
+
+    def gateway_views(self) -> list[dict]:
+        scope, name = self.target
+        return snapshots.node_gateway(name) if scope == "node" else snapshots.robot_gateway(name)
 
     async def node_logs(self, event: dict) -> None:
         await self.send(text_data=json.dumps({"records": event["records"]}))
@@ -172,5 +230,13 @@ class LogConsumer(LiveConsumer):
     async def run_progress(self, event: dict) -> None:
         pass
 
-    async def send_gateway_status(self, online: bool) -> None:
-        await self.send(text_data=json.dumps({"gateway_online": online}))
+    async def send_gateway_status(self, offline: list[dict]) -> None:
+        with script_prefix(self.prefix):
+            banner = render_to_string("dashboard/_gateway_banner.html", {"offline_gateways": offline})
+        await self.send(text_data=json.dumps({"gateway_online": not offline, "gateway_banner": banner}))
+
+
+def _head(view: dict) -> dict:
+    """What a gateway's header shows, but what moves with the clock (each heartbeat's time,
+    '2 min ago'): the header is sent again when something else changed."""
+    return {k: v for k, v in view.items() if k not in ("since", "reason", "last_beat")}

@@ -6,8 +6,9 @@ from django.http import Http404, HttpRequest, HttpResponse, JsonResponse
 from django.shortcuts import render
 from django.utils import timezone
 
+from lifecycle_site.dashboard import snapshots
 from lifecycle_site.dashboard.access import viewer_required
-from lifecycle_site.fleet.models import GatewayHeartbeat, LogRecord, ManagedNode, Robot
+from lifecycle_site.fleet.models import LogRecord, ManagedNode, Robot
 
 HISTORY_LINES = 500
 LEVELS = [name for _, name in LogRecord.LEVELS]
@@ -17,11 +18,11 @@ LEVEL_VALUES = {name: value for value, name in LogRecord.LEVELS}
 def _target(scope: str, name: str) -> tuple[str, QuerySet, dict]:
     """The title, the records and the page context of a node's or a robot's log."""
     if scope == "node":
-        node = ManagedNode.objects.select_related("robot").filter(key=name).first()
+        node = ManagedNode.objects.select_related("robot__gateway").filter(key=name).first()
         if node is None:
             raise Http404(f"There is no node {name}.")
         return f"{node.robot.name} {node.name}", LogRecord.objects.filter(node=node), {"node": node}
-    robot = Robot.objects.filter(name=name).first() if scope == "robot" else None
+    robot = Robot.objects.select_related("gateway").filter(name=name).first() if scope == "robot" else None
     if robot is None:
         raise Http404(f"There is no robot {name}.")
     return f"{robot.name} (all nodes)", LogRecord.objects.filter(robot=robot), {"robot": robot}
@@ -41,6 +42,7 @@ def _filtered(records: QuerySet, request: HttpRequest) -> QuerySet:
 def log_console(request: HttpRequest, scope: str, name: str) -> HttpResponse:
     title, records, context = _target(scope, name)
     history = [r.as_dict() for r in reversed(records.order_by("-id")[:HISTORY_LINES])]
+    gateway = snapshots.gateway_of(context["node"].robot if "node" in context else context["robot"])
     return render(
         request,
         "dashboard/logs.html",
@@ -51,7 +53,8 @@ def log_console(request: HttpRequest, scope: str, name: str) -> HttpResponse:
             "name": name,
             "history": history,
             "levels": LEVELS,
-            "gateway_online": GatewayHeartbeat.online(),
+            "gateway": gateway,
+            "offline_gateways": [] if gateway["online"] else [gateway],
         },
     )
 

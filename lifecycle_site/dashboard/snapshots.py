@@ -11,7 +11,8 @@ from django.utils.http import RFC3986_SUBDELIMS
 from django.utils.safestring import mark_safe
 
 from lifecycle_site.dashboard.graph import layout
-from lifecycle_site.fleet.models import ManagedNode, Robot
+from lifecycle_site.fleet import gateways
+from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
 from lifecycle_site.fleet.serializers import node_dict
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
@@ -50,18 +51,67 @@ def fleet_row(node: dict) -> dict:
     return row
 
 
-def fleet() -> list[tuple[Robot, list[dict]]]:
-    """Every robot with its nodes as plain data, URLs included: two queries whatever the
-    fleet size. Call it under the script prefix the links are for."""
+def fleet() -> list[dict]:
+    """Every gateway (those without robots only once they have reported) with its status and
+    its robots, each robot with its nodes as plain data, URLs included: three queries and one
+    Redis round trip whatever the fleet size. Call it under the script prefix the links are for.
+
+    Each item: ``{"gateway": gateways.describe(...), "robots": [(robot, [node dicts])]}``."""
+    rows = list(Gateway.objects.order_by("name"))
     robots = list(Robot.objects.order_by("name"))
     by_robot: dict[int, list[dict]] = {r.id: [] for r in robots}
-    rows = []
+    nodes = []
     for node in ManagedNode.objects.select_related("robot").order_by("name"):
         row = node_dict(node)
         by_robot[node.robot_id].append(row)
-        rows.append(row)
-    with_links(rows)
-    return [(robot, by_robot[robot.id]) for robot in robots]
+        nodes.append(row)
+    with_links(nodes)
+    by_gateway: dict[int, list[Robot]] = {}
+    for robot in robots:
+        by_gateway.setdefault(robot.gateway_id, []).append(robot)
+    groups = []
+    for row, state in zip(rows, gateways.statuses(rows), strict=True):
+        mine = by_gateway.get(row.id, [])
+        if mine or state.beat or row.last_beat:
+            groups.append({
+                "gateway": gateways.describe(row, state, [r.name for r in mine]),
+                "robots": [(robot, by_robot[robot.id]) for robot in mine],
+            })
+    return groups
+
+
+def gateway_views() -> list[dict]:
+    """What fleet() says of the gateways, without the nodes (for the fleet page's watch)."""
+    rows = list(Gateway.objects.order_by("name"))
+    names: dict[int, list[str]] = {}
+    for gateway_id, name in Robot.objects.order_by("name").values_list("gateway_id", "name"):
+        names.setdefault(gateway_id, []).append(name)
+    return [
+        gateways.describe(row, state, names.get(row.id, []))
+        for row, state in zip(rows, gateways.statuses(rows), strict=True)
+        if names.get(row.id) or state.beat or row.last_beat
+    ]
+
+
+def node_gateway(key: str) -> list[dict]:
+    """The gateway of a node's robot, as a one-item list (empty if the node is gone)."""
+    node = ManagedNode.objects.select_related("robot__gateway").filter(key=key).first()
+    return [gateway_of(node.robot)] if node else []
+
+
+def robot_gateway(name: str) -> list[dict]:
+    robot = Robot.objects.select_related("gateway").filter(name=name).first()
+    return [gateway_of(robot)] if robot else []
+
+
+def offline(groups: list[dict]) -> list[dict]:
+    """The gateways of ``fleet()`` that have robots and take no commands now."""
+    return [g["gateway"] for g in groups if g["robots"] and not g["gateway"]["online"]]
+
+
+def gateway_of(robot: Robot) -> dict:
+    """A robot's gateway as pages show it (``robot.gateway`` select_related, ideally)."""
+    return gateways.describe(robot.gateway, gateways.status(robot.gateway), [robot.name])
 
 
 def node_exists(key: str) -> bool:

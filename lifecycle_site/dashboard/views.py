@@ -10,10 +10,11 @@ from django.shortcuts import redirect, render
 from django.views.decorators.http import require_POST
 from django_htmx.http import HttpResponseClientRefresh
 
+from lifecycle_site.audit import denials
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.dashboard import snapshots
 from lifecycle_site.dashboard.access import viewer_required
-from lifecycle_site.fleet.models import GatewayHeartbeat, ManagedNode, Robot
+from lifecycle_site.fleet.models import ManagedNode, Robot
 from lifecycle_site.fleet.serializers import node_dict
 from lifecycle_site.fleet.transitions import request_transition
 from ros_gateway.shared import state_machine as sm
@@ -28,12 +29,14 @@ def _can_operate(request: HttpRequest) -> bool:
 
 @viewer_required
 def fleet(request: HttpRequest) -> HttpResponse:
+    groups = snapshots.fleet()
     return render(
         request,
         "dashboard/fleet.html",
         {
-            "robots": snapshots.fleet(),
-            "gateway_online": GatewayHeartbeat.online(),
+            "gateways": groups,
+            "robot_names": [robot.name for group in groups for robot, _ in group["robots"]],
+            "offline_gateways": snapshots.offline(groups),
             "can_operate": _can_operate(request),
             "filter_states": FILTER_STATES,
             "filters": {k: request.GET.get(k, "") for k in ("robot", "state", "q")},
@@ -42,7 +45,7 @@ def fleet(request: HttpRequest) -> HttpResponse:
 
 
 def node_or_404(key: str) -> ManagedNode:
-    node = ManagedNode.objects.select_related("robot").filter(key=key).first()
+    node = ManagedNode.objects.select_related("robot__gateway").filter(key=key).first()
     if node is None:
         raise Http404(f"There is no node {key}.")
     return node
@@ -53,6 +56,7 @@ def node_detail(request: HttpRequest, key: str) -> HttpResponse:
     node = node_or_404(key)
     payload = node_dict(node)
     records = TransitionRecord.objects.filter(node=node).select_related("node")[:20]
+    gateway = snapshots.gateway_of(node.robot)
     return render(
         request,
         "dashboard/node.html",
@@ -60,7 +64,8 @@ def node_detail(request: HttpRequest, key: str) -> HttpResponse:
             **snapshots.state_panel(payload),
             "node_obj": node,
             "records": [r.as_dict() for r in records],
-            "gateway_online": GatewayHeartbeat.online(),
+            "gateway": gateway,
+            "offline_gateways": [] if gateway["online"] else [gateway],
             "can_operate": _can_operate(request),
         },
     )
@@ -73,6 +78,7 @@ def node_transition(request: HttpRequest, key: str) -> HttpResponse:
     the WebSocket is down)."""
     node = node_or_404(key)
     if not _can_operate(request):
+        denials.record(request, 403, "forbidden", "operator needed")
         outcome_context = {"ok": False, "message": "Your role may view but not operate nodes (operator needed)."}
         return render(request, "dashboard/_transition_result.html", outcome_context, status=403)
     requested = request.POST.get("transition", "")

@@ -1,7 +1,11 @@
 from django.contrib import admin
+from django.db.models import Count
 
-from lifecycle_site.fleet import accounts_admin  # noqa: F401  (users and groups, limited by role)
-from lifecycle_site.fleet.models import ManagedNode, Robot
+from lifecycle_site.fleet import (
+    accounts_admin,  # noqa: F401  (users and groups, limited by role)
+    gateways,
+)
+from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
 
 
 class ManagedNodeInline(admin.TabularInline):
@@ -16,8 +20,9 @@ class ManagedNodeInline(admin.TabularInline):
 
 @admin.register(Robot)
 class RobotAdmin(admin.ModelAdmin):
-    list_display = ("name", "domain_id", "namespace", "enabled", "auto_recover", "created")
-    list_filter = ("enabled", "auto_recover", "domain_id")
+    list_display = ("name", "gateway", "domain_id", "namespace", "enabled", "auto_recover", "created")
+    list_filter = ("gateway", "enabled", "auto_recover", "domain_id")
+    list_select_related = ("gateway",)
     search_fields = ("name", "description")
     inlines = [ManagedNodeInline]
 
@@ -28,3 +33,65 @@ class ManagedNodeAdmin(admin.ModelAdmin):
     list_filter = ("robot", "alive", "state_label")
     search_fields = ("name",)
     readonly_fields = ("key", "state_id", "state_label", "alive", "first_seen", "last_seen", "state_changed")
+
+
+class RobotInline(admin.TabularInline):
+    model = Robot
+    fields = ("name", "domain_id", "namespace", "enabled")
+    readonly_fields = fields
+    extra = 0
+    can_delete = False
+    show_change_link = True
+
+    def has_add_permission(self, request, obj=None) -> bool:
+        return False
+
+
+@admin.register(Gateway)
+class GatewayAdmin(admin.ModelAdmin):
+    """Gateways report what they are; the site keeps the accounts of their streams. Neither is
+    edited here, and the Redis password is never shown (``manage.py add_gateway`` issues it)."""
+
+    list_display = ("name", "online", "last_beat", "version", "host", "robot_count", "backlog", "lost")
+    search_fields = ("name", "description", "host")
+    reported = ("last_beat", "started", "stopped", "instance", "version", "host", "pid", "domains", "dds",
+                "node_count", "outbox")
+    accounts = ("backlog", "facts_lost", "facts_rejected", "logs_lost", "logs_dropped", "facts_cursor",
+                "logs_cursor")
+    readonly_fields = ("status", "credentials", "created", *reported, *accounts)
+    fieldsets = (
+        (None, {"fields": ("name", "description", "status", "credentials", "created")}),
+        ("What it reports (its heartbeat)", {"fields": reported}),
+        ("What the site stored of its streams", {"fields": accounts}),
+    )
+    inlines = [RobotInline]
+
+    def get_queryset(self, request):
+        return super().get_queryset(request).annotate(robots_total=Count("robots"))
+
+    def get_readonly_fields(self, request, obj=None):
+        return ("name", *self.readonly_fields) if obj is not None else self.readonly_fields
+
+    @admin.display(boolean=True)
+    def online(self, obj: Gateway) -> bool:
+        return gateways.status(obj).online
+
+    @admin.display(description="status")
+    def status(self, obj: Gateway) -> str:
+        state = gateways.status(obj)
+        return "online" if state.online else state.reason()
+
+    @admin.display(description="Redis credentials")
+    def credentials(self, obj: Gateway) -> str:
+        if obj.redis_password_sha256:
+            return f"Redis user {obj.redis_user}. New password: manage.py add_gateway {obj.name} --env-file FILE"
+        return f"none yet (the default Redis user). Issue them: manage.py add_gateway {obj.name} --env-file FILE"
+
+    @admin.display(description="robots", ordering="robots_total")
+    def robot_count(self, obj: Gateway) -> int:
+        return obj.robots_total
+
+    @admin.display(description="lost / dropped")
+    def lost(self, obj: Gateway) -> str:
+        return (f"{obj.facts_lost} facts, {obj.logs_lost} log batches, {obj.logs_dropped} log lines"
+                + (f", {obj.facts_rejected} facts rejected" if obj.facts_rejected else ""))

@@ -11,5 +11,7 @@ class FleetConfig(AppConfig):
 
         from lifecycle_site.fleet.roles import admins_are_staff, ensure_roles
 
-        post_migrate.connect(ensure_roles, sender=self)
+        # After every app's migrations (not only ours): the roles use permissions of the audit and
+        # api apps too, which exist only once those apps' post_migrate has run. Idempotent.
+        post_migrate.connect(ensure_roles, dispatch_uid="fleet.ensure_roles")
         m2m_changed.connect(admins_are_staff, sender=get_user_model().groups.through)

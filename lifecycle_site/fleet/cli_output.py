@@ -149,7 +149,9 @@ def node_label(node: ManagedNode, with_robot: bool) -> str:
 
 
 def lost_mark(node: ManagedNode) -> str:
-    return "" if node.alive else " (lost)"
+    if node.alive:
+        return ""
+    return " (unreachable)" if node.gone_reason == "unreachable" else " (lost)"
 
 
 def node_json(node: ManagedNode, state: dict | None = None, **extra: Any) -> dict:
@@ -160,6 +162,7 @@ def node_json(node: ManagedNode, state: dict | None = None, **extra: Any) -> dic
         name=node.name,
         state_id=(state or node.state)["id"],
         alive=node.alive,
+        gone_reason=node.gone_reason,
         last_seen=node.last_seen.isoformat() if node.last_seen else None,
     )
     return {**payload, **extra}

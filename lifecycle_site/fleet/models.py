@@ -1,13 +1,11 @@
-"""Robots, their managed nodes, their /rosout history and the gateway's heartbeat."""
+"""Gateways, the robots each of them watches, their managed nodes, /rosout history and group runs."""
 from __future__ import annotations
-
-from datetime import timedelta
 
 from django.conf import settings
 from django.core.validators import MaxValueValidator, MinValueValidator, RegexValidator
 from django.db import models
-from django.utils import timezone
 
+from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 
 ROBOT_NAME_VALIDATOR = RegexValidator(
@@ -18,6 +16,70 @@ NAMESPACE_VALIDATOR = RegexValidator(
     r"^(/[A-Za-z_][A-Za-z0-9_]*)*$",
     "A ROS namespace such as /agv1 or /plant/agv1, or empty for the whole domain.",
 )
+
+GATEWAY_NAME_VALIDATOR = RegexValidator(
+    protocol.GATEWAY_NAME_RE,
+    "Use lower-case letters, digits, '-' and '_', starting with a letter or digit (for example cell-a).",
+)
+
+
+class Gateway(models.Model):
+    """A ROS gateway process (one per cell, network or device) and what it last reported.
+
+    The site registers it (``manage.py add_gateway``); the ingest process copies its heartbeat
+    here and keeps the accounts of its fact and log streams. Whether it is online right now
+    comes from its heartbeat in Redis (``fleet.gateways.status``), not from this row.
+    """
+
+    name = models.CharField(max_length=63, unique=True, validators=[GATEWAY_NAME_VALIDATOR])
+    description = models.TextField(blank=True)
+    created = models.DateTimeField(auto_now_add=True)
+    # Its Redis user's password, hashed as Redis's ACL takes it; the password itself is shown once.
+    redis_password_sha256 = models.CharField(max_length=64, blank=True, editable=False)
+    # From its heartbeat (copied by the ingest process).
+    last_beat = models.DateTimeField(null=True, blank=True)
+    started = models.DateTimeField(null=True, blank=True)
+    stopped = models.BooleanField(default=False, help_text="Its last heartbeat said it stopped cleanly.")
+    instance = models.CharField(max_length=32, blank=True, help_text="Id of its running process.")
+    version = models.CharField(max_length=64, blank=True)
+    host = models.CharField(max_length=255, blank=True)
+    pid = models.PositiveIntegerField(null=True, blank=True)
+    domains = models.JSONField("ROS domains", default=list, blank=True)
+    dds = models.JSONField("DDS discovery settings", default=dict, blank=True)
+    node_count = models.PositiveIntegerField("nodes", default=0)
+    outbox = models.JSONField(default=dict, blank=True, help_text="What it held or dropped while Redis was away.")
+    # Kept by the ingest process.
+    backlog = models.PositiveIntegerField(default=0, help_text="Entries of its streams not yet stored.")
+    facts_lost = models.PositiveBigIntegerField(default=0, help_text="Facts trimmed from Redis before they were read.")
+    facts_rejected = models.PositiveBigIntegerField(default=0, help_text="Facts the site could not apply.")
+    logs_lost = models.PositiveBigIntegerField(default=0, help_text="Log batches trimmed before they were read.")
+    logs_dropped = models.PositiveBigIntegerField(default=0, help_text="Log records its buffer dropped.")
+    facts_cursor = models.CharField(max_length=40, blank=True, help_text="Last applied entry of its facts stream.")
+    logs_cursor = models.CharField(max_length=40, blank=True, help_text="Last stored entry of its logs stream.")
+    facts_instance = models.CharField(max_length=32, blank=True)
+    facts_seq = models.PositiveBigIntegerField(default=0)
+    logs_instance = models.CharField(max_length=32, blank=True)
+    logs_seq = models.PositiveBigIntegerField(default=0)
+
+    class Meta:
+        ordering = ["name"]
+
+    def __str__(self) -> str:
+        return self.name
+
+    @property
+    def redis_user(self) -> str:
+        return f"gw-{self.name}"
+
+
+def default_gateway_id() -> int:
+    """Robots belong to the gateway ``local`` unless told otherwise (made on first need)."""
+    found = Gateway.objects.filter(name=protocol.DEFAULT_GATEWAY).values_list("pk", flat=True).first()
+    if found is None:
+        found = Gateway.objects.create(
+            name=protocol.DEFAULT_GATEWAY, description="The gateway on the site's own machine."
+        ).pk
+    return found
 
 
 class Robot(models.Model):
@@ -34,6 +96,13 @@ class Robot(models.Model):
         blank=True,
         validators=[NAMESPACE_VALIDATOR],
         help_text="Only nodes under this namespace belong to the robot; empty for all of the domain.",
+    )
+    gateway = models.ForeignKey(
+        Gateway,
+        on_delete=models.PROTECT,
+        related_name="robots",
+        default=default_gateway_id,
+        help_text="The gateway that reaches this robot's ROS domain.",
     )
     description = models.TextField(blank=True)
     enabled = models.BooleanField(default=True, help_text="The gateway watches enabled robots only.")
@@ -54,14 +123,6 @@ class Robot(models.Model):
         return not self.namespace or node_name.startswith(self.namespace.rstrip("/") + "/")
 
 
-def node_key(robot_name: str, node_name: str) -> str:
-    """Stable, URL-safe id of a node: ``agv-1.joy_to_vel``, ``agv-1.arm.gripper``.
-
-    ROS names never contain dots and robot names are slugs, so the mapping is unambiguous.
-    """
-    return f"{robot_name}.{node_name.strip('/').replace('/', '.')}"
-
-
 class ManagedNode(models.Model):
     """A lifecycle node seen on a robot (or pinned by name before it shows up)."""
 
@@ -71,6 +132,11 @@ class ManagedNode(models.Model):
     state_id = models.PositiveSmallIntegerField(default=sm.UNKNOWN)
     state_label = models.CharField(max_length=32, default="unknown")
     alive = models.BooleanField(default=False)
+    gone_reason = models.CharField(
+        max_length=16, blank=True, default="",
+        help_text="Why a node that is not alive went: empty (it left the ROS graph) or 'unreachable' "
+        "(its process stopped answering the gateway's probes: its host or link may be down).",
+    )
     first_seen = models.DateTimeField(null=True, blank=True)
     last_seen = models.DateTimeField(null=True, blank=True)
     state_changed = models.DateTimeField(null=True, blank=True)
@@ -96,7 +162,7 @@ class ManagedNode(models.Model):
         return f"{self.robot.name}:{self.name}"
 
     def save(self, *args, **kwargs) -> None:
-        self.key = node_key(self.robot.name, self.name)
+        self.key = protocol.node_key(self.robot.name, self.name)
         super().save(*args, **kwargs)
 
     @property
@@ -111,7 +177,7 @@ class ManagedNode(models.Model):
 
 
 class LogRecord(models.Model):
-    """One /rosout message. Pruned by the gateway to a bounded count and age."""
+    """One /rosout message. Pruned by the ingest process to a bounded count and age."""
 
     DEBUG, INFO, WARN, ERROR, FATAL = 10, 20, 30, 40, 50
     LEVELS = [(DEBUG, "DEBUG"), (INFO, "INFO"), (WARN, "WARN"), (ERROR, "ERROR"), (FATAL, "FATAL")]
@@ -152,26 +218,6 @@ class LogRecord(models.Model):
             "function": self.function,
             "line": self.line,
         }
-
-
-class GatewayHeartbeat(models.Model):
-    """Written by each running ros_gateway every few seconds."""
-
-    name = models.CharField(max_length=100, unique=True)
-    hostname = models.CharField(max_length=255, blank=True)
-    pid = models.PositiveIntegerField(default=0)
-    started = models.DateTimeField()
-    last_beat = models.DateTimeField()
-    watched_domains = models.JSONField(default=list)
-
-    def __str__(self) -> str:
-        return self.name
-
-    @classmethod
-    def online(cls) -> bool:
-        """Whether any gateway beat recently enough to be trusted with commands."""
-        limit = timezone.now() - timedelta(seconds=settings.LIFECYCLE["GATEWAY_OFFLINE_AFTER"])
-        return cls.objects.filter(last_beat__gte=limit).exists()
 
 
 class GroupRun(models.Model):

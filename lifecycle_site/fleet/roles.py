@@ -27,6 +27,7 @@ ADMINISTER = OPERATE + [
     "auth.change_user",
     "api.view_apitoken",
     "api.delete_apitoken",
+    "audit.view_accessdenial",
 ]
 ROLES: dict[str, list[str]] = {"viewer": VIEW, "operator": OPERATE, "admin": ADMINISTER}
 ADMIN_ROLE = "admin"

@@ -1,12 +1,15 @@
 """Starting and following ordered group operations (GroupRun), for the API, pages and CLI.
 
-The site records the run, the gateway carries it out step by step (ros_gateway/groups.py),
-writing each node's result into the run and pushing progress to the robot's group.
+The site records the run and hands the robot's gateway its nodes in tiers (the bring-up
+order); the gateway carries it out step by step, reports each node's result as "run" facts
+(stored by the ingest process) and pushes progress to the robot's group.
 """
 from __future__ import annotations
 
 import time
 import uuid
+
+from django.db.models import F
 
 from lifecycle_site.fleet.gateway_client import GatewayError, call_gateway
 from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
@@ -57,12 +60,33 @@ def start_run(
         requested_by=user if getattr(user, "pk", None) else None,
         source=source,
     )
+    spec = {
+        "id": run.id, "robot": robot.name, "operation": operation, "policy": policy, "node_timeout": node_timeout,
+        "tiers": tiers(robot, nodes), "source": source, "user_id": run.requested_by_id,
+    }
     try:
-        call_gateway(protocol.START_RUN, timeout=2.0, run_id=run.id)
+        call_gateway(robot.gateway.name, protocol.START_RUN, timeout=2.0, run=spec)
     except GatewayError as exc:
         GroupRun.objects.filter(pk=run.pk).update(status=GroupRun.Status.FAILED, message=exc.message)
         raise RunRefused(exc.code, exc.message, exc.status) from None
     return run
+
+
+def tiers(robot: Robot, only: list[str]) -> list[list[str]]:
+    """The robot's bring-up order as tiers run one after the other: one tier per position
+    (nodes sharing a position go together), then every node without a position. Nodes within
+    a tier have no order between them. ``only`` narrows the run to those nodes. The gateway
+    runs the tiers in reverse for the operations that go down (pause, reset, shut down)."""
+    rows = ManagedNode.objects.filter(robot=robot).order_by(F("order").asc(nulls_last=True), "name")
+    wanted = set(only)
+    by_position: dict[int | None, list[str]] = {}
+    for name, position in rows.values_list("name", "order"):
+        if not only or name in wanted:
+            by_position.setdefault(position, []).append(name)
+    listed = {name for tier in by_position.values() for name in tier}
+    # Named but unknown by now (removed meanwhile): still reported, as "not running".
+    missing = [name for name in only if name not in listed]
+    return [*by_position.values(), *([missing] if missing else [])]
 
 
 def wait_for(run: GroupRun, seconds: float, on_progress=None) -> GroupRun:

@@ -13,5 +13,6 @@ def node_dict(node: ManagedNode) -> dict:
         name=node.name,
         state_id=node.state_id,
         alive=node.alive,
+        gone_reason=node.gone_reason,
         last_seen=node.last_seen.isoformat() if node.last_seen else None,
     )

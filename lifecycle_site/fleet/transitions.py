@@ -1,8 +1,9 @@
 """Requesting one lifecycle transition on behalf of a user, for the API and the pages alike.
 
-The gateway checks the transition against the node's real state, calls it and records the
-outcome; what is refused before reaching the gateway is recorded here, so every attempt
-lands in the audit log.
+The robot's gateway checks the transition against the node's real state, calls it and
+reports the outcome as facts with its reply; they are applied here (fleet.facts) before the
+user gets the answer. What is refused before reaching the gateway is recorded here too, so
+every attempt lands in the audit log.
 """
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from dataclasses import dataclass, field
 from django.utils import timezone
 
 from lifecycle_site.audit.models import TransitionRecord
+from lifecycle_site.fleet.facts import apply_facts, push, record_messages
 from lifecycle_site.fleet.gateway_client import GatewayError, call_gateway
 from lifecycle_site.fleet.models import ManagedNode
 from ros_gateway.shared import protocol
@@ -51,8 +53,10 @@ def request_transition(node: ManagedNode, requested, user, source: str, timeout:
             message = f"{node.name} is not running on {node.robot.name}; it was last seen {ago(node.last_seen)}."
         record = record_rejection(node, requested, user, source, message)
         return Outcome(409, "node_offline", message, {"state": node.state, "record_id": record.id})
+    gateway = node.robot.gateway.name
     try:
         reply = call_gateway(
+            gateway,
             protocol.CHANGE_STATE,
             timeout=timeout,
             robot=node.robot.name,
@@ -63,10 +67,15 @@ def request_transition(node: ManagedNode, requested, user, source: str, timeout:
         )
     except GatewayError as exc:
         details = {"state": node.state, **exc.details}
-        if exc.code in RECORDED_HERE:
+        record = _apply(gateway, exc.facts)
+        if record is not None:
+            details["record_id"] = record.id
+        elif exc.code in RECORDED_HERE:
             details["record_id"] = record_rejection(node, requested, user, source, exc.message).id
         return Outcome(STATUS_BY_CODE.get(exc.code, exc.status), exc.code, exc.message, details)
-    common = {"from": reply["from"], "transition": reply["transition"], "record_id": reply["record_id"]}
+    record = _apply(gateway, reply.get("facts") or [])
+    common = {"from": reply["from"], "transition": reply["transition"],
+              "record_id": record.id if record is not None else None}
     outcome = reply["outcome"]
     if outcome == "succeeded":
         label = reply["transition"]["label"]
@@ -75,11 +84,21 @@ def request_transition(node: ManagedNode, requested, user, source: str, timeout:
                                             "duration_ms": reply["duration_ms"]})
     if outcome == "rejected":
         return Outcome(409, "invalid_transition", reply["message"], {
-            "state": reply["from"], "valid_transitions": reply["valid_transitions"], "record_id": reply["record_id"]})
+            "state": reply["from"], "valid_transitions": reply["valid_transitions"], "record_id": common["record_id"]})
     details = {"state": reply["to"], "duration_ms": reply["duration_ms"], **common}
     if outcome == "timed_out":
         return Outcome(504, "timeout", reply["message"], details)
     return Outcome(422, "transition_failed", reply["message"], details)
+
+
+def _apply(gateway: str, facts: list) -> TransitionRecord | None:
+    """Store what the gateway reported with its reply (the node's new state, the audit record
+    of the attempt) and show the record on the node's page; returns that record."""
+    if not facts:
+        return None
+    applied = apply_facts(gateway, facts)
+    push(record_messages(applied.created))
+    return applied.transition_record(facts)
 
 
 def record_rejection(node: ManagedNode, requested, user, source: str, message: str) -> TransitionRecord:

@@ -61,12 +61,17 @@ def storable(value: Any) -> Any:
     return value
 
 
+INT64_MIN, INT64_MAX = -(2**63), 2**63 - 1  # ROS integer parameters are int64
+
+
 def _is_int(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
-def _is_number(value: Any) -> bool:
-    return (_is_int(value) or isinstance(value, float)) and math.isfinite(value)
+def is_number(value: Any) -> bool:
+    """A finite int or float, not a bool (JSON numbers of any size included)."""
+    # math.isfinite() of an int beyond a double's range raises; every int is finite.
+    return _is_int(value) or isinstance(value, float) and math.isfinite(value)
 
 
 def coerce(value: Any, type_name: str) -> Any:
@@ -76,14 +81,19 @@ def coerce(value: Any, type_name: str) -> Any:
             return value
         raise InvalidValue("must be true or false")
     if type_name == "integer":
-        if _is_int(value):
-            return value
         if isinstance(value, float) and value.is_integer():
-            return int(value)
-        raise InvalidValue("must be a whole number")
+            value = int(value)
+        if not _is_int(value):
+            raise InvalidValue("must be a whole number")
+        if not INT64_MIN <= value <= INT64_MAX:
+            raise InvalidValue(f"must be between {INT64_MIN} and {INT64_MAX} (a 64-bit integer)")
+        return value
     if type_name == "double":
-        if _is_number(value):
-            return float(value)
+        if is_number(value):
+            try:
+                return float(value)
+            except OverflowError:  # a whole number too large for a double
+                raise InvalidValue("is too large for a double (about 1.8e308 at most)") from None
         raise InvalidValue("must be a number")
     if type_name == "string":
         if isinstance(value, str):

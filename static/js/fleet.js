@@ -36,7 +36,9 @@
       if (countsEl) countsEl.textContent = summary || "no nodes";
       var onlineEl = section.querySelector("[data-online-for]");
       if (onlineEl && onlineEl.textContent !== "disabled") {
-        var gatewayDown = !document.getElementById("gateway-banner").hidden;
+        var group = section.closest("section.gateway");
+        var head = group && group.querySelector("[data-gateway-online]");
+        var gatewayDown = !!head && head.dataset.gatewayOnline !== "true";
         var online = alive > 0 && !gatewayDown;
         onlineEl.textContent = online ? "online" : "offline";
         onlineEl.className = "robot-online badge " + (online ? "online" : "offline");

@@ -109,7 +109,8 @@
       if (data.records) receive(data.records);
       if ("gateway_online" in data) {
         var banner = document.getElementById("gateway-banner");
-        if (banner) banner.hidden = data.gateway_online;
+        if (banner && data.gateway_banner) banner.outerHTML = data.gateway_banner;
+        else if (banner) banner.hidden = data.gateway_online;
       }
     };
     socket.onclose = function (event) {

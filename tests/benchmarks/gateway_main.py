@@ -1,6 +1,7 @@
 """The product's gateway (ros_gateway.service.Gateway, as ``manage.py ros_gateway`` runs it)
 plus a JSON file of its own counters, rewritten every half second, so the benchmark can see
-what it received, dropped, stored and published. Nothing of the gateway is changed.
+what it received, dropped, handed to its outbox and published. Nothing of the gateway is
+changed. (What is stored, the ingest process stores: see Stack.ingest_stats.)
 
     python -m tests.benchmarks.gateway_main NAME STATS_PATH
 """
@@ -17,23 +18,28 @@ from pathlib import Path
 REPORT_INTERVAL_S = 0.5
 
 
+tasks_module = None  # ros_gateway.tasks, once Django is set up
+
+
 def snapshot(gateway) -> dict:
-    logs, buffer = gateway.logs, gateway.logs.buffer
+    logs, buffer, tasks = gateway.logs, gateway.logs.buffer, tasks_module
     return {
         "time": time.time(),
         "monotonic": time.monotonic(),
         "logs_received": buffer.received,
         "logs_dropped": buffer.dropped,
         "logs_buffered": len(buffer),
-        "logs_stored": logs.stored,
+        "logs_collected": logs.collected,
+        "outbox": gateway.outbox.counters(),
         "published": gateway.relay.published,
         "publish_failures": gateway.relay.publish_failures,
         "commands_handled": gateway.commands.handled,
         "domains": sorted(gateway.domains),
-        "nodes_known": len(gateway.nodes),
-        "nodes_alive": sum(1 for n in gateway.nodes.values() if n.alive),
-        "nodes_state_read": sum(1 for n in gateway.nodes.values() if n.alive and n.state_read),
-        "background_tasks": len(gateway._background),
+        "nodes_known": len(gateway.registry.nodes),
+        "nodes_alive": sum(1 for n in gateway.registry.nodes.values() if n.alive),
+        "nodes_state_read": sum(1 for n in gateway.registry.nodes.values() if n.alive and n.state_read),
+        "background_tasks": len(tasks._running),
+        "liveness_probes": gateway.liveness.probes,
     }
 
 
@@ -51,10 +57,17 @@ def main(name: str, stats_path: str) -> None:
     import django
 
     django.setup()
+    from django.conf import settings
+
+    from ros_gateway import tasks
+    from ros_gateway.config import GatewayConfig
     from ros_gateway.service import Gateway
 
+    global tasks_module
+    tasks_module = tasks
+
     async def run() -> None:
-        gateway = Gateway(name)
+        gateway = Gateway(GatewayConfig.load(name, settings))
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, gateway.stop)

@@ -1,8 +1,9 @@
-"""The real stack of one scenario: its own Redis, a fresh SQLite database, the gateway and
-daphne as subprocesses, and robot processes on demand; everything is stopped on exit.
+"""The real stack of one scenario: its own Redis, a fresh SQLite database, and as
+subprocesses the site's ingest process, one registered gateway (with its own Redis user and
+no database) and daphne; robot processes on demand. Everything is stopped on exit.
 
 DDS stays on this machine (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST) and the benchmark uses
-ROS domains 110-119 only, apart from the tests (30-109, 150-160) and the demo (21, 22). Each
+ROS domains 120-129 only, apart from the tests (30-119) and the demo (21, 22). Each
 scenario claims its domains (tests/domains.py), so two runs on one machine cannot share one.
 """
 from __future__ import annotations
@@ -12,6 +13,7 @@ import os
 import shutil
 import signal
 import socket
+import sqlite3
 import subprocess
 import sys
 import time
@@ -26,6 +28,8 @@ ROOT = Path(__file__).resolve().parents[2]
 PYTHON = sys.executable
 USER, PASSWORD = "bench-operator", "bench-password-9431"
 CHANNEL_PREFIX = "lifecycle-bench"
+# The gateway gets a database it cannot open, as in the integration tests: it needs only Redis.
+GATEWAY_DATABASE_URL = "sqlite:////nonexistent-lifecycle-bench-dir/no-database-for-gateways.sqlite3"
 
 T = TypeVar("T")
 
@@ -91,7 +95,7 @@ def environment(data_dir: Path, redis_port: int, **extra: str) -> dict[str, str]
         REDIS_URL=f"redis://127.0.0.1:{redis_port}/0",
         LIFECYCLE_CHANNEL_PREFIX=CHANNEL_PREFIX,
         ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-        ROS_DOMAIN_ID="119",  # anything that forgets its domain stays in ours
+        ROS_DOMAIN_ID="129",  # anything that forgets its domain stays in ours
         PYTHONUNBUFFERED="1",
     )
     env.update(extra)
@@ -112,12 +116,12 @@ from django.contrib.auth.models import Group
 user = get_user_model().objects.create_user({USER!r}, password={PASSWORD!r})
 user.groups.add(Group.objects.get(name="operator"))
 """
-SEED_ROBOTS = """
-import json, os
-from lifecycle_site.fleet.models import Robot
-for name, domain in json.loads(os.environ["BENCH_ROBOTS"]):
-    Robot.objects.create(name=name, domain_id=domain)
-"""
+
+
+def read_env_file(path: Path) -> dict[str, str]:
+    """KEY=VALUE lines, as ``manage.py add_gateway --env-file`` writes them."""
+    pairs = (line.partition("=") for line in path.read_text().splitlines() if "=" in line)
+    return {key.strip(): value.strip() for key, _, value in pairs}
 
 
 class Template:
@@ -140,7 +144,7 @@ class Template:
 
 
 class Stack:
-    """Redis, database, gateway and daphne of one scenario (a context manager)."""
+    """Redis, database, ingest, gateway and daphne of one scenario (a context manager)."""
 
     api: Http  # bearer token of the benchmark's operator
     web: Http  # the same operator's browser session (login form)
@@ -159,8 +163,13 @@ class Stack:
         self.children: list[Child] = []
         self.redis: subprocess.Popen | None = None
         self.gateway: Child | None = None
+        self.ingest: Child | None = None
         self.site: Child | None = None
+        self.gateway_name = f"bench-{name}"
         self.stats_path = self.dir / "gateway-stats.json"
+        self.db_path = self.dir / "db.sqlite3"
+        self._db: sqlite3.Connection | None = None
+        self._redis = None  # the harness's own Redis client (default user), made on first use
 
     # -- bring-up and teardown ------------------------------------------------------------
     def __enter__(self) -> "Stack":
@@ -182,9 +191,17 @@ class Stack:
         except domains.DomainInUse as exc:
             raise BenchError(f"{exc}: wait for the other benchmark run to end") from None
         self.redis = local_redis.start(self.redis_port, self.dir / "redis")
-        run_manage(dict(self.env, BENCH_ROBOTS=json.dumps(self.robots)), "shell", "-c", SEED_ROBOTS)
+        # As an operator sets up a gateway (docs/architecture.md): register it, which gives it a
+        # Redis user of its own and writes its environment, then its robots.
+        env_file = self.dir / "gateway.env"
+        run_manage(self.env, "add_gateway", self.gateway_name, "--env-file", str(env_file))
+        for robot, domain in self.robots:
+            run_manage(self.env, "add_robot", robot, "--domain", str(domain), "--gateway", self.gateway_name)
+        self.ingest = self.spawn("ingest", [PYTHON, "manage.py", "ingest"])
+        gateway_env = dict(self.env, DATABASE_URL=GATEWAY_DATABASE_URL, **read_env_file(env_file))
         self.gateway = self.spawn(
-            "gateway", [PYTHON, "-m", "tests.benchmarks.gateway_main", f"bench-{self.name}", str(self.stats_path)]
+            "gateway", [PYTHON, "-m", "tests.benchmarks.gateway_main", self.gateway_name, str(self.stats_path)],
+            env=gateway_env,
         )
         self.site = self.spawn(
             "daphne", [PYTHON, "-m", "daphne", "-b", "127.0.0.1", "-p", str(self.web_port),
@@ -193,12 +210,21 @@ class Stack:
         wait_for(lambda: self._answers() or not self.site.alive(), 30, "daphne to listen")
         self._require_alive(self.site)
         self.api = Http("127.0.0.1", self.web_port, token=self.token)
+        wait_for(lambda: "holding the ingest lease" in self.ingest.output() or not self.ingest.alive(), 60,
+                 "the ingest process to take its lease")
+        self._require_alive(self.ingest)
         wait_for(lambda: self._gateway_online() or not self.gateway.alive(), 60, "the gateway heartbeat")
         self._require_alive(self.gateway)
         self.web = Http("127.0.0.1", self.web_port)
         self.web.login(USER, PASSWORD)
 
     def stop(self) -> None:
+        if self._db is not None:
+            self._db.close()
+            self._db = None
+        if self._redis is not None:
+            self._redis.close()
+            self._redis = None
         for child in reversed(self.children):
             child.stop()
         self.children.clear()
@@ -207,8 +233,8 @@ class Stack:
             self.redis.wait(10)
         domains.release(sorted({domain for _, domain in self.robots}))
 
-    def spawn(self, name: str, argv: list[str], **kwargs: int) -> Child:
-        child = Child(name, argv, self.env, self.log_dir, **kwargs)
+    def spawn(self, name: str, argv: list[str], env: dict[str, str] | None = None, **kwargs: int) -> Child:
+        child = Child(name, argv, env or self.env, self.log_dir, **kwargs)
         self.children.append(child)
         return child
 
@@ -247,6 +273,40 @@ class Stack:
             return json.loads(self.stats_path.read_text())
         except (OSError, ValueError):
             return {}
+
+    def ingest_stats(self) -> dict:
+        """What the ingest process has stored, read where it stores it (the database; read-only
+        queries, WAL lets them run beside its writes): log records ever stored (the highest id:
+        pruning deletes old rows, never the newest), audit records by source, and the gateway
+        row's accounts of what was lost on the way and its node count (copied from its beat)."""
+        if self._db is None:
+            self._db = sqlite3.connect(self.db_path, timeout=10, isolation_level=None, check_same_thread=False)
+        db = self._db
+        stats: dict = {
+            "logs_stored": db.execute("SELECT coalesce(max(id), 0) FROM fleet_logrecord").fetchone()[0],
+            "audit_records": dict(db.execute("SELECT source, count(*) FROM audit_transitionrecord GROUP BY source")),
+        }
+        columns = ("logs_lost", "logs_dropped", "facts_lost", "facts_rejected", "node_count")
+        row = db.execute(f"SELECT {', '.join(columns)} FROM fleet_gateway WHERE name = ?",
+                         (self.gateway_name,)).fetchone()
+        if row is not None:
+            stats.update(zip(columns, row, strict=True))
+        return stats
+
+    def stream_backlog(self, kind: str = "logs") -> int:
+        """Entries of the gateway's ``kind`` stream in Redis that the ingest process has not yet
+        acknowledged: not yet delivered (the group's lag) plus delivered and not acknowledged."""
+        import redis
+
+        from ros_gateway.shared import protocol
+
+        if self._redis is None:
+            self._redis = redis.Redis(host="127.0.0.1", port=self.redis_port, socket_timeout=5)
+        key = protocol.gateway_key(CHANNEL_PREFIX, self.gateway_name, kind)
+        for group in self._redis.xinfo_groups(key):
+            if group["name"] in (protocol.INGEST_GROUP, protocol.INGEST_GROUP.encode()):
+                return int(group.get("lag") or 0) + int(group.get("pending") or 0)
+        return self._redis.xlen(key)
 
     def nodes(self, robot: str | None = None) -> list[dict]:
         path = "/api/v1/nodes" + (f"?robot={robot}" if robot else "")

@@ -55,11 +55,13 @@ class RosProbe(LineProcess):
 
     def __init__(self, stack: Stack, domain: int) -> None:
         super().__init__(stack, f"probe-{domain}", "tests.benchmarks.ros_probe", str(domain))
+        self.changes = 0  # transitions made (each one the gateway sees as external)
 
     def change(self, fqn: str, transition_id: int, check: bool = False) -> dict[str, Any]:
         answer = self.call("change", node=fqn, transition=transition_id, check=check)
         if not answer.get("ok"):
             raise BenchError(f"direct ChangeState {transition_id} on {fqn} failed: {answer}")
+        self.changes += 1
         return answer
 
 

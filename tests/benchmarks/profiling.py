@@ -1,4 +1,4 @@
-"""Optional py-spy sampling of the gateway and daphne while a scenario measures
+"""Optional py-spy sampling of the gateway, daphne and the ingest process while a scenario measures
 (``--profile DIR``), and a summary of such a profile:
 
     python -m tests.benchmarks.profiling DIR/transition-gateway.txt [--top 25]
@@ -29,13 +29,13 @@ def py_spy() -> str:
 
 @contextmanager
 def profiled(ctx: BenchContext, stack: Stack, label: str) -> Iterator[None]:
-    """Record the gateway's and daphne's stacks (collapsed, one file each) during the block."""
+    """Record the stacks of gateway, daphne and ingest (collapsed, one file each) during the block."""
     if ctx.profile_dir is None:
         yield
         return
     ctx.profile_dir.mkdir(parents=True, exist_ok=True)
     recorders = []
-    for child in (stack.gateway, stack.site):
+    for child in (stack.gateway, stack.site, stack.ingest):
         assert child is not None
         out = ctx.profile_dir / f"{label}-{child.name}.txt"
         recorders.append(subprocess.Popen(

@@ -6,6 +6,10 @@ subscribes to the node's ~/transition_event and stamps each event on arrival wit
 machine's monotonic clock; the WebSocket clients stamp each message with the same clock.
 The probe's own arrival is after the publish, so the figures are, if anything, a fraction of
 a millisecond too good; "request -> event at probe" bounds that error.
+
+Beside the state, the node page gets an audit row for each of these (external) transitions
+once it is stored: "end event -> audit row" is how long a fact takes to be written and shown
+(the gateway's facts stream, the ingest process, the database, its push).
 """
 from __future__ import annotations
 
@@ -22,7 +26,7 @@ from tests.benchmarks.web import Http, ws_connect
 
 NAME = "push"
 TITLE = "2. Push latency: transition_event published -> WebSocket message at the browser"
-DOMAIN = 111
+DOMAIN = 121
 ROBOT = "bench-push"
 NODE = "push_node_000"
 CYCLE_IDS = [1, 3, 4, 2]  # configure, activate, deactivate, cleanup
@@ -30,12 +34,14 @@ PAUSE_S = 0.15
 TRANSITION_STATES = {"configuring", "cleaningup", "shuttingdown", "activating", "deactivating", "errorprocessing"}
 NODE_BADGE = re.compile(r'class="badge big state-([a-z]+)"')
 ROW_BADGE = re.compile(r'class="badge state-([a-z]+)"')
+AUDIT_ROW = re.compile(r"([a-z?]+) \u2192 ([a-z?]+)</td>")  # _audit_row.html: "from -> to"
 
 Arrival = tuple[float, str]  # (monotonic time, state label shown)
 
 
 async def listen(web: Http, path: str, badge: re.Pattern, must_contain: str, sink: list[Arrival],
-                 ready: asyncio.Event, stop: asyncio.Event) -> None:
+                 ready: asyncio.Event, stop: asyncio.Event, audit: list[Arrival] | None = None) -> None:
+    """Stamp each state update (and, with ``audit``, each new audit row: its result state)."""
     async with ws_connect(web, path) as ws:
         ready.set()
         while not stop.is_set():
@@ -44,21 +50,27 @@ async def listen(web: Http, path: str, badge: re.Pattern, must_contain: str, sin
             except asyncio.TimeoutError:
                 continue
             arrived = time.monotonic()
-            if isinstance(message, str) and must_contain in message:
+            if not isinstance(message, str):
+                continue
+            if must_contain in message:
                 match = badge.search(message)
                 if match:
                     sink.append((arrived, match.group(1)))
+            if audit is not None and "#audit-rows" in message:
+                row = AUDIT_ROW.search(message)
+                if row:
+                    audit.append((arrived, row.group(2)))
 
 
 async def drive(stack: Stack, probe: RosProbe, fqn: str, key: str, count: int) -> tuple[list, list[float], dict]:
     """Trigger ``count`` transitions while both pages listen; returns events, send times, arrivals."""
-    arrivals: dict[str, list[Arrival]] = {"node page": [], "fleet page": []}
+    arrivals: dict[str, list[Arrival]] = {"node page": [], "fleet page": [], "audit rows": []}
     stop = asyncio.Event()
     readies = [asyncio.Event(), asyncio.Event()]
     row_id = "node-" + key.replace(".", "__")
     tasks = [
         asyncio.create_task(listen(stack.web, f"/ws/nodes/{key}/", NODE_BADGE, 'id="node-state"',
-                                   arrivals["node page"], readies[0], stop)),
+                                   arrivals["node page"], readies[0], stop, arrivals["audit rows"])),
         asyncio.create_task(listen(stack.web, "/ws/fleet/", ROW_BADGE, f'id="{row_id}"',
                                    arrivals["fleet page"], readies[1], stop)),
     ]
@@ -72,7 +84,7 @@ async def drive(stack: Stack, probe: RosProbe, fqn: str, key: str, count: int) -
         answer = await asyncio.to_thread(probe.change, fqn, CYCLE_IDS[i % len(CYCLE_IDS)])
         sent.append(answer["sent"])
         await asyncio.sleep(PAUSE_S)
-    await asyncio.sleep(1.0)  # the last pushes
+    await asyncio.sleep(2.0)  # the last pushes (audit rows come after the ingest process stored them)
     stop.set()
     await asyncio.gather(*tasks)
     events = (await asyncio.to_thread(probe.call, "events"))["events"]
@@ -112,16 +124,21 @@ def run(ctx: BenchContext) -> ScenarioResult:
         probe.close()
     if len(events) < count:
         raise BenchError(f"the probe saw {len(events)} transition events for {count} transitions")
-    for page, sink in arrivals.items():
+    for page in ("node page", "fleet page"):
         both = result.new_series(f"{page}: event -> WebSocket, all")
         begin = result.new_series(f"{page}:   begin events (-> ...ing)")
         end = result.new_series(f"{page}:   end events (-> primary state)")
-        missing = match(events, sink, begin, end, both)
+        missing = match(events, arrivals[page], begin, end, both)
         result.figure(f"{page}: events without a matching push", missing)
         if page == "node page":
             result.check("node page push median", both.median, "< 20 ms", both.median < 20, "ms")
             p99 = both.summary()["p99"]
             result.check("node page push p99", p99, "< 100 ms", p99 < 100, "ms")
+    audit = result.new_series("node page: end event -> audit row (stored, then pushed)")
+    ends = [e for e in events if e[2] not in TRANSITION_STATES]
+    missing = match(ends, arrivals["audit rows"], audit, audit, Series("all audit rows"))
+    result.figure("node page: audit rows received", len(arrivals["audit rows"]))
+    result.figure("node page: transitions without an audit row", missing)
     bound = result.new_series("probe: request sent -> begin event received")
     for t in sent:
         later = [e[0] for e in events if e[0] >= t]

@@ -1,8 +1,9 @@
 """Scenario 3: 300 lifecycle nodes over 3 robots (ROS domains), 25 nodes per process.
 
-Measures how long until the gateway has found them all and the API lists them alive;
-``GET /api/v1/nodes`` and the fleet page at that size; bring-up of one robot for growing
-node counts (bringup.py); and the resident memory of gateway and site.
+Measures how long until the gateway has found them all and the API lists them alive (the
+gateway reports them as facts; the ingest process stores them); ``GET /api/v1/nodes`` and the
+fleet page at that size; bring-up of one robot for growing node counts (bringup.py); and the
+resident memory of gateway, site and ingest process.
 """
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ from tests.benchmarks.system import cpu_seconds, loadavg, rss_mb
 
 NAME = "scale"
 TITLE = "3. Scale: 300 nodes on 3 robots; listing, fleet page, bring-up, memory"
-ROBOTS = [("bench-s1", 113), ("bench-s2", 114), ("bench-s3", 115)]
+ROBOTS = [("bench-s1", 123), ("bench-s2", 124), ("bench-s3", 125)]
 DISCOVERY_TIMEOUT_S = 180.0
 POLL_S = 0.25
 
@@ -44,7 +45,7 @@ def start_robots(stack: Stack, sizes: Sizes) -> list[Child]:
 def watch_discovery(stack: Stack, robots: list[Child], total: int, result: ScenarioResult) -> None:
     """Poll until every node is listed alive with its state read; record when each stage ended."""
     launched = time.monotonic()
-    gateway_cpu = cpu_seconds(stack.gateway.pid)
+    gateway_cpu, ingest_cpu = cpu_seconds(stack.gateway.pid), cpu_seconds(stack.ingest.pid)
     marks: dict[str, float] = {}
     deadline = launched + DISCOVERY_TIMEOUT_S
     while not {"state read", "gateway"} <= marks.keys():
@@ -73,13 +74,14 @@ def watch_discovery(stack: Stack, robots: list[Child], total: int, result: Scena
     result.figure("API lists all alive, from processes ready", max(marks["listed"] - marks["ready"], 0), "s")
     result.figure("all states read, from processes ready", max(marks["state read"] - marks["ready"], 0), "s")
     result.figure("gateway CPU during discovery", cpu_seconds(stack.gateway.pid) - gateway_cpu, "s")
+    result.figure("ingest CPU during discovery", cpu_seconds(stack.ingest.pid) - ingest_cpu, "s")
     listed_after = max(marks["listed"] - marks["ready"], 0)
     result.check(f"{total} nodes listed, from processes ready", listed_after, "<= 10 s", listed_after <= 10, "s")
 
 
 def idle_cpu(stack: Stack, seconds: float, total: int, result: ScenarioResult) -> None:
-    """CPU the gateway and the site use with every node up and nothing happening."""
-    pids = {"gateway": stack.gateway.pid, "site": stack.site.pid}
+    """CPU the gateway, the site and the ingest process use with every node up and nothing happening."""
+    pids = {"gateway": stack.gateway.pid, "site": stack.site.pid, "ingest": stack.ingest.pid}
     before = {k: cpu_seconds(pid) for k, pid in pids.items()}
     time.sleep(seconds)
     for name, pid in pids.items():
@@ -108,22 +110,25 @@ def run(ctx: BenchContext) -> ScenarioResult:
     result.notes.append(f"{total} nodes: {len(ROBOTS)} robots x {sizes.processes} processes x "
                         f"{sizes.per_process} nodes (demo robot --generic)")
     with ctx.stack(NAME, ROBOTS) as stack:
-        idle_gateway, idle_site = rss_mb(stack.gateway.pid), rss_mb(stack.site.pid)
+        processes = {"gateway": stack.gateway.pid, "site": stack.site.pid, "ingest": stack.ingest.pid}
+        idle = {name: rss_mb(pid) for name, pid in processes.items()}
         robots = start_robots(stack, sizes)
         watch_discovery(stack, robots, total, result)
         time.sleep(1.0 if ctx.quick else 3.0)  # let the first state reads and pushes settle
         idle_cpu(stack, 3.0, total, result)
         with profiled(ctx, stack, NAME):
             measure_pages(stack, sizes.page_samples, result)
-            gateway_mb, site_mb = rss_mb(stack.gateway.pid), rss_mb(stack.site.pid)
+            peak = {name: rss_mb(pid) for name, pid in processes.items()}
             measure_cold(stack, ROBOTS[1][0], ROBOTS[2][0], sizes.bringup[-1], result)
             measure_warm(stack, ROBOTS[0][0], sizes.bringup, result)
-        gateway_mb = max(gateway_mb, rss_mb(stack.gateway.pid))
-        site_mb = max(site_mb, rss_mb(stack.site.pid))
-    result.figure("gateway RSS before robots started", idle_gateway, "MB")
-    result.figure("site (daphne) RSS before robots started", idle_site, "MB")
-    result.check(f"gateway RSS at {total} nodes", gateway_mb, "< 200 MB", gateway_mb < 200, "MB")
-    result.check(f"site RSS at {total} nodes", site_mb, "< 150 MB", site_mb < 150, "MB")
-    if math.isnan(gateway_mb) or math.isnan(site_mb):
+        peak = {name: max(peak[name], rss_mb(pid)) for name, pid in processes.items()}
+    result.figure("gateway RSS before robots started", idle["gateway"], "MB")
+    result.figure("site (daphne) RSS before robots started", idle["site"], "MB")
+    result.figure("ingest RSS before robots started", idle["ingest"], "MB")
+    result.figure(f"ingest RSS at {total} nodes", peak["ingest"], "MB")
+    result.figure(f"site side, daphne + ingest, at {total} nodes", peak["site"] + peak["ingest"], "MB")
+    result.check(f"gateway RSS at {total} nodes", peak["gateway"], "< 200 MB", peak["gateway"] < 200, "MB")
+    result.check(f"site RSS at {total} nodes", peak["site"], "< 150 MB", peak["site"] < 150, "MB")
+    if any(math.isnan(mb) for mb in peak.values()):
         result.notes.append("a process was gone when its memory was read")
     return result

@@ -19,10 +19,10 @@ def test_gateway_offline_banner_comes_and_goes(browser, site, robot, operator, g
 
     assert gateway.stop() == 0
     expect(banner).to_be_visible(timeout=15_000)
-    expect(banner).to_contain_text("gateway is offline")
+    expect(banner).to_contain_text("gateway local is offline")
     page.screenshot(path=ARTIFACTS / "gateway-offline.png")
 
-    replacement = stack.start_gateway(name="it-gateway")
+    replacement = stack.start_gateway()
     try:
         expect(banner).to_be_hidden(timeout=20_000)
         badge = page.locator("#node-" + f"{ROBOT}.lidar_driver".replace(".", "__")).locator(".badge")

@@ -1,4 +1,5 @@
-"""The Industrial Edge stack (compose project) behind an nginx that behaves like the device's."""
+"""Compose projects of the deploy tests (the Industrial Edge stack behind an nginx that behaves
+like the device's; the plain site and a remote cell) and their clean-up."""
 from __future__ import annotations
 
 import json
@@ -41,6 +42,7 @@ class Stack:
     nginx: subprocess.Popen | None = None
     created_network: bool = False
     extra: dict = field(default_factory=dict)
+    logs: str = "compose"  # tests/artifacts/deploy/<logs>.log and <logs>-down.log
 
     def compose(self, *args: str, timeout: float = 180, check: bool = True) -> subprocess.CompletedProcess:
         argv = ["docker-compose", "-p", self.project]
@@ -70,14 +72,15 @@ class Stack:
     def save_logs(self) -> None:
         ARTIFACTS.mkdir(parents=True, exist_ok=True)
         result = self.compose("logs", "--no-color", "--tail", "400", timeout=120, check=False)
-        (ARTIFACTS / "compose.log").write_text(result.stdout + result.stderr)
+        (ARTIFACTS / f"{self.logs}.log").write_text(result.stdout + result.stderr)
 
     def down(self) -> None:
         """compose down (containers, networks, volume); whatever it leaves is removed by label."""
         try:
             result = self.compose("down", "-v", "--remove-orphans", "--timeout", "10", timeout=180, check=False)
             ARTIFACTS.mkdir(parents=True, exist_ok=True)
-            (ARTIFACTS / "compose-down.log").write_text(f"exit {result.returncode}\n{result.stdout}{result.stderr}")
+            (ARTIFACTS / f"{self.logs}-down.log").write_text(
+                f"exit {result.returncode}\n{result.stdout}{result.stderr}")
             self.down_by_label()
         finally:
             if self.created_network:
@@ -104,13 +107,16 @@ class Stack:
 
 def remove_stale_projects() -> list[str]:
     """Compose projects of earlier deploy-test runs whose pytest process is gone (a run that was
-    killed before its teardown): their containers, networks and volumes are removed."""
-    names = run(
-        ["docker", "ps", "-a", "--format", '{{.Label "com.docker.compose.project"}}'], timeout=60, check=False
-    ).stdout.split()
+    killed before its teardown): their containers, networks and volumes are removed. Projects
+    are named lcdeploy<pid>[suffix]; networks the tests create carry the project label too."""
+    labels = []
+    for kind in ("ps -a", "network ls", "volume ls"):
+        labels += run(
+            ["docker", *kind.split(), "--format", '{{.Label "com.docker.compose.project"}}'], timeout=60, check=False
+        ).stdout.split()
     stale = []
-    for project in sorted(set(names)):
-        match = re.fullmatch(r"lcdeploy(\d+)", project)
+    for project in sorted(set(labels)):
+        match = re.fullmatch(r"lcdeploy(\d+)[a-z]*", project)
         if match and not Path(f"/proc/{match.group(1)}").exists():
             Stack(project=project, workdir=ROOT, files=[], web_port=0).down_by_label()
             stale.append(project)
@@ -200,7 +206,18 @@ def stop_process(process: subprocess.Popen | None, timeout: float = 10) -> None:
         process.wait(5)
 
 
-def yaml_services(path: Path) -> dict:
+def yaml_services(*paths: Path) -> dict:
+    """The services of compose files merged as docker-compose merges an override into the file
+    before it: a service's keys replaced, its lists of networks joined."""
     import yaml
 
-    return yaml.safe_load(path.read_text())["services"]
+    services: dict = {}
+    for path in paths:
+        for name, service in yaml.safe_load(path.read_text())["services"].items():
+            merged = services.setdefault(name, {})
+            for key, value in service.items():
+                if key == "networks" and isinstance(merged.get(key), list) and isinstance(value, list):
+                    merged[key] = merged[key] + [n for n in value if n not in merged[key]]
+                else:
+                    merged[key] = value
+    return services

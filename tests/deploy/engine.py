@@ -26,6 +26,8 @@ VERSION = (DOCKER_DIR / "VERSION").read_text().strip()
 IMAGE = f"lifecycle-manager:{VERSION}"
 BASE_IMAGE = os.environ.get("BASE_IMAGE", "local/debian:bookworm")
 DEMO_ROBOT, DEMO_DOMAIN = "agv-1", 21  # the robot container of docker/edge/docker-compose.demo.yml
+# A robot process on the plant LAN stand-in of the edge app's layer-2 network (tests/deploy/layer2.py).
+PLANT_ROBOT, PLANT_DOMAIN = "plant-agv", 23
 
 # Debian packages the deploy tests need, by the program that shows they are there.
 TOOLS = {

@@ -1,5 +1,6 @@
-"""The image built offline, and the Industrial Edge app running for real: three containers
-plus a demo robot container, behind an nginx that serves it under /lifecycle/ as the device does."""
+"""The image built offline, and the Industrial Edge app running for real: web, ingest, the
+gateway "local" and redis, plus a demo robot container, behind an nginx that serves it under
+/lifecycle/ as the device does."""
 from __future__ import annotations
 
 import json
@@ -10,7 +11,7 @@ import pytest
 
 from tests.deploy import edge_stack, engine
 from tests.deploy.client import Browser, insecure_context
-from tests.deploy.engine import DEMO_ROBOT, DOCKER_DIR, EDGE_DIR, IMAGE, VERSION
+from tests.deploy.engine import DEMO_ROBOT, DOCKER_DIR, EDGE_DIR, IMAGE, PLANT_ROBOT, VERSION
 
 PREFIX = "/lifecycle"
 # The lifecycle nodes of the demo robot container (its joystick is a plain node).
@@ -61,7 +62,21 @@ def test_package_for_the_publisher(image, scratch, timings):
     readme = (out / "README.md").read_text()
     assert "iectl" in readme and "docker load" in readme and "JSON schema" in readme
     assert (out.parent / "package.tar.gz").exists()
+    assert "docker-compose.no-layer2.yml" in files and "zzz_layer2_net1" in readme
     timings.record("package_mb", round(sum(p.stat().st_size for p in out.rglob("*") if p.is_file()) / 1e6))
+
+
+def test_package_of_a_cells_gateway(image, scratch):
+    """package.sh --app edge-cell: the gateway-only app, no reverse-proxy entry."""
+    out = scratch / "package-cell"
+    engine.run([str(EDGE_DIR / "package.sh"), "--app", "edge-cell", "--no-build", "--output", str(out)], timeout=600)
+    files = {p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()}
+    assert files == {"docker-compose.yml", "README.md", "SHA256SUMS", "cfg-data/param.json",
+                     "cfg-data-template/param.json", f"images/lifecycle-manager_{VERSION}.tar"}, files
+    assert (out / "docker-compose.yml").read_text() == (DOCKER_DIR / "edge-cell" / "docker-compose.yml").read_text()
+    readme = (out / "README.md").read_text()
+    assert "add_gateway" in readme and "zzz_layer2_net1" in readme and "Memory limit: 192 MB" in readme
+    assert (out.parent / "package-cell.tar.gz").exists()
 
 
 # ---------------------------------------------------------------------------------------
@@ -153,7 +168,45 @@ def test_login_through_the_proxy(stack, logged_in):
 def test_demo_robot_nodes_listed(logged_in):
     """The gateway container finds the robot container's lifecycle nodes over DDS (compose network)."""
     nodes = wait_nodes_alive(logged_in)
-    assert {n["robot"] for n in nodes.values()} == {DEMO_ROBOT}
+    robots = {n["robot"] for n in nodes.values()}
+    assert DEMO_ROBOT in robots and robots <= {DEMO_ROBOT, PLANT_ROBOT}, robots
+
+
+def test_site_processes_and_the_gateway_local(stack, logged_in):
+    """ingest holds its lease, the gateway "local" (of the robots from cfg-data) beats: both
+    healthy by their Redis checks; the gateway container has no database and no data volume."""
+    for service in ("ingest", "gateway", "redis"):
+        engine.wait_for(lambda s=service: stack.health(s) == "healthy", 120, f"{service} to be healthy")
+
+    def local_online():
+        response = logged_in.get(f"{PREFIX}/api/v1/gateways", headers={"Accept": "application/json"})
+        assert response.status == 200, response
+        gateways = {g["name"]: g for g in response.json()["gateways"]}
+        return gateways if gateways.get("local", {}).get("online") else None
+
+    gateways = engine.wait_for(local_online, 60, "gateway local online in /api/v1/gateways", interval=1)
+    assert set(gateways) == {"local"} and gateways["local"]["robots"] == sorted([DEMO_ROBOT, PLANT_ROBOT]), gateways
+    gateway = stack.container("gateway")
+    mounts = json.loads(engine.run(["docker", "inspect", "-f", "{{json .Mounts}}", gateway], timeout=30).stdout)
+    assert [m["Destination"] for m in mounts] == ["/cfg-data"], f"the gateway mounts only cfg-data: {mounts}"
+    no_database = "test ! -e /data/db.sqlite3 && test ! -e /tmp/gateway/db.sqlite3"
+    engine.run(["docker", "exec", gateway, "sh", "-c", no_database], timeout=30)
+    logs = stack.compose("logs", "--no-color", "ingest", timeout=60).stdout
+    assert "holding the ingest lease" in logs, logs[-2000:]
+
+
+def test_transition_from_the_web_container(stack, logged_in, token):
+    """`manage.py lifecycle set` run inside the web container: through Redis to the gateway
+    container, and its audit record (source cli) is there when the command returns."""
+    wait_nodes_alive(logged_in)
+    key = f"{DEMO_ROBOT}.joy_to_vel"
+    state = node_list(logged_in)[key]["state"]["label"]
+    step = {"unconfigured": "configure", "inactive": "activate", "active": "deactivate"}[state]
+    output = stack.manage("lifecycle", "set", key, step, "--user", "admin")
+    assert output == "Transitioning successful", output
+    records = logged_in.api("GET", f"{PREFIX}/api/v1/transitions?node={key}", token).json()["transitions"]
+    assert records and records[0]["source"] == "cli" and records[0]["outcome"] == "succeeded", records[:1]
+    assert records[0]["transition"]["label"] == step
 
 
 def test_activate_a_node_with_the_json_api(logged_in, token):
@@ -216,9 +269,7 @@ def test_websocket_refuses_a_foreign_origin(stack, logged_in):
 
 def test_memory_within_limits(stack, timings):
     """Every container under its mem_limit (which Docker enforces: the limit shows in stats)."""
-    compose = {}
-    for name in ("docker-compose.yml", "docker-compose.demo.yml"):
-        compose.update(edge_stack.yaml_services(EDGE_DIR / name))
+    compose = edge_stack.yaml_services(EDGE_DIR / "docker-compose.yml", EDGE_DIR / "docker-compose.demo.yml")
     ids = {service: stack.container(service) for service in compose}
     stats = engine.run(
         ["docker", "stats", "--no-stream", "--format", "{{.ID}}\t{{.MemUsage}}", *ids.values()], timeout=60
@@ -236,9 +287,60 @@ def test_memory_within_limits(stack, timings):
     timings.record("memory_mib", usage)
 
 
+# The gateway "local"'s facts stream as Redis holds it (run inside the redis container).
+STREAM_PROBE = """
+import json, redis
+r = redis.Redis()
+key = 'lifecycle:gw:local:facts'
+group = next(g for g in r.xinfo_groups(key) if g['name'] in (b'ingest', 'ingest'))
+last = group['last-delivered-id'].decode()
+print(json.dumps({'ids': [e[0].decode() for e in r.xrange(key)], 'last_delivered': last,
+                  'pending': group['pending'], 'undelivered': len(r.xrange(key, '(' + last, '+'))}))
+"""
+
+
+def facts_stream(stack) -> dict:
+    probe = ["docker", "exec", stack.container("redis"), "python", "-c", STREAM_PROBE]
+    return json.loads(engine.run(probe, timeout=60).stdout)
+
+
+def test_facts_survive_a_redis_restart(stack, logged_in, token):
+    """Facts not yet stored wait in the gateway's stream (ingest stopped); Redis restarts
+    (append-only file in its volume): the entries and the consumer group's position are still
+    there, and ingest, started again, stores every one of them (none lost)."""
+    wait_nodes_alive(logged_in)
+    key = f"{DEMO_ROBOT}.lidar_driver"
+    bring_to(logged_in, token, key, "active")
+    engine.run(["docker", "stop", "--time", "10", stack.container("ingest")], timeout=90)
+    try:
+        transition(logged_in, token, key, "deactivate")
+        transition(logged_in, token, key, "activate")
+        before = engine.wait_for(lambda: (f := facts_stream(stack))["undelivered"] >= 2 and f, 30,
+                                 "the transitions' facts to wait in the stream")
+        engine.run(["docker", "restart", "--time", "10", stack.container("redis")], timeout=120)
+        after = engine.wait_for(lambda: facts_stream(stack), 60, "Redis to answer again", interval=1)
+        assert set(before["ids"]) <= set(after["ids"]), "facts were lost in the Redis restart"
+        assert after["last_delivered"] == before["last_delivered"], "the consumer group's position was lost"
+        assert after["undelivered"] >= before["undelivered"]
+    finally:
+        engine.run(["docker", "start", stack.container("ingest")], timeout=90)
+
+    def stored():
+        stream = facts_stream(stack)
+        response = logged_in.get(f"{PREFIX}/api/v1/gateways", headers={"Accept": "application/json"})
+        local = {g["name"]: g for g in response.json()["gateways"]}["local"]
+        done = stream["undelivered"] == 0 and stream["pending"] == 0 and local["backlog"] == 0 and local["online"]
+        return local if done else None
+
+    local = engine.wait_for(stored, 90, "ingest to store the waiting facts", interval=1)
+    assert local["facts_lost"] == 0 and local["facts_rejected"] == 0, local
+    engine.wait_for(lambda: stack.health("ingest") == "healthy", 90, "ingest healthy again")
+    assert node_list(logged_in)[key]["state"]["label"] == "active"
+
+
 def test_restart_keeps_audit_records_and_sessions(stack, logged_in, token):
-    """Restart the gateway, then recreate web and gateway: the audit records (and the login
-    session: the database and the generated secret key) live in the volume and survive."""
+    """Restart the gateway, then recreate web, ingest and gateway: the audit records (and the
+    login session: the database and the generated secret key) live in the volume and survive."""
     wait_nodes_alive(logged_in)
     key = f"{DEMO_ROBOT}.planner"
     bring_to(logged_in, token, key, "inactive")
@@ -255,8 +357,9 @@ def test_restart_keeps_audit_records_and_sessions(stack, logged_in, token):
     after_restart = record_ids()
     assert before < after_restart, "records were lost when the gateway restarted"
 
-    stack.compose("up", "-d", "--no-deps", "--force-recreate", "web", "gateway", timeout=300)
-    engine.wait_for(lambda: stack.health("web") == "healthy", 120, "the recreated web container")
+    stack.compose("up", "-d", "--no-deps", "--force-recreate", "web", "ingest", "gateway", timeout=300)
+    for service in ("web", "ingest", "gateway"):
+        engine.wait_for(lambda s=service: stack.health(s) == "healthy", 120, f"the recreated {service} container")
     assert record_ids() >= after_restart, "records were lost when the containers were recreated"
     response = logged_in.get(f"{PREFIX}/api/v1/nodes", headers={"Accept": "application/json"})
     assert response.status == 200, f"the login session did not survive: {response}"

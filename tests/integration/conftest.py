@@ -1,11 +1,12 @@
-"""The real stack for integration tests: Redis, the gateway process and robots in their
-own ROS domains, all on loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST)."""
+"""The real stack for integration tests: Redis, the site's ingest process, the gateway process
+and robots in their own ROS domains, all on loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST)."""
 from __future__ import annotations
 
 import pytest
 from django.test import Client
 
-from lifecycle_site.fleet.models import GatewayHeartbeat, ManagedNode, Robot
+from lifecycle_site.fleet import gateways
+from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
 from tests import stack
 from tests.conftest import make_user
 
@@ -17,9 +18,9 @@ def pytest_collection_modifyitems(items):
 
 
 @pytest.fixture(scope="module")
-def gateway(redis_server, live_db):
-    process = stack.start_gateway(name="it-gateway")
-    stack.wait_for(lambda: GatewayHeartbeat.online() or not process.alive(), 30, "the gateway heartbeat")
+def gateway(redis_server, live_db, ingest):
+    process = stack.start_gateway()
+    stack.wait_for(lambda: gateways.status("local").online or not process.alive(), 30, "the gateway heartbeat")
     assert process.alive(), process.output()
     yield process
     process.stop()
@@ -32,9 +33,11 @@ def api(live_db) -> Client:
     return client
 
 
-def register(name: str, domain_id: int, namespace: str = "") -> Robot:
+def register(name: str, domain_id: int, namespace: str = "", gateway: str = "local") -> Robot:
+    """A robot watched by ``gateway`` (registered if need be, as ``manage.py add_robot`` does)."""
+    owner, _ = Gateway.objects.get_or_create(name=gateway)
     robot, _ = Robot.objects.update_or_create(
-        name=name, defaults={"domain_id": domain_id, "namespace": namespace, "enabled": True}
+        name=name, defaults={"domain_id": domain_id, "namespace": namespace, "enabled": True, "gateway": owner}
     )
     return robot
 

@@ -233,9 +233,9 @@ def test_gateway_offline_is_one_line_and_exit_3_and_get_falls_back(robots):
         changed = cli("set", key, "configure", "--user", OPERATOR)
         listed = cli("list", key)
         got = cli("get", key)
-    assert changed.code == 3 and changed.out == "" and "gateway is offline" in changed.err
+    assert changed.code == 3 and changed.out == "" and "Gateway local is offline" in changed.err
     assert len(changed.err.strip().splitlines()) == 1
-    assert listed.code == 3 and "gateway is offline" in listed.err
+    assert listed.code == 3 and "Gateway local is offline" in listed.err
     assert got.code == 0 and got.out == "unconfigured [1]\n" and "last known state" in got.err
 
 

@@ -7,10 +7,10 @@ def fresh_site_caches():
     in each test: rolling the database back between tests sends none of the signals that
     would clear them."""
     from lifecycle_site.api.grants import forget
-    from lifecycle_site.fleet.gateway_client import forget_gateway_status
+    from lifecycle_site.fleet import gateways
 
     forget()
-    forget_gateway_status()
+    gateways.forget()
     yield
     forget()
-    forget_gateway_status()
+    gateways.forget()

@@ -1,6 +1,7 @@
 """API validation and error paths that need no ROS: bad input is refused clearly and
 loses nothing; a missing gateway or Redis is reported, not a 500."""
 import json
+import time
 from datetime import timedelta
 
 import pytest
@@ -9,8 +10,10 @@ from django.test import Client
 from django.utils import timezone
 
 from lifecycle_site.audit.models import AppendOnlyError, TransitionRecord
-from lifecycle_site.fleet.models import GatewayHeartbeat, ManagedNode, Robot
+from lifecycle_site.fleet import gateways
+from lifecycle_site.fleet.models import ManagedNode, Robot
 from ros_gateway.shared import state_machine as sm
+from tests import stack
 
 
 @pytest.fixture
@@ -63,6 +66,7 @@ def test_viewer_may_read_but_not_operate(viewer_client, node):
         ({"transition": "explode"}, "unknown_transition"),
         ({"transition": 42}, "unknown_transition"),
         ({"transition": "configure", "timeout": -1}, "invalid_field"),
+        ('{"transition": "configure", "timeout": 1%s}' % ("0" * 400), "invalid_field"),
     ],
 )
 def test_malformed_requests_get_400_with_a_readable_message(operator_client, node, body, code):
@@ -81,32 +85,29 @@ def test_unknown_node_is_404_in_json(operator_client, db):
     assert operator_client.get("/api/v1/nodes?robot=ghost").status_code == 404
 
 
-def test_gateway_offline_is_503_and_the_attempt_is_audited(operator_client, node):
+def test_gateway_offline_is_503_and_the_attempt_is_audited(operator_client, node, redis_server):
     response = post(operator_client, node, {"transition": "configure"})
     assert response.status_code == 503 and error_code(response) == "gateway_offline"
+    message = "Gateway local is offline (it has never reported); nothing was sent to unit-agv."
+    assert response.json()["error"]["message"] == message
     record = TransitionRecord.objects.get()
     assert (record.outcome, record.source, record.requested_by_name) == ("rejected", "api", "olga-operator")
-    assert "offline" in record.error
+    assert record.error == message
 
 
 def test_redis_down_is_503_not_500(operator_client, node, settings):
-    now = timezone.now()
-    GatewayHeartbeat.objects.create(name="gw", started=now, last_beat=now)
     settings.REDIS_URL = "redis://127.0.0.1:1/0"  # nothing listens there
-    from lifecycle_site.fleet import gateway_client
-
-    gateway_client._redis.cache_clear()
-    try:
-        response = post(operator_client, node, {"transition": "configure"})
-    finally:
-        gateway_client._redis.cache_clear()
+    response = post(operator_client, node, {"transition": "configure"})
     assert response.status_code == 503 and "Redis" in response.json()["error"]["message"]
+    assert "unit-agv" in response.json()["error"]["message"]
 
 
-def test_stale_heartbeat_counts_as_offline(db):
-    old = timezone.now() - timedelta(minutes=5)
-    GatewayHeartbeat.objects.create(name="gw", started=old, last_beat=old)
-    assert not GatewayHeartbeat.online()
+def test_stale_heartbeat_counts_as_offline(db, redis_server):
+    stack.write_beat("gw", at=time.time() - 300)
+    state = gateways.status("gw")
+    assert not state.online and state.state == "offline"
+    assert state.refusal("agv-3").startswith("Gateway gw is offline (no heartbeat since ")
+    assert state.refusal("agv-3").endswith(", 5 min ago); nothing was sent to agv-3.")
 
 
 def test_transition_on_a_node_that_is_gone_is_409_and_audited(operator_client, node):
@@ -176,10 +177,9 @@ def test_logs_endpoint_filters_by_level(operator_client, node):
 
 
 def test_log_history_is_pruned_by_count_per_logger_and_by_age(db):
-    from datetime import timedelta
 
+    from lifecycle_site.fleet.log_store import prune_logs
     from lifecycle_site.fleet.models import LogRecord
-    from ros_gateway.store import prune_logs
 
     robot = Robot.objects.create(name="chatty", domain_id=98)
     now = timezone.now()

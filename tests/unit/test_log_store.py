@@ -1,21 +1,19 @@
-"""Log records written as plain tuples (store.insert_logs) read back through the ORM exactly as
-if the ORM had written them, with the ids the live push sends."""
+"""Log records written as plain tuples (log_store.insert_logs) read back through the ORM exactly as
+if the ORM had written them, with the ids the live push sends; a gateway's log batch becomes
+those rows and those pushes."""
 from __future__ import annotations
 
 from datetime import datetime, timedelta, timezone
-from types import SimpleNamespace
 
 import pytest
-from asgiref.sync import async_to_sync
 from django.db import IntegrityError, connection
 from django.utils import timezone as dj_timezone
 
-from lifecycle_site.fleet.models import LogRecord, ManagedNode, Robot
-from ros_gateway import store
-from ros_gateway.logs import LogPipeline
+from lifecycle_site.fleet import log_store as store
+from lifecycle_site.fleet.facts import FactRejected
+from lifecycle_site.fleet.log_store import LogRow
+from lifecycle_site.fleet.models import Gateway, LogRecord, ManagedNode, Robot
 from ros_gateway.shared import protocol
-from ros_gateway.store import LogRow
-from ros_gateway.streams import LogEntry
 
 COLUMNS = ["id", *(LogRecord._meta.get_field(name).column for name in LogRow._fields)]
 
@@ -124,70 +122,51 @@ def test_a_batch_is_one_transaction():
     assert len(store.insert_logs(rows[:3])) == 3
 
 
-class FakeRelay:
-    def __init__(self) -> None:
-        self.sent: list[tuple[list[str], dict]] = []
-
-    async def publish(self, groups: list[str], message: dict) -> None:
-        self.sent.append((groups, message))
-
-
-def fake_gateway(robot: Robot, node: ManagedNode, buffer: int = 100) -> SimpleNamespace:
-    info = store.RobotInfo(robot.id, robot.name, robot.domain_id, robot.namespace)
-    live = SimpleNamespace(robot=info, name=node.name, key=node.key, row=store.NodeRow(node.id, node.key, 0, True))
-    return SimpleNamespace(
-        config={"LOG_BUFFER": buffer},
-        nodes={node.key: live},
-        robot_for=lambda domain_id, name: info if domain_id == robot.domain_id else None,
-        relay=FakeRelay(),
-    )
-
-
-def entry(robot: Robot, logger: str, i: int, level: int = 20) -> LogEntry:
+def record(robot: str, node: str, logger: str, i: int, level: int = 20) -> list:
+    """One record of a logs-stream batch, as a gateway sends it."""
     stamp = datetime(2026, 5, 1, 12, 0, 0, tzinfo=timezone.utc) + timedelta(microseconds=1001 * i)
-    return LogEntry(robot.domain_id, stamp, level, logger, f"message {i}", "f.cpp" * 60, "fn", -1 if i == 0 else i)
+    return [robot, node, logger, stamp.isoformat(), level, f"message {i}", "f.cpp" * 60, "fn", -1 if i == 0 else i]
 
 
-def test_pipeline_pushes_the_stored_records_as_before(robot):
+def test_a_batch_is_stored_for_the_gateways_robots_and_pushed_with_the_stored_ids(robot):
     robot_row, node = robot
-    gateway = fake_gateway(robot_row, node)
-    pipeline = LogPipeline(gateway)
-    for i in range(6):
-        pipeline.on_log(robot_row.domain_id, SimpleNamespace())  # malformed: ignored
-        pipeline.buffer.append(entry(robot_row, "scanner" if i % 2 else "joystick", i, level=(20, 40, 45)[i % 3]))
-    pipeline.buffer.append(LogEntry(999, dj_timezone.now(), 20, "elsewhere", "", "", "", 0))  # no robot: not stored
-    async_to_sync(pipeline.flush)()
+    other = Robot.objects.create(name="elsewhere", domain_id=5, gateway=Gateway.objects.create(name="cell-z"))
+    records = [record("store-agv", "/scanner" if i % 2 else "", "scanner" if i % 2 else "joystick", i,
+                      level=(20, 40, 45)[i % 3]) for i in range(6)]
+    records.append(record(other.name, "", "x", 99))  # another gateway's robot: not this batch's to store
+    records.append(record("no-such-robot", "", "x", 98))
+    pushes = store.store_batch(store.LogTargets(robot_row.gateway.name), {"records": records})
 
-    assert pipeline.stored == 6 and len(pipeline.buffer) == 0
+    assert LogRecord.objects.count() == 6
     by_group: dict[str, list[dict]] = {}
-    for groups, message in gateway.relay.sent:
-        assert message["type"] == "node.logs"
-        for group in groups:
-            by_group.setdefault(group, []).extend(message["records"])
+    for group, message in pushes:
+        assert message["type"] == "node.logs" and len(message["records"]) <= store.PUSH_CHUNK
+        by_group.setdefault(group, []).extend(message["records"])
+    assert set(by_group) == {protocol.robot_group(robot_row.id), protocol.node_group(node.key)}
     robot_records = by_group[protocol.robot_group(robot_row.id)]
     node_records = by_group[protocol.node_group(node.key)]
     assert len(robot_records) == 6 and [r["id"] for r in node_records] == [r["id"] for r in robot_records[1::2]]
     for payload in robot_records:
-        record = LogRecord.objects.select_related("node").get(id=payload["id"])
+        stored = LogRecord.objects.select_related("node").get(id=payload["id"])
         # What the push sent before: the saved model's as_dict() plus the node's key.
-        assert payload == {**record.as_dict(), "node_id": record.node.key if record.node else None}
+        assert payload == {**stored.as_dict(), "node_id": stored.node.key if stored.node else None}
         assert list(payload) == ["id", "stamp", "level", "logger", "message", "file", "function", "line", "node_id"]
     assert {r["level"] for r in robot_records} == {"INFO", "ERROR"}  # 45 is no ROS level: stored as INFO
     assert LogRecord.objects.get(id=robot_records[0]["id"]).line == 0 and len(robot_records[0]["file"]) == 255
-    assert [e.message for e in pipeline.recent_errors[node.key]] == ["message 1", "message 5"]  # levels 40, 45
 
 
-def test_pipeline_keeps_the_bounded_buffer_and_its_drop_count(robot):
-    robot_row, node = robot
-    gateway = fake_gateway(robot_row, node, buffer=5)
-    pipeline = LogPipeline(gateway)
-    for i in range(12):
-        pipeline.buffer.append(entry(robot_row, "scanner", i))
-    assert (pipeline.buffer.received, pipeline.buffer.dropped, len(pipeline.buffer)) == (12, 7, 5)
-    async_to_sync(pipeline.flush)()
-    assert pipeline.stored == 5
-    assert list(LogRecord.objects.order_by("id").values_list("message", flat=True)) == [
-        f"message {i}" for i in range(7, 12)]
+def test_a_big_batch_is_pushed_in_bounded_chunks(robot):
+    robot_row, _ = robot
+    records = [record("store-agv", "", "talker", i) for i in range(450)]
+    pushes = store.store_batch(store.LogTargets(robot_row.gateway.name), {"records": records})
+    assert [len(m["records"]) for _, m in pushes] == [200, 200, 50]
+
+
+@pytest.mark.parametrize("batch", [{"records": "no"}, {"records": [["too", "short"]]},
+                                   {"records": [["store-agv", "", "a", "yesterday", 20, "m", "", "", 0]]}])
+def test_a_malformed_batch_is_refused(robot, batch):
+    with pytest.raises(FactRejected):
+        store.store_batch(store.LogTargets(robot[0].gateway.name), batch)
 
 
 def test_a_naive_stamp_is_stored_as_the_orm_stores_it(robot):

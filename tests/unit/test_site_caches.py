@@ -1,6 +1,6 @@
 """The site's shortcuts on hot paths keep their promises: what a token grants is kept a few
-seconds but a revoked token, a deactivated user or a lost role stop working at once; the
-gateway's heartbeat is re-read every second; fleet rows get their links without a reverse()
+seconds but a revoked token, a deactivated user or a lost role stop working at once; a
+gateway's heartbeat is re-read from Redis every second; fleet rows get their links without a reverse()
 per node and the fleet snapshot of a WebSocket is read and rendered off the event loop."""
 import json
 import threading
@@ -23,12 +23,13 @@ from django.utils import timezone
 from lifecycle_site.api import grants
 from lifecycle_site.api.models import ApiToken, hash_token
 from lifecycle_site.dashboard import consumers, snapshots
-from lifecycle_site.fleet import gateway_client
-from lifecycle_site.fleet.models import GatewayHeartbeat, ManagedNode, Robot
+from lifecycle_site.fleet import gateway_client, gateways
+from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
 from lifecycle_site.prefix import script_prefix
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
-from tests.conftest import make_user
+from tests import stack
+from tests.conftest import make_user, session_of
 
 AUTH_TABLES = ("api_apitoken", "auth_user", "auth_permission", "auth_group")
 
@@ -175,34 +176,29 @@ def test_unknown_tokens_are_refused_and_not_kept(db):
     assert response.status_code == 401 and not grants._grants
 
 
-# --- the gateway's heartbeat ----------------------------------------------------------------
+# --- a gateway's heartbeat ------------------------------------------------------------------
 
-def beat(**kwargs) -> GatewayHeartbeat:
-    now = timezone.now()
-    return GatewayHeartbeat(name="gw", started=now, last_beat=now, **kwargs)
-
-
-def test_the_heartbeat_answer_is_kept_for_a_moment_only(db, monkeypatch):
-    monkeypatch.setattr(gateway_client, "ONLINE_CACHE_S", 0.2)
-    assert not gateway_client.gateway_online()
-    GatewayHeartbeat.objects.bulk_create([beat()])  # no signal, as the gateway's own process writes it
-    assert not gateway_client.gateway_online()
+def test_the_heartbeat_answer_is_kept_for_a_moment_only(db, redis_server, monkeypatch):
+    monkeypatch.setattr(gateways, "BEAT_CACHE_S", 0.2)
+    key = protocol.beat_key(gateways.channel_prefix(), "gw")
+    stack.redis_client().delete(key)
+    assert gateways.status("gw").state == "never"
+    beat = stack.write_beat("gw")
+    assert gateways.status("gw").online
+    stack.redis_client().set(key, protocol.encode({**beat, "stopped": True}))  # as from the gateway's process
+    assert gateways.status("gw").online  # kept
     time.sleep(0.25)
-    assert gateway_client.gateway_online()
-    GatewayHeartbeat.objects.all()._raw_delete(connection.alias)  # a clean stop, seen from here
-    assert gateway_client.gateway_online()
-    time.sleep(0.25)
-    with pytest.raises(gateway_client.GatewayOffline, match="offline"):
-        gateway_client.call_gateway(protocol.GET_STATE, robot="cache-agv", node="/joy_to_vel")
+    assert gateways.status("gw").state == "stopped"
+    with pytest.raises(gateway_client.GatewayOffline, match=r"^Gateway gw is offline \(it stopped at "):
+        gateway_client.call_gateway("gw", protocol.GET_STATE, robot="cache-agv", node="/joy_to_vel")
 
 
-def test_a_heartbeat_written_here_or_changed_settings_are_seen_at_once(db, settings):
-    assert not gateway_client.gateway_online()
-    beat().save()
-    assert gateway_client.gateway_online()
+def test_changed_settings_are_seen_at_once(db, redis_server, settings):
+    stack.write_beat("gw")
+    assert gateways.status("gw").online
     with override_settings(LIFECYCLE={**settings.LIFECYCLE, "GATEWAY_OFFLINE_AFTER": -3600}):
-        assert not gateway_client.gateway_online()
-    assert gateway_client.gateway_online()
+        assert not gateways.status("gw").online
+    assert gateways.status("gw").online
 
 
 # --- fleet rows -----------------------------------------------------------------------------
@@ -226,9 +222,12 @@ def test_a_pushed_row_is_the_same_markup_as_in_the_fleet_list():
                                    last_seen=None if i == 0 else "2026-01-01T10:00:00+00:00")
              for i, (state, alive) in enumerate([(sm.UNKNOWN, False), (sm.ACTIVE, True), (sm.INACTIVE, True),
                                                  (sm.ACTIVATING, True), (sm.INACTIVE, False)])]
-    robot = Robot(name="agv-1", domain_id=1)
+    local = Gateway(name="local")
+    robot = Robot(name="agv-1", domain_id=1, gateway=local)
     snapshots.with_links(nodes)
-    page = render_to_string("dashboard/_robots.html", {"robots": [(robot, nodes)], "can_operate": True})
+    gateway = gateways.describe(local, gateways.GatewayStatus("local", gateways.NEVER), ["agv-1"])
+    page = render_to_string("dashboard/_robots.html", {"gateways": [{"gateway": gateway, "robots": [(robot, nodes)]}],
+                                                       "can_operate": True})
     assert page.count('class="node-row') == 5 and 'hx-post="/nodes/agv-1.n2/transition"' in page
     for node in nodes:
         row = render_to_string("dashboard/_node_row.html", {"nodes": [snapshots.fleet_row(node)], "oob": "",
@@ -249,6 +248,7 @@ def test_fleet_socket_snapshot_is_rendered_off_the_event_loop_under_the_prefix(t
     robot = Robot.objects.create(name="ws-agv", domain_id=96)
     ManagedNode.objects.create(robot=robot, name="/lidar", alive=True, state_id=sm.ACTIVE, state_label="active")
     user = make_user("olga-socket", "operator")
+    session = session_of(user)
     threads = {}
     fleet, render = snapshots.fleet, consumers.render_to_string
 
@@ -274,6 +274,7 @@ def test_fleet_socket_snapshot_is_rendered_off_the_event_loop_under_the_prefix(t
         communicator = WebsocketCommunicator(URLRouter(websocket_urlpatterns), "/ws/fleet/",
                                              headers=[(b"x-forwarded-prefix", b"/lifecycle")])
         communicator.scope["user"] = user
+        communicator.scope["session"] = session
         connected, _ = await communicator.connect(timeout=5)
         assert connected
         try:

@@ -17,10 +17,12 @@ def dom_id(node_key: str) -> str:
 
 @register.filter
 def node_status(node: dict) -> str:
-    """What the badge says: the state, or why there is none (lost, waiting)."""
+    """What the badge says: the state, or why there is none (lost, unreachable, waiting)."""
     if node["alive"]:
         return node["state"]["label"]
-    return "waiting" if node.get("last_seen") is None else "lost"
+    if node.get("last_seen") is None:
+        return "waiting"
+    return "unreachable" if node.get("gone_reason") == "unreachable" else "lost"
 
 
 @register.filter

@@ -103,15 +103,17 @@ class Command(BaseCommand):
     def read_states(self, nodes: list[ManagedNode], timeout: float | None) -> list[tuple[dict, bool]]:
         """Each node's live state from the gateway, else its last known state (noted on stderr)."""
         readings: list[tuple[dict, bool]] = []
-        offline = False
+        offline: set[str] = set()  # gateways found offline: their other nodes are not asked
         for node in nodes:
-            if node.alive and not offline:
+            gateway = node.robot.gateway.name
+            if node.alive and gateway not in offline:
                 try:
-                    reply = call_gateway(protocol.GET_STATE, timeout=timeout, robot=node.robot.name, node=node.name)
+                    reply = call_gateway(gateway, protocol.GET_STATE, timeout=timeout, robot=node.robot.name,
+                                         node=node.name)
                     readings.append((reply["state"], True))
                     continue
                 except GatewayOffline as exc:
-                    offline = True
+                    offline.add(gateway)
                     self.stderr.write(f"{exc.message} Showing the last known state instead.")
                 except GatewayError as exc:
                     self.stderr.write(f"{node.key}: {exc.message} Showing its last known state.")
@@ -126,7 +128,8 @@ class Command(BaseCommand):
         command, field = (protocol.GET_TRANSITION_GRAPH, "graph") if opts.all else (
             protocol.GET_AVAILABLE_TRANSITIONS, "transitions")
         try:
-            reply = call_gateway(command, timeout=opts.timeout, robot=node.robot.name, node=node.name)
+            reply = call_gateway(node.robot.gateway.name, command, timeout=opts.timeout, robot=node.robot.name,
+                                 node=node.name)
         except GatewayOffline:
             raise
         except GatewayError as exc:
@@ -197,7 +200,7 @@ class Command(BaseCommand):
     def robot(self, name: str | None) -> Robot | None:
         if not name:
             return None
-        robot = Robot.objects.filter(name=name).first()
+        robot = Robot.objects.select_related("gateway").filter(name=name).first()
         if robot is None:
             known = list(Robot.objects.values_list("name", flat=True))
             raise CliExit(EXIT_USAGE, out.unknown_robot(name, known), "not_found")
@@ -212,14 +215,14 @@ class Command(BaseCommand):
         return opts.robot_name or opts.robot
 
     def listed(self, robot: Robot | None, include_lost: bool) -> list[ManagedNode]:
-        nodes = ManagedNode.objects.select_related("robot")
+        nodes = ManagedNode.objects.select_related("robot__gateway")
         if robot is not None:
             nodes = nodes.filter(robot=robot)
         return list(nodes if include_lost else nodes.filter(alive=True))
 
     def node(self, ref: str, robot: Robot | None) -> ManagedNode:
         """A node id (agv-1.joy_to_vel) or, on ``robot``, a ROS name (/joy_to_vel, joy_to_vel)."""
-        nodes = ManagedNode.objects.select_related("robot")
+        nodes = ManagedNode.objects.select_related("robot__gateway")
         if robot is None:
             found = nodes.filter(key=ref).first()
         else:

@@ -1,8 +1,9 @@
 """``manage.py run_demo`` (what ``make demo`` runs): the whole product on one machine.
 
 Starts Redis (unless one answers already), migrates, makes sure an admin exists (its
-generated password is kept in the data dir and printed), registers two demo robots,
-then supervises the ROS gateway, the demo robots' node processes and daphne until Ctrl-C.
+generated password is kept in the data dir and printed), registers two demo robots on the
+gateway "local", then supervises that gateway, the ingest process that stores what it
+reports, the demo robots' node processes and daphne until Ctrl-C.
 """
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ from django.core.management import call_command
 from django.core.management.base import BaseCommand, CommandError
 
 from lifecycle_site import local_redis
-from lifecycle_site.fleet.models import Robot
+from lifecycle_site.fleet.models import Gateway, Robot
 from lifecycle_site.supervisor import Child, Supervisor
 
 DEMO_ROBOTS = [
@@ -66,10 +67,13 @@ class Command(BaseCommand):
             redis_process = self._ensure_redis(data)
             call_command("migrate", verbosity=0)
             user, password = self._ensure_admin(data)
+            local, _ = Gateway.objects.get_or_create(name="local")
             for name, domain, _ in DEMO_ROBOTS:
-                robot, _ = Robot.objects.get_or_create(name=name, defaults={"domain_id": domain, "auto_recover": True})
-                if robot.domain_id != domain or not robot.enabled:
-                    robot.domain_id, robot.enabled = domain, True
+                robot, _ = Robot.objects.get_or_create(
+                    name=name, defaults={"domain_id": domain, "auto_recover": True, "gateway": local}
+                )
+                if robot.domain_id != domain or not robot.enabled or robot.gateway_id != local.id:
+                    robot.domain_id, robot.enabled, robot.gateway = domain, True, local
                     robot.save()
             port = free_port(port)
             self._start_children(supervisor, data, port, no_robots)
@@ -136,6 +140,7 @@ class Command(BaseCommand):
     def _start_children(self, supervisor: Supervisor, data: Path, port: int, no_robots: bool) -> None:
         python = sys.executable
         logs = data / "logs"
+        supervisor.add(Child("ingest", [python, "manage.py", "ingest"], logs / "ingest.log"))
         supervisor.add(Child("ros_gateway", [python, "manage.py", "ros_gateway"], logs / "gateway.log"))
         if not no_robots:
             for name, domain, autostart in DEMO_ROBOTS:

@@ -1,0 +1,85 @@
+"""Refused attempts on record: who (account or address), what, when, and why refused.
+One row per refusal, the newest DENIALS_KEPT kept: a flood of bad requests cannot fill the
+database, and what an admin reviews is the latest."""
+from __future__ import annotations
+
+import logging
+from itertools import count
+
+from django.contrib.auth.signals import user_login_failed
+from django.db import DatabaseError
+from django.http import HttpRequest
+
+from lifecycle_site.audit.models import AccessDenial
+
+log = logging.getLogger("lifecycle.denials")
+
+DENIALS_KEPT = 10_000
+PRUNE_EVERY = 100  # inserts between two prunes
+_inserted = count(1)
+
+
+def record(request: HttpRequest | None, status: int, code: str, detail: str = "", username: str = "") -> None:
+    """Write the refusal; never lets the recording fail the answer."""
+    user = getattr(request, "user", None) if request is not None else None
+    user = user if getattr(user, "is_authenticated", False) else None
+    name = username or (user.get_username() if user is not None else "")
+    client = (request.META.get("REMOTE_ADDR", "") if request is not None else "")[:64]
+    method = (request.method or "") if request is not None else ""
+    path = request.path[:300] if request is not None else ""
+    log.warning("refused %s %s (%s %s) for %s from %s", method, path, status, code, name or "anonymous", client)
+    try:
+        AccessDenial.objects.create(user=user, username=name[:150], client=client, method=method[:8], path=path,
+                                    status=status, code=code[:32], detail=detail[:200])
+        if next(_inserted) % PRUNE_EVERY == 0:
+            prune()
+    except DatabaseError:
+        log.exception("could not record a refused attempt")
+
+
+def too_many_bad_tokens(request: HttpRequest) -> bool:
+    """Whether this client sent AXES_FAILURE_LIMIT x 4 invalid bearer tokens within the login
+    lock-out time: its token requests are then refused unchecked (token guessing)."""
+    from django.conf import settings
+    from django.utils import timezone
+
+    since = timezone.now() - settings.AXES_COOLOFF_TIME
+    limit = settings.AXES_FAILURE_LIMIT * 4
+    client = request.META.get("REMOTE_ADDR", "")[:64]
+    return AccessDenial.objects.filter(code="bad_token", client=client, at__gte=since).count() >= limit
+
+
+def prune(keep: int = DENIALS_KEPT) -> int:
+    cutoff = AccessDenial.objects.order_by("-id").values_list("id", flat=True)[keep:keep + 1].first()
+    if cutoff is None:
+        return 0
+    deleted, _ = AccessDenial.objects.filter(id__lte=cutoff).delete()
+    return deleted
+
+
+def csrf_failure(request: HttpRequest, reason: str = ""):
+    """CSRF_FAILURE_VIEW: on record, then Django's own answer."""
+    from django.views.csrf import csrf_failure as django_csrf_failure
+
+    record(request, 403, "csrf_failed", reason)
+    return django_csrf_failure(request, reason=reason)
+
+
+def permission_denied(request: HttpRequest, exception: Exception | None = None):
+    """handler403: a refused change on record, then Django's own answer."""
+    from django.views.defaults import permission_denied as django_permission_denied
+
+    if request.method not in ("GET", "HEAD", "OPTIONS"):
+        record(request, 403, "forbidden", str(exception or "")[:200])
+    return django_permission_denied(request, exception)
+
+
+def _login_failed(sender, credentials: dict, request: HttpRequest | None = None, **_) -> None:
+    username = str(credentials.get("username", ""))
+    if getattr(request, "axes_locked_out", False):  # django-axes: refused before the password was checked
+        record(request, 429, "login_blocked", "too many failed logins for this account or address", username=username)
+    else:
+        record(request, 401, "login_failed", "wrong user name or password", username=username)
+
+
+user_login_failed.connect(_login_failed, dispatch_uid="audit.denials.login_failed")

@@ -1,0 +1,403 @@
+"""The site's view of its gateways through Redis: heartbeats, the config each one follows,
+and the Redis user each one connects with (protocol: ros_gateway/shared/protocol.py).
+
+Whether a gateway is online comes from its heartbeat key, read at most once a second per
+gateway in each process; pages add what the ingest process copied into the Gateway row.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from functools import lru_cache
+from typing import Any, Iterable
+from urllib.parse import urlsplit, urlunsplit
+
+import redis
+from django.conf import settings
+from django.core.signals import setting_changed
+from django.db import transaction
+from django.db.models.signals import post_delete, post_save
+from redis.backoff import ExponentialBackoff
+from redis.retry import Retry
+
+from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
+from ros_gateway.shared import protocol
+
+log = logging.getLogger(__name__)
+
+# Upper bound of a service timeout a caller may ask for, so every wait on Redis stays bounded.
+MAX_SERVICE_TIMEOUT = 25.0
+
+
+def channel_prefix() -> str:
+    return settings.CHANNEL_LAYERS["default"].get("CONFIG", {}).get("prefix", "lifecycle")
+
+
+@lru_cache(maxsize=1)
+def redis_client() -> redis.Redis:
+    """The site's connection pool to Redis (the default user: it manages the gateways' users).
+
+    A Redis that is down shows as an error within seconds (connect timeout); the read
+    timeout only has to outlast the longest blocking wait for a reply."""
+    return redis.Redis.from_url(
+        settings.REDIS_URL, socket_connect_timeout=2, socket_timeout=3 * MAX_SERVICE_TIMEOUT + 15,
+        retry_on_error=[redis.ConnectionError, redis.TimeoutError],
+        retry=Retry(ExponentialBackoff(cap=0.5, base=0.05), 2),
+        health_check_interval=30,
+    )
+
+
+def safe_url(url: str) -> str:
+    """A Redis URL fit for a log: without its password."""
+    parts = urlsplit(url)
+    if parts.password is None:
+        return url
+    host = parts.hostname or ""
+    if ":" in host:
+        host = f"[{host}]"
+    netloc = f"{parts.username or ''}:***@{host}" + (f":{parts.port}" if parts.port else "")
+    return urlunsplit(parts._replace(netloc=netloc))
+
+
+# --- heartbeats -----------------------------------------------------------------------------
+
+# How long a process trusts its last look at a gateway's heartbeat (a Redis round trip on
+# every command otherwise). A gateway that stops cleanly says so in its heartbeat, so commands
+# are refused with the clear "offline" error at most this long after it stopped.
+BEAT_CACHE_S = 1.0
+_beats: dict[str, tuple[float, dict | None, str]] = {}  # name -> (read at, beat, Redis error)
+_beats_lock = threading.Lock()
+
+
+def forget(**_: Any) -> None:
+    """Read heartbeats (and the Redis address) afresh: settings changed, or a test wrote one."""
+    with _beats_lock:
+        _beats.clear()
+    redis_client.cache_clear()
+
+
+setting_changed.connect(forget, dispatch_uid="fleet.gateways.setting_changed")
+
+
+def _parse_beat(raw: bytes | None) -> dict | None:
+    if raw is None:
+        return None
+    try:
+        beat = json.loads(raw)
+        return beat if isinstance(beat, dict) else None
+    except ValueError:
+        return None
+
+
+def read_beats(names: Iterable[str]) -> dict[str, tuple[dict | None, str]]:
+    """Each gateway's heartbeat (or None) and the Redis error that hid it (or ""): one MGET
+    for those not read within BEAT_CACHE_S."""
+    names = list(dict.fromkeys(names))
+    now = time.monotonic()
+    with _beats_lock:
+        kept = {n: _beats[n] for n in names if n in _beats and 0 <= now - _beats[n][0] < BEAT_CACHE_S}
+    stale = [n for n in names if n not in kept]
+    if stale:
+        prefix = channel_prefix()
+        try:
+            raws = redis_client().mget([protocol.beat_key(prefix, n) for n in stale])
+            fresh = {n: (now, _parse_beat(raw), "") for n, raw in zip(stale, raws, strict=True)}
+        except redis.RedisError as exc:
+            fresh = {n: (now, None, str(exc) or type(exc).__name__) for n in stale}
+        with _beats_lock:
+            _beats.update(fresh)
+        kept.update(fresh)
+    return {n: (kept[n][1], kept[n][2]) for n in names}
+
+
+def _utc(epoch: Any) -> datetime | None:
+    try:
+        return datetime.fromtimestamp(float(epoch), timezone.utc)
+    except (TypeError, ValueError, OverflowError, OSError):
+        return None
+
+
+def _when(moment: datetime) -> str:
+    """'10:32:05 UTC, 2 min ago' (the date too when it is not today)."""
+    moment = moment.astimezone(timezone.utc)
+    now = datetime.now(timezone.utc)
+    clock = moment.strftime("%H:%M:%S UTC") if moment.date() == now.date() else moment.strftime("%Y-%m-%d %H:%M UTC")
+    seconds = max(0, int((now - moment).total_seconds()))
+    if seconds < 120:
+        ago = f"{seconds} s ago"
+    elif seconds < 7200:
+        ago = f"{seconds // 60} min ago"
+    elif seconds < 172800:
+        ago = f"{seconds // 3600} h ago"
+    else:
+        ago = f"{seconds // 86400} days ago"
+    return f"{clock}, {ago}"
+
+
+ONLINE, OFFLINE, STOPPED, NEVER, UNREACHABLE = "online", "offline", "stopped", "never", "unreachable"
+
+
+@dataclass(frozen=True)
+class GatewayStatus:
+    """Whether a gateway can take commands now, and since when it cannot."""
+
+    name: str
+    state: str  # ONLINE, OFFLINE (silent), STOPPED (said so), NEVER (never reported), UNREACHABLE (Redis)
+    last_beat: datetime | None = None
+    beat: dict = field(default_factory=dict)
+    redis_error: str = ""
+
+    @property
+    def online(self) -> bool:
+        return self.state == ONLINE
+
+    def reason(self) -> str:
+        """Why it takes no commands, for a person: 'no heartbeat since 10:32:05 UTC, 2 min ago'."""
+        if self.state == UNREACHABLE:
+            return f"Redis, which links the site and its gateways, is unreachable: {self.redis_error.rstrip('.')}"
+        if self.state == NEVER or self.last_beat is None:
+            return "it has never reported"
+        if self.state == STOPPED:
+            return f"it stopped at {_when(self.last_beat)}"
+        return f"no heartbeat since {_when(self.last_beat)}"
+
+    def refusal(self, robot: str | None = None) -> str:
+        """The error of a command that was not sent because of this status."""
+        target = f" to {robot}" if robot else ""
+        if self.state == UNREACHABLE:
+            return f"{self.reason()}; nothing was sent{target} (gateway {self.name})."
+        return f"Gateway {self.name} is offline ({self.reason()}); nothing was sent{target}."
+
+    def as_dict(self) -> dict:
+        return {
+            "name": self.name,
+            "online": self.online,
+            "status": self.state,
+            "last_beat": self.last_beat.isoformat() if self.last_beat else None,
+            "reason": "" if self.online else self.reason(),
+        }
+
+
+def _status(name: str, beat: dict | None, error: str, known_last_beat: datetime | None) -> GatewayStatus:
+    if error:
+        return GatewayStatus(name, UNREACHABLE, known_last_beat, redis_error=error)
+    if beat is None:
+        return GatewayStatus(name, OFFLINE if known_last_beat else NEVER, known_last_beat)
+    at = _utc(beat.get("at"))
+    if beat.get("stopped"):
+        return GatewayStatus(name, STOPPED, at, beat)
+    fresh = at is not None and time.time() - at.timestamp() <= settings.LIFECYCLE["GATEWAY_OFFLINE_AFTER"]
+    return GatewayStatus(name, ONLINE if fresh else OFFLINE, at, beat)
+
+
+def status(gateway: Gateway | str) -> GatewayStatus:
+    """A gateway's status from its heartbeat (read at most once per BEAT_CACHE_S)."""
+    return statuses([gateway])[0]
+
+
+def statuses(gateways: Iterable[Gateway | str]) -> list[GatewayStatus]:
+    """The status of each gateway (names or rows; a row adds when it was last heard of,
+    should its heartbeat key be gone), in one Redis round trip at most."""
+    gateways = list(gateways)
+    names = [g.name if isinstance(g, Gateway) else g for g in gateways]
+    beats = read_beats(names)
+    return [
+        _status(name, *beats[name], gateway.last_beat if isinstance(gateway, Gateway) else None)
+        for name, gateway in zip(names, gateways, strict=True)
+    ]
+
+
+def dds_summary(dds: dict) -> str:
+    """'SUBNET · peers 10.0.0.5;10.0.0.6' from the discovery settings a gateway reports."""
+    if not dds:
+        return ""
+    parts = []
+    if dds.get("ROS_AUTOMATIC_DISCOVERY_RANGE"):
+        parts.append(f"discovery {dds['ROS_AUTOMATIC_DISCOVERY_RANGE']}")
+    if dds.get("ROS_STATIC_PEERS"):
+        parts.append(f"peers {dds['ROS_STATIC_PEERS']}")
+    if dds.get("ROS_DISCOVERY_SERVER"):
+        parts.append(f"discovery server {dds['ROS_DISCOVERY_SERVER']}")
+    if dds.get("ROS_SUPER_CLIENT"):
+        parts.append("super client")
+    if dds.get("LIFECYCLE_DDS_INTERFACES"):
+        parts.append(f"interfaces {dds['LIFECYCLE_DDS_INTERFACES']}")
+    if dds.get("RMW_IMPLEMENTATION"):
+        parts.append(dds["RMW_IMPLEMENTATION"])
+    return " · ".join(parts)
+
+
+def describe(gateway: Gateway, state: GatewayStatus, robots: list[str] | None = None) -> dict:
+    """A gateway as pages and the API show it: its status, what it reports (its heartbeat,
+    else what the ingest process last copied) and the site's accounts of its streams."""
+    beat = state.beat
+    outbox = beat.get("outbox") if isinstance(beat.get("outbox"), dict) else gateway.outbox or {}
+    dds = beat.get("dds") if isinstance(beat.get("dds"), dict) else gateway.dds or {}
+    return {
+        **state.as_dict(),
+        "description": gateway.description,
+        "since": "" if state.online or state.last_beat is None else _when(state.last_beat),
+        "version": str(beat.get("version") or gateway.version),
+        "host": str(beat.get("host") or gateway.host),
+        "pid": beat.get("pid") or gateway.pid,
+        "started": beat.get("started") or (gateway.started.isoformat() if gateway.started else None),
+        "domains": beat.get("domains") if isinstance(beat.get("domains"), list) else gateway.domains,
+        "dds": dds,
+        "dds_summary": dds_summary(dds),
+        "nodes": beat.get("nodes") if isinstance(beat.get("nodes"), int) else gateway.node_count,
+        "backlog": gateway.backlog,
+        "facts_lost": gateway.facts_lost,
+        "facts_rejected": gateway.facts_rejected,
+        "logs_lost": gateway.logs_lost,
+        "logs_dropped": gateway.logs_dropped,
+        "outbox": outbox,
+        "outbox_dropped": int(outbox.get("facts_dropped") or 0) + int(outbox.get("logs_dropped") or 0),
+        "robots": robots if robots is not None else [],
+    }
+
+
+# --- the config each gateway follows --------------------------------------------------------
+
+def build_config(gateway_name: str) -> dict:
+    """What a gateway watches: its enabled robots and their nodes' order and desired state."""
+    robots = list(Robot.objects.filter(gateway__name=gateway_name, enabled=True).order_by("name"))
+    nodes: dict[int, dict[str, dict]] = {r.id: {} for r in robots}
+    rows = ManagedNode.objects.filter(robot__in=robots).order_by("name").values_list(
+        "robot_id", "name", "order", "desired_state"
+    )
+    for robot_id, name, order, desired in rows:
+        nodes[robot_id][name] = {"order": order, "desired_state": desired}
+    body = {
+        "gateway": gateway_name,
+        "robots": [
+            {"id": r.id, "name": r.name, "domain_id": r.domain_id, "namespace": r.namespace,
+             "auto_recover": r.auto_recover, "nodes": nodes[r.id]}
+            for r in robots
+        ],
+    }
+    version = hashlib.sha256(protocol.encode(body).encode()).hexdigest()[:16]
+    return {"gateway": gateway_name, "version": version, "robots": body["robots"]}
+
+
+def publish_config(gateway_name: str, client: redis.Redis | None = None) -> dict:
+    """Write the gateway's config key; returns the config. Raises redis.RedisError."""
+    config = build_config(gateway_name)
+    (client or redis_client()).set(protocol.config_key(channel_prefix(), gateway_name), protocol.encode(config))
+    return config
+
+
+_pending = threading.local()
+
+
+def publish_on_commit(gateway_names: Iterable[str]) -> None:
+    """Publish these gateways' configs once the current transaction commits (once each, however
+    many changes it holds). A Redis failure is logged: the ingest process publishes again."""
+    waiting: set[str] | None = getattr(_pending, "names", None)
+    if waiting is None:
+        waiting = _pending.names = set()
+    waiting.update(gateway_names)
+    transaction.on_commit(_publish_pending)  # the first callback to run publishes them all
+
+
+def _publish_pending() -> None:
+    names, _pending.names = getattr(_pending, "names", None) or set(), set()
+    for name in sorted(names):
+        try:
+            publish_config(name)
+        except redis.RedisError as exc:
+            log.warning("could not publish the config of gateway %s (Redis: %s); the ingest process will", name, exc)
+
+
+CONFIG_FIELDS = {"name", "order", "desired_state", "robot", "robot_id"}
+
+
+def _robot_changed(sender, instance: Robot, **kwargs) -> None:
+    # A robot may have moved from one gateway to another: every gateway's config is rebuilt
+    # (a handful of small queries), so the one it left forgets it too.
+    publish_on_commit(Gateway.objects.values_list("name", flat=True))
+
+
+def _node_changed(sender, instance: ManagedNode, created: bool = False, update_fields=None, **kwargs) -> None:
+    if kwargs.get("signal") is post_save and not created and update_fields is not None \
+            and not CONFIG_FIELDS & set(update_fields):
+        return
+    gateway = Robot.objects.filter(pk=instance.robot_id).values_list("gateway__name", flat=True).first()
+    if gateway:
+        publish_on_commit([gateway])
+
+
+def _gateway_deleted(sender, instance: Gateway, **kwargs) -> None:
+    name = instance.name
+
+    def drop() -> None:
+        try:
+            delete_user(name)
+        except redis.RedisError as exc:
+            log.warning("could not delete the Redis user of gateway %s: %s", name, exc)
+
+    transaction.on_commit(drop)
+
+
+post_save.connect(_robot_changed, sender=Robot, dispatch_uid="fleet.gateways.robot_saved")
+post_delete.connect(_robot_changed, sender=Robot, dispatch_uid="fleet.gateways.robot_deleted")
+post_save.connect(_node_changed, sender=ManagedNode, dispatch_uid="fleet.gateways.node_saved")
+post_delete.connect(_node_changed, sender=ManagedNode, dispatch_uid="fleet.gateways.node_deleted")
+post_delete.connect(_gateway_deleted, sender=Gateway, dispatch_uid="fleet.gateways.gateway_deleted")
+
+
+# --- Redis users ----------------------------------------------------------------------------
+
+# What a gateway may run (checked against Redis 7 by tests/unit/test_gateway_acl.py):
+# its command queue and replies (BRPOP, LPUSH, EXPIRE), its streams (XADD), its heartbeat,
+# lease and config (SET, GET; DEL and EVAL for the lease), and what channels-redis runs to
+# send to a group (ZREMRANGEBYSCORE, ZRANGE, EVAL of ZCOUNT/ZADD/EXPIRE). Keys: its own and
+# the channel layer's.
+GATEWAY_COMMANDS = [
+    "-@all", "+@connection", "-@dangerous",
+    "+brpop", "+lpush", "+expire", "+pexpire", "+get", "+set", "+del", "+xadd",
+    "+zremrangebyscore", "+zrange", "+zcount", "+zadd",
+    "+eval", "+evalsha", "+multi", "+exec", "+discard", "+ping",
+]
+
+
+def password_sha256(password: str) -> str:
+    return hashlib.sha256(password.encode()).hexdigest()
+
+
+def acl_rules(gateway: Gateway, prefix: str | None = None) -> list[str]:
+    prefix = prefix or channel_prefix()
+    keys = [protocol.gateway_keys_pattern(prefix, gateway.name), *protocol.channel_layer_key_patterns(prefix)]
+    return ["reset", "on", f"#{gateway.redis_password_sha256}", *(f"~{k}" for k in keys), "resetchannels",
+            *GATEWAY_COMMANDS]
+
+
+def apply_user(gateway: Gateway, client: redis.Redis | None = None) -> None:
+    """Create or update the gateway's Redis user from the stored hash (no-op without one)."""
+    if not gateway.redis_password_sha256:
+        return
+    (client or redis_client()).execute_command("ACL", "SETUSER", gateway.redis_user, *acl_rules(gateway))
+
+
+def user_is_current(gateway: Gateway, client: redis.Redis | None = None) -> bool:
+    """Whether Redis has the gateway's user with the stored password (it may have restarted)."""
+    found = (client or redis_client()).acl_getuser(gateway.redis_user)
+    return bool(found) and list(found.get("passwords") or []) == [gateway.redis_password_sha256]
+
+
+def disconnect_user(gateway_name: str, client: redis.Redis | None = None) -> None:
+    """Close the connections a gateway opened with its previous password."""
+    try:
+        (client or redis_client()).execute_command("CLIENT", "KILL", "USER", f"gw-{gateway_name}")
+    except redis.ResponseError:
+        pass  # no such user, or no connection of it
+
+
+def delete_user(gateway_name: str, client: redis.Redis | None = None) -> None:
+    client = client or redis_client()
+    client.execute_command("ACL", "DELUSER", f"gw-{gateway_name}")
+    disconnect_user(gateway_name, client)

@@ -1,0 +1,212 @@
+"""Which robots to watch (from the site's configuration), which lifecycle nodes run in their
+domains, and what state each is in: the gateway's view of the ROS graph, kept current.
+
+Domains are started and stopped as robots come and go; each discovery pass finds nodes that
+appeared (subscribed to, state read) and vanished; transition events and a periodic re-read
+keep the states right. Every change goes through the registry's state-change stream.
+"""
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from typing import Callable
+
+from ros_gateway.domain import RosDomain
+from ros_gateway.lifecycle import NodeUnreachable, read_state
+from ros_gateway.outbox import Outbox
+from ros_gateway.registry import LiveNode, NodeRegistry, NodeSettings, RobotInfo
+from ros_gateway.shared import protocol
+from ros_gateway.shared import state_machine as sm
+from ros_gateway.streams import Completed, TransitionTracker
+from ros_gateway.tasks import spawn
+
+log = logging.getLogger(__name__)
+
+# How often every robot's full list of running nodes is reported (the site marks the rest lost).
+SNAPSHOT_EVERY_S = 30.0
+
+DomainFactory = Callable[[int], RosDomain]
+# (domain, node name) -> whether the node's process is known not to answer
+HoldsBack = Callable[[RosDomain, str], bool]
+
+
+def robots_from_config(config: dict) -> tuple[dict[int, RobotInfo], dict[int, dict[str, NodeSettings]]]:
+    """The site's configuration as robots and per-node settings; malformed entries are skipped."""
+    robots: dict[int, RobotInfo] = {}
+    settings: dict[int, dict[str, NodeSettings]] = {}
+    for entry in config.get("robots", []):
+        try:
+            robot = RobotInfo(int(entry["id"]), str(entry["name"]), int(entry["domain_id"]),
+                              str(entry.get("namespace") or ""), bool(entry.get("auto_recover")))
+        except (KeyError, TypeError, ValueError):
+            log.warning("ignored a robot the site described incompletely: %r", entry)
+            continue
+        robots[robot.id] = robot
+        nodes = entry.get("nodes") if isinstance(entry.get("nodes"), dict) else {}
+        settings[robot.id] = {
+            str(name): NodeSettings(order=s.get("order") if isinstance(s.get("order"), int) else None,
+                                    desired_state=str(s.get("desired_state") or ""))
+            for name, s in nodes.items() if isinstance(s, dict)
+        }
+    return robots, settings
+
+
+class Discovery:
+    def __init__(self, registry: NodeRegistry, domains: dict[int, RosDomain], new_domain: DomainFactory,
+                 outbox: Outbox, service_timeout: float, forget_parameters: Callable[[str], None],
+                 holds_back: HoldsBack = lambda domain, name: False) -> None:
+        self.registry, self.domains, self.new_domain, self.outbox = registry, domains, new_domain, outbox
+        self.service_timeout = service_timeout
+        self.forget_parameters = forget_parameters
+        self.holds_back = holds_back
+        self.config_version: str | None = None
+        self._passes = 0
+        self._snapshot_at: dict[int, float] = {}  # robot id -> when its node list was last reported
+
+    # -- robots and domains -------------------------------------------------------------
+    async def apply_config(self, config: dict) -> None:
+        """Watch the robots the site lists for this gateway (and only those)."""
+        version = str(config.get("version", ""))
+        if version and version == self.config_version:
+            return
+        robots, settings = robots_from_config(config)
+        for robot_id, old in list(self.registry.robots.items()):
+            new = robots.get(robot_id)
+            if new is not None and (new.domain_id, new.namespace) == (old.domain_id, old.namespace):
+                for node in self.registry.of_robot(robot_id):  # renamed, recovery switched: same nodes
+                    node.robot = new
+                continue
+            if new != old:  # removed, disabled, or its nodes are elsewhere now: forget its nodes
+                for node in self.registry.of_robot(robot_id):
+                    if node.alive:  # no longer watched: the site shows it lost until seen again
+                        self.registry.vanished(node)
+                for domain_id, node in self.registry.drop_robot(robot_id):
+                    domain = self.domains.get(domain_id)
+                    if domain is not None:
+                        domain.forget_node(node.name)
+                self._snapshot_at.pop(robot_id, None)
+        self.registry.robots, self.registry.settings = robots, settings
+        wanted = self.registry.domains()
+        for domain_id in wanted - set(self.domains):
+            domain = self.new_domain(domain_id)
+            await asyncio.to_thread(domain.start)
+            self.domains[domain_id] = domain
+        for domain_id in set(self.domains) - wanted:
+            domain = self.domains.pop(domain_id)
+            await asyncio.to_thread(domain.stop)
+        self.config_version = version
+        log.info("watching %d robot(s) in ROS domain(s) %s", len(robots), sorted(wanted) or "none")
+
+    # -- discovery ------------------------------------------------------------------------
+    async def discover(self) -> None:
+        self._passes += 1
+        check_incarnations = self._passes % 4 == 0
+        for domain_id, domain in list(self.domains.items()):
+            present = domain.lifecycle_node_names(name for d, name in self.registry.nodes if d == domain_id)
+            for name in present:
+                node = self.registry.nodes.get((domain_id, name))
+                if node is None or not node.seen:
+                    robot = self.registry.robot_for(domain_id, name)
+                    if robot is not None and not self.holds_back(domain, name):
+                        self._appeared(domain, robot, name)
+                elif not node.state_read:
+                    spawn(self.read_state(node))
+                elif check_incarnations:
+                    self._check_incarnation(domain, node)
+            if domain.settling():
+                continue
+            for (node_domain, name), node in list(self.registry.nodes.items()):
+                if node_domain == domain_id and node.alive and name not in present:
+                    domain.forget_node(node.name)
+                    log.info("node %s on %s is gone", node.name, node.robot.name)
+                    self.registry.vanished(node)
+            self._report_robots(domain)
+
+    def _report_robots(self, domain: RosDomain) -> None:
+        """Each settled robot's running nodes, now and then: what the site believes alive
+        but this gateway does not see (after a restart of either) is marked lost."""
+        now = time.monotonic()
+        for robot in self.registry.robots.values():
+            if robot.domain_id != domain.domain_id or now - self._snapshot_at.get(robot.id, 0.0) < SNAPSHOT_EVERY_S:
+                continue
+            self._snapshot_at[robot.id] = now
+            names = sorted(n.name for n in self.registry.of_robot(robot.id) if n.alive)
+            self.outbox.emit(protocol.ROBOT_NODES, robot=robot.name, nodes=names)
+
+    def _appeared(self, domain: RosDomain, robot: RobotInfo, name: str) -> None:
+        node = self.registry.appeared(domain.domain_id, robot, name, domain.incarnation(name))
+        self.forget_parameters(node.key)  # possibly a new process: its parameters are read afresh
+        domain.watch_node(name)
+        log.info("node %s appeared on %s", name, robot.name)
+        spawn(self.read_state(node))
+
+    def _check_incarnation(self, domain: RosDomain, node: LiveNode) -> None:
+        current = domain.incarnation(node.name)
+        if len(current) > 1 and current != node.incarnation:
+            # Service requests then reach every one of them and the first answer wins.
+            log.warning("%d processes publish the transition events of %s on %s: a second node under the same "
+                        "name, or a killed process whose DDS lease has not run out yet; its state may be misread",
+                        len(current), node.name, node.robot.name)
+        if current - node.incarnation and node.incarnation:
+            log.info("%s on %s was restarted (new process under the same name)", node.name, node.robot.name)
+            node.respawned, node.state_read = True, False
+            node.tracker = TransitionTracker()
+            self.forget_parameters(node.key)
+        node.incarnation = current
+
+    async def read_state(self, node: LiveNode) -> None:
+        domain = self.domains.get(node.robot.domain_id)
+        if domain is None or node.lock.locked():
+            return  # a command is running; it reads the state itself
+        try:
+            state_id = await read_state(domain, node.name, self.service_timeout)
+        except NodeUnreachable as exc:
+            log.info("could not read the state of %s on %s: %s", node.name, node.robot.name, exc)
+            return
+        self.registry.set_state(node, state_id, read=True)
+
+    async def resync_states(self) -> None:
+        """Fallback for lost transition events: re-read every live node's state."""
+        for node in list(self.registry.nodes.values()):
+            if node.alive:
+                await self.read_state(node)
+
+    def on_change(self, change) -> None:
+        """State-change listener: a node should not sit in a transition state for long; if it
+        does (a lost event, a hung callback), find out what it really is."""
+        if change.kind == "state" and not sm.is_primary(change.state_id):
+            spawn(self._check_settled(change.node, change.state_id))
+
+    async def _check_settled(self, node: LiveNode, state_id: int) -> None:
+        await asyncio.sleep(2 * self.service_timeout)
+        if node.alive and node.state_id == state_id:
+            await self.read_state(node)
+
+    # -- transition events (handed over from the executor threads) -----------------------
+    def on_transition_event(self, domain_id: int, name: str, msg) -> None:
+        node = self.registry.nodes.get((domain_id, name))
+        if node is None:
+            return
+        try:
+            start, goal = int(msg.start_state.id), int(msg.goal_state.id)
+            completed, news = node.tracker.observe(start, goal, int(msg.transition.id))
+        except Exception:
+            log.exception("ignored a malformed transition event from %s", name)
+            return
+        if news:
+            self.registry.set_state(node, goal)
+        if completed is not None:
+            self._report_external(node, completed)
+
+    def _report_external(self, node: LiveNode, completed: Completed) -> None:
+        log.info("external transition on %s:%s: %s", node.robot.name, node.name, completed.outcome)
+        transition = completed.transition
+        self.outbox.emit(
+            protocol.TRANSITION, robot=node.robot.name, node=node.name,
+            transition_id=transition.id if transition else None,
+            transition_label=transition.label if transition else "",
+            start_state=completed.start_state, result_state=completed.result_state, outcome=completed.outcome,
+            source="external", user_id=None, requested_at=completed.started_at.isoformat(),
+            completed_at=completed.finished_at.isoformat(), error="", run_id="",
+        )

@@ -1,0 +1,130 @@
+"""Facts on their way to the site: numbered, held in bounded memory, and appended to this
+gateway's Redis streams (``XADD MAXLEN ~``) by one flusher task.
+
+While Redis is unreachable the facts wait here, in order, and go out when it is back. Past
+the bound the oldest are dropped and counted; the count travels in the heartbeat, and the
+site shows it. Each fact carries this instance's id and a sequence number, so the site can
+also count facts that Redis trimmed before they were read.
+"""
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections import deque
+from datetime import datetime, timezone
+from typing import Any
+
+from ros_gateway.relay import Relay
+from ros_gateway.shared import protocol
+
+log = logging.getLogger(__name__)
+
+FLUSH_BATCH = 500
+RETRY_AFTER_S = 0.5
+
+
+class _Stream:
+    """One outgoing stream: its bounded queue, sequence and counters."""
+
+    def __init__(self, key: str, maxlen: int, limit: int) -> None:
+        self.key, self.maxlen = key, maxlen
+        self.queue: deque[dict] = deque()
+        self.limit = limit
+        self.seq = 0
+        self.sent = 0
+        self.dropped = 0
+
+    def add(self, entry: dict) -> None:
+        if len(self.queue) >= self.limit:
+            self.queue.popleft()
+            self.dropped += 1
+        self.queue.append(entry)
+
+
+class Outbox:
+    def __init__(self, relay: Relay, gateway: str, instance: str) -> None:
+        self.relay, self.gateway, self.instance = relay, gateway, instance
+        self.facts = _Stream(relay.key("facts"), protocol.FACTS_MAXLEN, protocol.OUTBOX_FACTS_LIMIT)
+        self.logs = _Stream(relay.key("logs"), protocol.LOGS_MAXLEN, protocol.OUTBOX_LOG_BATCHES_LIMIT)
+        self._wake = asyncio.Event()
+        self._flushed = asyncio.Condition()
+        self.unreachable_since: float | None = None
+
+    def _envelope(self, stream: _Stream, kind: str | None) -> dict:
+        stream.seq += 1
+        envelope = {"id": protocol.new_id(), "gateway": self.gateway, "instance": self.instance, "seq": stream.seq,
+                    "at": datetime.now(timezone.utc).isoformat()}
+        if kind is not None:
+            envelope["type"] = kind
+        return envelope
+
+    def emit(self, kind: str, **fields: Any) -> dict:
+        """Queue one fact (returned as sent, envelope included); never blocks, never raises."""
+        fact = {**self._envelope(self.facts, kind), **protocol.finite(fields)}
+        self.facts.add(fact)
+        self._wake.set()
+        return fact
+
+    def emit_logs(self, records: list[list], dropped: int = 0) -> None:
+        """Queue one batch of log records (at most LOG_BATCH)."""
+        self.logs.add({**self._envelope(self.logs, None), "dropped": dropped, "records": records})
+        self._wake.set()
+
+    async def delivered(self, fact: dict, timeout: float) -> bool:
+        """Wait (bounded) until ``fact`` is in Redis; False if it is still waiting here."""
+        seq = fact["seq"]
+
+        def sent() -> bool:
+            return self.facts.sent >= seq
+
+        try:
+            async with self._flushed:
+                await asyncio.wait_for(self._flushed.wait_for(sent), timeout)
+            return True
+        except asyncio.TimeoutError:
+            return False
+
+    def counters(self) -> dict:
+        return {"facts": len(self.facts.queue), "log_batches": len(self.logs.queue),
+                "facts_dropped": self.facts.dropped, "logs_dropped": self.logs.dropped}
+
+    async def run(self, stopping: asyncio.Event) -> None:
+        """Send what is queued, as it comes; after a failure try again every RETRY_AFTER_S."""
+        while not stopping.is_set():
+            if not self.facts.queue and not self.logs.queue:
+                self._wake.clear()
+                try:
+                    await asyncio.wait_for(self._wake.wait(), 1.0)
+                except asyncio.TimeoutError:
+                    continue
+            if not await self.flush():
+                await asyncio.sleep(RETRY_AFTER_S)
+
+    async def flush(self) -> bool:
+        """One round: facts first (they carry the audit), then log batches. False on failure."""
+        for stream in (self.facts, self.logs):
+            while stream.queue:
+                batch = list(stream.queue)[:FLUSH_BATCH]
+                try:
+                    async with self.relay.redis.pipeline(transaction=False) as pipe:
+                        for entry in batch:
+                            pipe.xadd(stream.key, {"f": protocol.encode(entry)}, maxlen=stream.maxlen, approximate=True)
+                        await pipe.execute()
+                except Exception as exc:
+                    if self.unreachable_since is None:
+                        self.unreachable_since = asyncio.get_running_loop().time()
+                    self.relay.complain(f"sending {len(stream.queue)} facts to the site", exc)
+                    return False
+                if self.unreachable_since is not None:
+                    log.info("Redis is back: sending the %d facts and %d log batches held meanwhile",
+                             len(self.facts.queue), len(self.logs.queue))
+                    self.unreachable_since = None
+                # Entries dropped meanwhile (bound reached) were the oldest: drop only what was sent.
+                sent_last = batch[-1]["seq"]
+                while stream.queue and stream.queue[0]["seq"] <= sent_last:
+                    stream.queue.popleft()
+                stream.sent = max(stream.sent, sent_last)
+                if stream is self.facts:
+                    async with self._flushed:
+                        self._flushed.notify_all()
+        return True

@@ -1,0 +1,190 @@
+"""What the gateway knows of its robots and their live nodes, and the one place a node's
+state changes: ``NodeRegistry.set_state`` and friends publish each change to ``StateChanges``,
+whose listeners report it to the site, push it to pages and recover respawned nodes.
+No rclpy and no Redis here."""
+from __future__ import annotations
+
+import asyncio
+import logging
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from typing import Callable
+
+from ros_gateway.shared import protocol
+from ros_gateway.shared import state_machine as sm
+from ros_gateway.streams import TransitionTracker
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RobotInfo:
+    """A robot as the site's configuration describes it to this gateway."""
+
+    id: int
+    name: str
+    domain_id: int
+    namespace: str
+    auto_recover: bool = False
+
+    def owns(self, node_name: str) -> bool:
+        return not self.namespace or node_name.startswith(self.namespace.rstrip("/") + "/")
+
+
+@dataclass(frozen=True)
+class NodeSettings:
+    """What an operator set for a node in the site: its bring-up position, desired state."""
+
+    order: int | None = None
+    desired_state: str = ""
+
+
+@dataclass
+class LiveNode:
+    """What the gateway knows of one lifecycle node it has seen."""
+
+    robot: RobotInfo
+    name: str
+    alive: bool = False  # believed running (as the site shows it)
+    gone_reason: str = ""  # why it is not alive: "" (left the graph) or "unreachable"
+    seen: bool = False  # found in the ROS graph by this gateway run, and subscribed to
+    # Set when this run saw the node go and come back, or its process replaced: worth recovering.
+    respawned: bool = False
+    incarnation: frozenset = frozenset()
+    state_id: int = sm.UNKNOWN
+    state_read: bool = False  # the state has been read from the node since it appeared
+    tracker: TransitionTracker = field(default_factory=TransitionTracker)
+    lock: asyncio.Lock = field(default_factory=asyncio.Lock)  # one transition at a time
+    last_seen: datetime | None = None
+    last_push: asyncio.Future | None = None  # the node's latest live update, so the next one waits for it
+
+    @property
+    def key(self) -> str:
+        return protocol.node_key(self.robot.name, self.name)
+
+    def payload(self) -> dict:
+        return protocol.node_payload(
+            key=self.key,
+            robot=self.robot.name,
+            name=self.name,
+            state_id=self.state_id,
+            alive=self.alive,
+            gone_reason=self.gone_reason,
+            last_seen=self.last_seen.isoformat() if self.last_seen else None,
+        )
+
+    def groups(self) -> list[str]:
+        return [protocol.node_group(self.key), protocol.robot_group(self.robot.id), protocol.FLEET_GROUP]
+
+
+@dataclass
+class StateChange:
+    """A node appeared, vanished or moved to another state. ``fact`` is what was reported
+    to the site for it (set by the reporting listener)."""
+
+    node: LiveNode
+    kind: str  # "seen" | "gone" | "state"
+    state_id: int
+    respawned: bool = False
+    reason: str = ""  # why a node went: "" (it left the ROS graph) or "unreachable"
+    fact: dict | None = None
+
+
+Listener = Callable[[StateChange], None]
+
+
+class StateChanges:
+    """One stream of state changes. Listeners are called in the order they subscribed, at
+    once and on the gateway's loop: each must be quick (hand slow work to a task)."""
+
+    def __init__(self) -> None:
+        self._listeners: list[tuple[str, Listener]] = []
+
+    def subscribe(self, name: str, listener: Listener) -> None:
+        self._listeners.append((name, listener))
+
+    def publish(self, change: StateChange) -> StateChange:
+        for name, listener in self._listeners:
+            try:
+                listener(change)
+            except Exception:  # one listener's bug must not keep the change from the others
+                log.exception("state-change listener %s failed on %s", name, change.node.key)
+        return change
+
+
+class NodeRegistry:
+    """Robots (from the site's configuration) and the live nodes found in their domains."""
+
+    def __init__(self, changes: StateChanges) -> None:
+        self.changes = changes
+        self.robots: dict[int, RobotInfo] = {}
+        self.settings: dict[int, dict[str, NodeSettings]] = {}  # robot id -> node name -> settings
+        self.nodes: dict[tuple[int, str], LiveNode] = {}  # (domain id, fully qualified name) -> node
+
+    # -- robots ---------------------------------------------------------------------
+    def robot_for(self, domain_id: int, node_name: str) -> RobotInfo | None:
+        """The robot owning a node: same domain, the longest matching namespace."""
+        owners = [r for r in self.robots.values() if r.domain_id == domain_id and r.owns(node_name)]
+        return max(owners, key=lambda r: len(r.namespace), default=None)
+
+    def robot_named(self, name: str) -> RobotInfo | None:
+        return next((r for r in self.robots.values() if r.name == name), None)
+
+    def node_settings(self, robot_id: int, name: str) -> NodeSettings:
+        return self.settings.get(robot_id, {}).get(name, NodeSettings())
+
+    def domains(self) -> set[int]:
+        return {r.domain_id for r in self.robots.values()}
+
+    # -- nodes ----------------------------------------------------------------------
+    def find(self, robot_name: str, node_name: str) -> LiveNode | None:
+        for node in self.nodes.values():
+            if node.robot.name == robot_name and node.name == node_name:
+                return node
+        return None
+
+    def of_robot(self, robot_id: int) -> list[LiveNode]:
+        return [n for n in self.nodes.values() if n.robot.id == robot_id]
+
+    def alive_count(self) -> int:
+        return sum(n.alive for n in self.nodes.values())
+
+    def drop_robot(self, robot_id: int) -> list[tuple[int, LiveNode]]:
+        """Forget a robot's nodes (removed, disabled or changed); returns them with their domain."""
+        gone = [(k, n) for k, n in self.nodes.items() if n.robot.id == robot_id]
+        for key, _node in gone:
+            del self.nodes[key]
+        return [(key[0], node) for key, node in gone]
+
+    # -- the changes ----------------------------------------------------------------
+    def appeared(self, domain_id: int, robot: RobotInfo, name: str, incarnation: frozenset) -> LiveNode:
+        node = self.nodes.get((domain_id, name))
+        if node is None:
+            node = LiveNode(robot=robot, name=name)
+            self.nodes[(domain_id, name)] = node
+        node.alive, node.seen, node.state_read, node.gone_reason = True, True, False, ""
+        node.last_seen = datetime.now(timezone.utc)
+        node.tracker = TransitionTracker()
+        node.respawned = node.incarnation != frozenset()  # seen before in this run: it came back
+        node.incarnation = incarnation
+        self.changes.publish(StateChange(node, "seen", node.state_id))
+        return node
+
+    def vanished(self, node: LiveNode, reason: str = "") -> None:
+        node.alive, node.seen, node.last_seen = False, False, datetime.now(timezone.utc)
+        node.gone_reason = reason
+        self.changes.publish(StateChange(node, "gone", node.state_id, reason=reason))
+
+    def set_state(self, node: LiveNode, state_id: int, *, read: bool = False) -> StateChange | None:
+        """The node is now in ``state_id``; returns the change, or None if it is no news.
+        ``read``: the state was just read from the node (the first read after it appeared
+        is what recovery waits for)."""
+        respawned = False
+        if read:
+            node.state_read = True
+            respawned, node.respawned = node.respawned, False
+        if state_id == node.state_id and not respawned:
+            return None
+        node.state_id = state_id
+        node.last_seen = datetime.now(timezone.utc)
+        return self.changes.publish(StateChange(node, "state", state_id, respawned=respawned))

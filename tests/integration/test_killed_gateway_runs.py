@@ -1,0 +1,73 @@
+"""A gateway killed in the middle of a group run leaves nothing half-done for good: what
+finished before the kill is on record, and the run is settled (failed, saying why) when the
+gateway comes back; if it does not come back, when it has been silent past the run's bound."""
+from __future__ import annotations
+
+import time
+
+import pytest
+from django.core.management import call_command
+
+from lifecycle_site.audit.models import TransitionRecord
+from lifecycle_site.fleet.models import Gateway, GroupRun, Robot
+from tests import stack
+from tests.integration.conftest import register, wait_node
+
+NAME, ROBOT = "cell-k", "kill-agv"
+
+
+class Cell:
+    def __init__(self, env: dict[str, str]) -> None:
+        self.env = env
+        self.processes: list[stack.Process] = []
+        self.gateway = self.start_gateway()
+
+    def start_gateway(self) -> stack.Process:
+        self.gateway = stack.start_gateway(NAME, **self.env)
+        self.processes.append(self.gateway)
+        return self.gateway
+
+
+@pytest.fixture
+def cell(live_db, ingest, tmp_path):
+    path = tmp_path / "cell.env"
+    call_command("add_gateway", NAME, env_file=str(path))
+    env = dict(line.split("=", 1) for line in path.read_text().splitlines() if line and not line.startswith("#"))
+    register(ROBOT, stack.domain(23), gateway=NAME)
+    robot = stack.start_robot("kill-agv-nodes", stack.domain(23), "lidar_driver,camera_driver,flaky_node",
+                              "flaky_node.failure_mode:=slow_configure", "flaky_node.slow_seconds:=8.0")
+    made = Cell(env)
+    made.processes.append(robot)
+    try:
+        for node in ("lidar_driver", "camera_driver", "flaky_node"):
+            wait_node(None, f"{ROBOT}.{node}", alive=True, state="unconfigured", timeout=30)
+        yield made
+    finally:
+        for process in made.processes:
+            process.stop()
+        Robot.objects.filter(name=ROBOT).delete()
+        Gateway.objects.filter(name=NAME).delete()
+
+
+def test_a_run_whose_gateway_is_killed_is_settled_when_it_restarts(api, cell):
+    response = api.post(f"/api/v1/robots/{ROBOT}/operations", {"operation": "bringup", "timeout": 10},
+                        content_type="application/json")
+    assert response.status_code == 202, response.json()
+    run_id = response.json()["run"]["id"]
+    # The fast nodes come up; the slow one is still configuring (8 s) when the gateway dies.
+    stack.wait_for(lambda: TransitionRecord.objects.filter(run_id=run_id, transition_label="activate").count() == 2,
+                   15, "the two fast nodes active")
+    time.sleep(1.0)
+    cell.gateway.kill()
+    time.sleep(2)
+    assert GroupRun.objects.get(id=run_id).status == GroupRun.Status.RUNNING  # nobody can know yet
+    cell.start_gateway()
+    run = stack.wait_for(lambda: (r := GroupRun.objects.get(id=run_id)).status != GroupRun.Status.RUNNING and r,
+                         20, "the run settled after the restart")
+    assert run.status == GroupRun.Status.FAILED and f"gateway {NAME} restarted" in run.message, run.message
+    # Everything that finished before the kill is on record, once.
+    done = sorted((r.node_name, r.transition_label) for r in TransitionRecord.objects.filter(run_id=run_id)
+                  if r.outcome == "succeeded")
+    assert done == [("/camera_driver", "activate"), ("/camera_driver", "configure"),
+                    ("/lidar_driver", "activate"), ("/lidar_driver", "configure")], done
+    assert Gateway.objects.get(name=NAME).facts_lost == 0

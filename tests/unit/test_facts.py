@@ -1,0 +1,141 @@
+"""What a gateway reports becomes rows, once: fleet.facts.apply_facts, the one writer used by
+the ingest process and by the request path alike."""
+from __future__ import annotations
+
+from datetime import datetime, timedelta, timezone
+
+import pytest
+
+from lifecycle_site.audit.models import ParameterRecord, TransitionRecord
+from lifecycle_site.fleet.facts import apply_facts
+from lifecycle_site.fleet.models import Gateway, GroupRun, ManagedNode, Robot
+from ros_gateway.shared import protocol
+from ros_gateway.shared import state_machine as sm
+from tests.conftest import make_user
+from tests.gateway_part import GatewayPart
+
+
+@pytest.fixture
+def cell(db) -> tuple[GatewayPart, Robot]:
+    gateway = Gateway.objects.create(name="cell-f")
+    return GatewayPart("cell-f"), Robot.objects.create(name="facts-agv", domain_id=40, gateway=gateway)
+
+
+def node(robot: Robot, name: str = "/lidar") -> ManagedNode:
+    return ManagedNode.objects.get(robot=robot, name=name)
+
+
+def test_the_same_transition_fact_twice_makes_one_record(cell):
+    part, robot = cell
+    user = make_user("fact-operator", "operator")
+    seen = part.fact(protocol.NODE_SEEN, robot=robot.name, node="/lidar")
+    done = part.transition(robot.name, "/lidar", sm.CONFIGURE, "configure", sm.UNCONFIGURED, sm.INACTIVE,
+                           user_id=user.pk, source="dashboard")
+    first = apply_facts("cell-f", [seen, done])
+    again = apply_facts("cell-f", [seen, done])
+
+    record = TransitionRecord.objects.get()
+    assert first.created == [record] and again.created == []
+    assert first.transition_record([done]) == again.transition_record([done]) == record
+    assert record.fact_id == done["id"] and record.node == node(robot) and record.robot == robot
+    assert (record.transition_label, record.start_state_label, record.goal_state_label, record.result_state_label) \
+        == ("configure", "unconfigured", "inactive", "inactive")
+    assert (record.requested_by, record.requested_by_name, record.source) == (user, "fact-operator", "dashboard")
+    assert record.duration_ms == 0.0 and record.as_dict()["node_id"] == "facts-agv.lidar"
+
+
+def test_parameter_facts_are_audited_once_with_their_time(cell):
+    part, robot = cell
+    changed = part.fact(protocol.PARAMETER, robot=robot.name, node="/lidar", name="rate", old=10, new=20,
+                        outcome="succeeded", reason="", source="external", user_id=999_999)
+    apply_facts("cell-f", [part.fact(protocol.NODE_SEEN, robot=robot.name, node="/lidar"), changed, changed])
+    record = ParameterRecord.objects.get()
+    assert (record.name, record.old_value, record.new_value, record.outcome) == ("rate", 10, 20, "succeeded")
+    assert record.at == datetime.fromisoformat(changed["at"]) and record.node == node(robot)
+    assert record.requested_by is None and record.requested_by_name == ""  # no such user
+
+
+def test_nodes_come_and_go_and_a_late_state_never_wins(cell):
+    part, robot = cell
+    seen = part.fact(protocol.NODE_SEEN, robot=robot.name, node="/lidar")
+    inactive = part.fact(protocol.NODE_STATE, robot=robot.name, node="/lidar", state_id=sm.INACTIVE)
+    active = part.fact(protocol.NODE_STATE, robot=robot.name, node="/lidar", state_id=sm.ACTIVE)
+    apply_facts("cell-f", [seen, active])
+    apply_facts("cell-f", [inactive])  # applied late (the ingest process behind the request path)
+    lidar = node(robot)
+    assert (lidar.alive, lidar.state_label, lidar.first_seen) == (True, "active", datetime.fromisoformat(seen["at"]))
+
+    apply_facts("cell-f", [part.fact(protocol.NODE_GONE, robot=robot.name, node="/lidar")])
+    assert not node(robot).alive and node(robot).state_label == "active"  # the last known state stays
+
+    camera = part.fact(protocol.NODE_STATE, robot=robot.name, node="/camera", state_id=sm.UNCONFIGURED)
+    listing = part.fact(protocol.ROBOT_NODES, robot=robot.name, nodes=["/camera", "/planner"])
+    apply_facts("cell-f", [camera, listing])
+    states = {n.name: (n.alive, n.state_label) for n in robot.nodes.all()}
+    assert states == {"/lidar": (False, "active"), "/camera": (True, "unconfigured"), "/planner": (True, "unknown")}
+
+
+def test_runs_follow_their_facts_but_never_come_back_from_done(cell):
+    part, robot = cell
+    run = GroupRun.objects.create(id=protocol.new_id(), robot=robot, operation="bringup")
+    step = {"node": "/lidar", "outcome": "succeeded", "steps": []}
+    apply_facts("cell-f", [part.fact(protocol.RUN, run_id=run.id, robot=robot.name, status="running", message="",
+                                     results=[step], started=part.tick(), finished=None)])
+    run.refresh_from_db()
+    assert (run.status, run.results, run.started is not None) == ("running", [step], True)
+    done = part.fact(protocol.RUN, run_id=run.id, robot=robot.name, status="succeeded", message="1 succeeded",
+                     results=[step], started=None, finished=part.tick())
+    late = part.fact(protocol.RUN, run_id=run.id, robot=robot.name, status="running", message="", results=[],
+                     started=None, finished=None)
+    apply_facts("cell-f", [done, late])
+    run.refresh_from_db()
+    assert (run.status, run.message, run.results) == ("succeeded", "1 succeeded", [step])
+
+    recovery = part.fact(protocol.RUN, run_id=protocol.new_id(), robot=robot.name, status="queued", message="",
+                         results=[], started=None, finished=None, operation="recover", only_nodes=["/lidar"],
+                         source="recovery", policy="stop", node_timeout=5.0)
+    unknown = part.fact(protocol.RUN, run_id="nope", robot=robot.name, status="running", results=[],
+                        started=None, finished=None)
+    applied = apply_facts("cell-f", [recovery, unknown])
+    assert applied.rejected == 1  # a run the site never heard of, without its spec
+    made = GroupRun.objects.get(pk=recovery["run_id"])
+    assert (made.operation, made.only_nodes, made.source, made.status) == ("recover", ["/lidar"], "recovery", "queued")
+
+
+def test_a_gateway_restart_fails_the_runs_it_no_longer_knows(cell):
+    part, robot = cell
+    running = GroupRun.objects.create(id=protocol.new_id(), robot=robot, operation="bringup", status="running")
+    finished = GroupRun.objects.create(id=protocol.new_id(), robot=robot, operation="pause", status="succeeded")
+    other = Robot.objects.create(name="other-agv", domain_id=41, gateway=Gateway.objects.create(name="cell-g"))
+    elsewhere = GroupRun.objects.create(id=protocol.new_id(), robot=other, operation="bringup", status="running")
+    restarted = GatewayPart("cell-f")
+    restarted.clock = datetime.now(timezone.utc) + timedelta(seconds=1)
+    apply_facts("cell-f", [restarted.fact(protocol.GATEWAY_STARTED)])
+    statuses = {r.pk: (r.status, r.message) for r in GroupRun.objects.all()}
+    message = f"the gateway cell-f restarted while it ran (instance {restarted.instance}); its last results are kept"
+    assert statuses[running.pk] == ("failed", message)
+    assert statuses[finished.pk][0] == "succeeded" and statuses[elsewhere.pk][0] == "running"
+
+
+def test_a_gateway_cannot_write_for_another_gateways_robots_and_bad_facts_fail_alone(cell):
+    part, robot = cell
+    other = Robot.objects.create(name="other-agv", domain_id=41, gateway=Gateway.objects.create(name="cell-g"))
+    applied = apply_facts("cell-f", [
+        part.fact(protocol.NODE_SEEN, robot=other.name, node="/lidar"),
+        part.transition(other.name, "/lidar", sm.CONFIGURE, "configure", 1, 2),
+        {**part.fact(protocol.NODE_SEEN, robot=robot.name, node="/lidar"), "gateway": "cell-g"},
+        part.fact("node.exploded", robot=robot.name),
+        part.fact(protocol.NODE_SEEN, robot=robot.name, node=["/not", "a name"]),
+        part.fact(protocol.NODE_STATE, robot=robot.name, node="/lidar", state_id="active"),
+        part.fact(protocol.NODE_SEEN, robot=robot.name, node="/lidar"),  # this one is fine
+    ])
+    assert applied.rejected == 6
+    assert not other.nodes.exists() and not TransitionRecord.objects.exists()
+    assert list(robot.nodes.values_list("name", flat=True)) == ["/lidar"]
+
+
+def test_the_audit_record_of_a_robot_deleted_meanwhile_is_kept_by_name(cell):
+    part, _ = cell
+    apply_facts("cell-f", [part.transition("gone-agv", "/lidar", sm.ACTIVATE, "activate", 2, 3)])
+    record = TransitionRecord.objects.get()
+    assert (record.robot, record.node, record.robot_name, record.node_name) == (None, None, "gone-agv", "/lidar")

@@ -1,0 +1,148 @@
+"""Least privilege, checked against Debian's redis-server (7.x, what the images and CI run): a
+gateway's Redis user, made by ``manage.py add_gateway``, can do its job (its queue, its
+streams, its heartbeat, lease and config, sending to Channels groups) and nothing else: no
+other gateway's keys, no administration. Running add_gateway again locks the old password out."""
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import shutil
+import stat
+from pathlib import Path
+
+import pytest
+import redis
+from channels_redis.core import RedisChannelLayer
+from django.core.management import call_command
+from django.core.management.base import CommandError
+
+from lifecycle_site import local_redis
+from lifecycle_site.fleet import gateways
+from lifecycle_site.fleet.models import Gateway
+from ros_gateway.shared import protocol
+from tests import stack
+
+
+@pytest.fixture(scope="module")
+def debian_redis(tmp_path_factory):
+    binary = shutil.which("redis-server")
+    assert binary, "Debian's redis-server is needed for the ACL tests (apt-get install redis-server)"
+    port = stack.free_port()
+    process = local_redis.start(port, tmp_path_factory.mktemp("acl-redis"), binary=binary)
+    try:
+        yield f"redis://127.0.0.1:{port}/0"
+    finally:
+        process.terminate()
+        process.wait(5)
+
+
+@pytest.fixture
+def site(db, debian_redis, settings):
+    settings.REDIS_URL = debian_redis  # the site's own (default) user: it manages the gateways' users
+    yield redis.Redis.from_url(debian_redis)
+    gateways.forget()
+
+
+def add_gateway(name: str, env_file: Path) -> dict[str, str]:
+    call_command("add_gateway", name, "--env-file", str(env_file))
+    return dict(line.split("=", 1) for line in env_file.read_text().splitlines())
+
+
+def test_add_gateway_writes_a_private_env_file_and_rotating_locks_the_old_password_out(site, tmp_path, capsys):
+    env_file = tmp_path / "cell-x.env"
+    env_file.write_text("left over\n")
+    env_file.chmod(0o644)
+    env = add_gateway("cell-x", env_file)
+    assert stat.S_IMODE(env_file.stat().st_mode) == 0o600
+    assert set(env) == {"LIFECYCLE_GATEWAY_NAME", "REDIS_URL", "LIFECYCLE_CHANNEL_PREFIX"}
+    assert env["LIFECYCLE_GATEWAY_NAME"] == "cell-x" and env["LIFECYCLE_CHANNEL_PREFIX"] == gateways.channel_prefix()
+    old = redis.Redis.from_url(env["REDIS_URL"])
+    assert old.connection_pool.connection_kwargs["username"] == "gw-cell-x"
+    password = old.connection_pool.connection_kwargs["password"]
+    assert Gateway.objects.get(name="cell-x").redis_password_sha256 == hashlib.sha256(password.encode()).hexdigest()
+    assert password not in capsys.readouterr().out  # written to the file only
+    assert old.ping()
+
+    rotated = add_gateway("cell-x", env_file)
+    assert rotated["REDIS_URL"] != env["REDIS_URL"]
+    with pytest.raises(redis.ConnectionError):  # its open connection was closed, and it cannot log in again
+        old.ping()
+    with pytest.raises(redis.AuthenticationError):
+        redis.Redis.from_url(env["REDIS_URL"]).ping()
+    assert redis.Redis.from_url(rotated["REDIS_URL"]).ping()
+
+    call_command("add_gateway", "cell-x")  # without a file: printed, one KEY=VALUE a line
+    printed = capsys.readouterr().out.splitlines()
+    assert [line.split("=", 1)[0] for line in printed] == ["LIFECYCLE_GATEWAY_NAME", "REDIS_URL",
+                                                           "LIFECYCLE_CHANNEL_PREFIX"]
+    with pytest.raises(redis.AuthenticationError):
+        redis.Redis.from_url(rotated["REDIS_URL"]).ping()
+    with pytest.raises(CommandError, match="lower-case"):
+        call_command("add_gateway", "Cell X")
+
+
+def test_a_gateway_user_can_do_its_job_and_nothing_else(site, tmp_path):
+    prefix = gateways.channel_prefix()
+    mine = redis.Redis.from_url(add_gateway("cell-x", tmp_path / "x.env")["REDIS_URL"])
+    add_gateway("cell-y", tmp_path / "y.env")
+
+    # Its job: commands in, replies out, facts and logs, heartbeat, lease, config.
+    site.lpush(protocol.command_queue(prefix, "cell-x"), '{"command": "ping"}')
+    assert mine.brpop([protocol.command_queue(prefix, "cell-x")], timeout=1)[1] == b'{"command": "ping"}'
+    reply = protocol.reply_key(prefix, "cell-x", "r1")
+    with mine.pipeline(transaction=True) as pipe:
+        pipe.lpush(reply, "{}")
+        pipe.expire(reply, protocol.REPLY_TTL_S)
+        pipe.execute()
+    for stream in (protocol.facts_stream(prefix, "cell-x"), protocol.logs_stream(prefix, "cell-x")):
+        mine.xadd(stream, {"f": "{}"}, maxlen=protocol.FACTS_MAXLEN, approximate=True)
+    mine.set(protocol.beat_key(prefix, "cell-x"), "{}")
+    assert mine.set(protocol.lease_key(prefix, "cell-x"), "me", nx=True, px=10_000)
+    assert mine.eval("if redis.call('get', KEYS[1]) == ARGV[1] then return redis.call('pexpire', KEYS[1], ARGV[2]) "
+                     "end return 0", 1, protocol.lease_key(prefix, "cell-x"), "me", 10_000) == 1
+    assert mine.delete(protocol.lease_key(prefix, "cell-x")) == 1
+    site.set(protocol.config_key(prefix, "cell-x"), '{"robots": []}')
+    assert mine.get(protocol.config_key(prefix, "cell-x")) == b'{"robots": []}'
+
+    # Nothing else: another gateway's queue, streams and keys, the site's lease, administration.
+    other_queue = protocol.command_queue(prefix, "cell-y")
+    forbidden = [
+        lambda: mine.lpush(other_queue, "{}"),
+        lambda: mine.brpop([other_queue], timeout=1),
+        lambda: mine.get(other_queue),
+        lambda: mine.get(protocol.config_key(prefix, "cell-y")),
+        lambda: mine.set(protocol.beat_key(prefix, "cell-y"), "{}"),
+        lambda: mine.xadd(protocol.facts_stream(prefix, "cell-y"), {"f": "{}"}),
+        lambda: mine.xreadgroup(protocol.INGEST_GROUP, "site", {protocol.facts_stream(prefix, "cell-y"): ">"}),
+        lambda: mine.xrange(protocol.facts_stream(prefix, "cell-x")),
+        lambda: mine.set(f"{prefix}:site:ingest:lease", "me"),
+        lambda: mine.eval("return redis.call('lpush', KEYS[1], 'x')", 1, other_queue),
+        lambda: mine.flushall(),
+        lambda: mine.config_get("*"),
+        lambda: mine.keys("*"),
+        lambda: mine.execute_command("ACL", "LIST"),
+        lambda: mine.execute_command("CLIENT", "KILL", "USER", "gw-cell-y"),
+    ]
+    for attempt in forbidden:
+        with pytest.raises(redis.exceptions.NoPermissionError):
+            attempt()
+
+
+def test_a_gateway_user_can_send_to_channels_groups(site, debian_redis, tmp_path):
+    """What channels-redis runs for group_send (ZREMRANGEBYSCORE, ZRANGE, a script of ZCOUNT,
+    ZADD and EXPIRE on the browsers' channel keys) is allowed, and the message arrives."""
+    prefix = gateways.channel_prefix()
+    site_layer = RedisChannelLayer(hosts=[debian_redis], prefix=prefix)
+    gateway_layer = RedisChannelLayer(hosts=[add_gateway("cell-x", tmp_path / "x.env")["REDIS_URL"]], prefix=prefix)
+
+    async def scenario() -> dict:
+        try:
+            channel = await site_layer.new_channel()
+            await site_layer.group_add(protocol.FLEET_GROUP, channel)
+            await gateway_layer.group_send(protocol.FLEET_GROUP, {"type": "node.state", "node": {"id": "agv-1.lidar"}})
+            return await asyncio.wait_for(site_layer.receive(channel), 5)
+        finally:
+            await gateway_layer.close_pools()
+            await site_layer.close_pools()
+
+    assert asyncio.run(scenario()) == {"type": "node.state", "node": {"id": "agv-1.lidar"}}

@@ -1,0 +1,233 @@
+"""The ingest process against a real Redis and the real SQLite test database, with the test
+playing the gateways' part: what they XADD is stored once, in order, and what could not be
+stored is counted where operators see it."""
+from __future__ import annotations
+
+import asyncio
+import json
+import signal
+import time
+
+import pytest
+from asgiref.sync import sync_to_async
+from channels.layers import get_channel_layer
+from django.test import Client
+
+from lifecycle_site.audit.models import TransitionRecord
+from lifecycle_site.fleet import gateways
+from lifecycle_site.fleet.management.commands.ingest import Ingest
+from lifecycle_site.fleet.models import Gateway, LogRecord, ManagedNode, Robot
+from ros_gateway.shared import protocol
+from ros_gateway.shared import state_machine as sm
+from tests import stack
+from tests.conftest import make_user
+from tests.gateway_part import GatewayPart, clear_streams, iso
+
+
+@pytest.fixture
+def cell(transactional_db, redis_server) -> tuple[GatewayPart, Robot]:
+    stack.redis_client().delete(f"{gateways.channel_prefix()}:site:ingest:lease")
+    clear_streams("cell-i")
+    robot = Robot.objects.create(name="ingest-agv", domain_id=42, gateway=Gateway.objects.create(name="cell-i"))
+    return GatewayPart("cell-i"), robot
+
+
+def drain(ingest: Ingest, until, timeout: float = 10.0) -> None:
+    """Turn the loop until ``until()`` holds."""
+    stack.wait_for(lambda: ingest.step(block_ms=100) is not None and until(), timeout, "the ingest loop")
+
+
+def test_facts_added_by_hand_are_stored_and_acknowledged(cell):
+    part, robot = cell
+    part.emit(part.fact(protocol.NODE_SEEN, robot=robot.name, node="/lidar"),
+              part.fact(protocol.NODE_STATE, robot=robot.name, node="/lidar", state_id=sm.INACTIVE),
+              part.transition(robot.name, "/lidar", sm.CONFIGURE, "configure", sm.UNCONFIGURED, sm.INACTIVE))
+    ingest = Ingest()
+    assert ingest.hold_lease()
+    drain(ingest, lambda: TransitionRecord.objects.exists())
+    lidar = ManagedNode.objects.get(robot=robot, name="/lidar")
+    assert (lidar.alive, lidar.state_label) == (True, "inactive")
+    stream = protocol.facts_stream(gateways.channel_prefix(), "cell-i")
+    group = [g for g in part.redis.xinfo_groups(stream) if g["name"] == protocol.INGEST_GROUP.encode()][0]
+    assert group["pending"] == 0
+    row = Gateway.objects.get(name="cell-i")
+    assert (row.facts_seq, row.facts_lost, row.facts_rejected) == (3, 0, 0)
+    assert row.facts_cursor == group["last-delivered-id"].decode()
+
+
+def test_a_second_ingest_process_stands_by(cell):
+    first, second = Ingest(), Ingest()
+    assert first.hold_lease() and not second.hold_lease()
+    assert first.hold_lease()  # renewed
+    first.release_lease()
+    assert second.hold_lease()
+    second.release_lease()
+
+
+def test_audit_records_and_log_lines_reach_the_pages_with_their_ids(cell):
+    part, robot = cell
+    part.emit(part.fact(protocol.NODE_SEEN, robot=robot.name, node="/lidar"))
+    ingest = Ingest()
+    ingest.hold_lease()
+    drain(ingest, lambda: ManagedNode.objects.filter(robot=robot).exists())
+    key = "ingest-agv.lidar"
+    layer = get_channel_layer()
+
+    async def scenario() -> list[dict]:
+        channel = await layer.new_channel()
+        await layer.group_add(protocol.node_group(key), channel)
+        part.emit(part.transition(robot.name, "/lidar", sm.CONFIGURE, "configure", 1, 2))
+        stamp = iso()
+        part.log_batch([[robot.name, "/lidar", "lidar", stamp, 40, "no scan", "l.cpp", "scan", 7],
+                        [robot.name, "", "launch", stamp, 20, "not a node's", "", "", 0]], dropped=3)
+        await sync_to_async(drain, thread_sensitive=False)(ingest, lambda: LogRecord.objects.count() == 2)
+        return [await asyncio.wait_for(layer.receive(channel), 5) for _ in range(2)]
+
+    received = sorted(asyncio.run(scenario()), key=lambda m: m["type"])
+    record = TransitionRecord.objects.get()
+    assert received[0] == {"type": "audit.record", "record": record.as_dict()}
+    stored = LogRecord.objects.get(node__key=key)
+    assert received[1]["type"] == "node.logs"
+    assert received[1]["records"] == [{**stored.as_dict(), "node_id": key}]
+    assert Gateway.objects.get(name="cell-i").logs_dropped == 3
+
+
+def test_entries_applied_but_not_acknowledged_are_not_applied_again(cell, monkeypatch):
+    part, robot = cell
+    stamp = iso()
+    part.log_batch([[robot.name, "", "launch", stamp, 20, f"line {i}", "", "", 0] for i in range(5)])
+    part.emit(part.transition(robot.name, "/lidar", sm.CONFIGURE, "configure", 1, 2))
+    crashing = Ingest()
+    crashing.hold_lease()
+    crashing.refresh()
+    monkeypatch.setattr(crashing.redis, "xack", lambda *a: (_ for _ in ()).throw(SystemExit("killed")))
+    with pytest.raises(SystemExit):  # committed, then gone before the acknowledgement
+        for _ in range(10):
+            crashing.step(block_ms=100)
+    crashing.release_lease()
+    monkeypatch.undo()
+    stored = (LogRecord.objects.count(), TransitionRecord.objects.count())
+    assert stored in ((5, 0), (0, 1), (5, 1))
+
+    successor = Ingest()
+    successor.hold_lease()
+    drain(successor, lambda: (LogRecord.objects.count(), TransitionRecord.objects.count()) == (5, 1))
+    for _ in range(3):
+        successor.step(block_ms=50)
+    assert (LogRecord.objects.count(), TransitionRecord.objects.count()) == (5, 1)
+    for stream in (protocol.facts_stream(part.prefix, "cell-i"), protocol.logs_stream(part.prefix, "cell-i")):
+        assert part.redis.xpending(stream, protocol.INGEST_GROUP)["pending"] == 0
+
+
+def test_trimmed_facts_are_counted_as_lost_and_shown(cell):
+    part, robot = cell
+    part.emit(*[part.fact(protocol.NODE_SEEN, robot=robot.name, node=f"/n{i}") for i in range(3)])
+    ingest = Ingest()
+    ingest.hold_lease()
+    drain(ingest, lambda: Gateway.objects.get(name="cell-i").facts_seq == 3)
+    part.emit(*[part.fact(protocol.NODE_SEEN, robot=robot.name, node=f"/n{i}") for i in range(3, 10)])
+    part.redis.xtrim(protocol.facts_stream(part.prefix, "cell-i"), maxlen=3, approximate=False)  # 4-7 gone
+    drain(ingest, lambda: Gateway.objects.get(name="cell-i").facts_seq == 10)
+    row = Gateway.objects.get(name="cell-i")
+    assert row.facts_lost == 4
+    assert sorted(robot.nodes.values_list("name", flat=True)) == ["/n0", "/n1", "/n2", "/n7", "/n8", "/n9"]
+
+    client = Client()
+    client.force_login(make_user("lost-viewer", "viewer"))
+    listed = {g["name"]: g for g in client.get("/api/v1/gateways").json()["gateways"]}
+    assert listed["cell-i"]["facts_lost"] == 4 and listed["cell-i"]["robots"] == ["ingest-agv"]
+    page = client.get("/").content.decode()
+    assert "4 facts lost" in page
+
+
+def test_heartbeats_configs_and_redis_users_are_kept(cell):
+    part, robot = cell
+    part.beat(version="1.2.3", nodes=7, domains=[42], dds={"ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"},
+              outbox={"facts": 0, "log_batches": 0, "facts_dropped": 5, "logs_dropped": 0})
+    ManagedNode.objects.create(robot=robot, name="/lidar", order=1, desired_state="active")
+    row = Gateway.objects.get(name="cell-i")
+    row.redis_password_sha256 = gateways.password_sha256("s3cret-for-the-test")
+    row.save()
+    part.redis.execute_command("ACL", "DELUSER", "gw-cell-i")
+    part.emit(*[part.fact(protocol.NODE_SEEN, robot=robot.name, node="/camera") for _ in range(2)])
+    ingest = Ingest()
+    ingest.hold_lease()
+    ingest.step(block_ms=100)
+    row.refresh_from_db()
+    assert (row.version, row.node_count, row.domains, row.outbox["facts_dropped"]) == ("1.2.3", 7, [42], 5)
+    assert row.last_beat is not None and row.dds == {"ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"}
+    config = json.loads(part.redis.get(protocol.config_key(part.prefix, "cell-i")))
+    assert config["gateway"] == "cell-i" and config["version"]
+    assert config["robots"][0]["name"] == "ingest-agv"
+    assert config["robots"][0]["nodes"]["/lidar"] == {"order": 1, "desired_state": "active"}
+    assert gateways.user_is_current(row, part.redis)
+    part.redis.execute_command("ACL", "DELUSER", "gw-cell-i")
+
+
+def test_the_backlog_counts_what_is_not_stored_yet(cell):
+    part, robot = cell
+    ingest = Ingest()
+    ingest.hold_lease()
+    ingest.refresh()
+    part.emit(*[part.fact(protocol.NODE_SEEN, robot=robot.name, node=f"/n{i}") for i in range(25)])
+    ingest.copy_beats()
+    assert Gateway.objects.get(name="cell-i").backlog == 25
+    drain(ingest, lambda: Gateway.objects.get(name="cell-i").facts_seq == 25)
+    ingest.copy_beats()
+    assert Gateway.objects.get(name="cell-i").backlog == 0
+
+
+def test_the_ingest_process_catches_up_in_order_after_a_stop(cell):
+    part, robot = cell
+    process = stack.start_ingest("ingest-catch-up")
+    try:
+        part.emit(part.fact(protocol.NODE_SEEN, robot=robot.name, node="/lidar"))
+        stack.wait_for(lambda: ManagedNode.objects.filter(robot=robot).exists() or not process.alive(), 20,
+                       "the ingest process to store a fact")
+        assert process.stop(signal.SIGTERM) == 0, process.output()
+        assert "ingest stopped after storing 1 entries" in process.output()
+
+        states = [sm.UNCONFIGURED, sm.CONFIGURING, sm.INACTIVE, sm.ACTIVATING, sm.ACTIVE]
+        facts = []
+        for i in range(1000):  # while nothing reads them
+            facts.append(part.fact(protocol.NODE_STATE, robot=robot.name, node=f"/n{i % 10}",
+                                   state_id=states[(i // 10) % len(states)]))
+        facts.append(part.transition(robot.name, "/lidar", sm.CONFIGURE, "configure", 1, 2))
+        part.emit(*facts)
+        started = time.monotonic()
+        process = stack.start_ingest("ingest-catch-up")
+        stack.wait_for(lambda: TransitionRecord.objects.exists() or not process.alive(), 60,
+                       "the ingest process to catch up")
+        took = time.monotonic() - started
+        final = dict(ManagedNode.objects.filter(robot=robot).exclude(name="/lidar").values_list("name", "state_id"))
+        assert final == {f"/n{i}": states[(99 // 10) % len(states)] for i in range(10)}  # the last of each, in order
+        row = Gateway.objects.get(name="cell-i")
+        assert (row.facts_seq, row.facts_lost, row.facts_rejected) == (1002, 0, 0)
+        assert took < 30, f"catching up on 1,000 facts took {took:.1f} s"
+        # What is stored leaves Redis (trimmed by whole blocks of entries, so a few may stay).
+        stack.wait_for(lambda: part.redis.xlen(protocol.facts_stream(part.prefix, "cell-i")) < 200, 10,
+                       "the stored facts trimmed from the stream")
+    finally:
+        process.stop()
+
+
+def test_runs_of_a_gateway_silent_past_the_bound_end_failed_and_others_stay(cell, settings):
+    from lifecycle_site.fleet.models import GroupRun
+
+    _part, robot = cell
+    other = Robot.objects.create(name="ingest-arm", domain_id=43, gateway=Gateway.objects.create(name="cell-j"))
+    runs = {r.robot.name: r for r in (
+        GroupRun.objects.create(id="run-of-cell-i", robot=robot, operation="bringup", status="running"),
+        GroupRun.objects.create(id="run-of-cell-j", robot=other, operation="bringup", status="running"))}
+    settings.LIFECYCLE = {**settings.LIFECYCLE, "RUN_ORPHAN_AFTER": 60.0}
+    ingest = Ingest()
+    stack.write_beat("cell-i", at=time.time() - 30)  # silent, but not for long enough
+    stack.write_beat("cell-j", at=time.time())
+    ingest.settle_orphaned_runs()
+    assert set(GroupRun.objects.values_list("status", flat=True)) == {"running"}
+    stack.write_beat("cell-i", at=time.time() - 61)
+    ingest.settle_orphaned_runs()
+    failed = GroupRun.objects.get(id=runs["ingest-agv"].id)
+    assert failed.status == "failed" and failed.finished is not None
+    assert failed.message.startswith("the gateway cell-i has been silent since ") and "on record" in failed.message
+    assert GroupRun.objects.get(id=runs["ingest-arm"].id).status == "running"

@@ -1,0 +1,71 @@
+"""Brute force: wrong passwords are counted per account and per client address; past the
+limit the login is refused (the right password too) with a page that says so and for how
+long; the admin login is guarded the same way; every failure is on record with the name."""
+from __future__ import annotations
+
+from django.test import Client
+
+from lifecycle_site.audit.models import AccessDenial
+from tests.conftest import make_user
+
+PASSWORD = "a-test-password-123"
+
+
+def login(client: Client, username: str, password: str, address: str = "10.0.0.1", path: str = "/login/"):
+    return client.post(path, {"username": username, "password": password}, REMOTE_ADDR=address)
+
+
+def test_five_wrong_passwords_lock_the_account_and_say_so(db):
+    make_user("olga-operator", "operator")
+    for attempt in range(4):
+        assert login(Client(), "olga-operator", f"guess-{attempt}", f"10.0.0.{attempt + 1}").status_code == 200
+    assert login(Client(), "olga-operator", "guess-4", "10.0.0.5").status_code == 429  # the fifth: blocked
+    refused = login(Client(), "olga-operator", PASSWORD, "10.0.0.99")  # the right one, from elsewhere
+    assert refused.status_code == 429
+    page = refused.content.decode()
+    assert "Login blocked" in page and "olga-operator" in page and "15 minutes" in page
+    assert "_auth_user_id" not in Client().session
+    codes = list(AccessDenial.objects.filter(username="olga-operator").order_by("id").values_list("code", flat=True))
+    assert codes == ["login_failed"] * 4 + ["login_blocked"] * 2, codes  # the fifth wrong one sets the block
+
+
+def test_one_address_trying_many_accounts_is_blocked_too(db):
+    for name in ("u1", "u2", "u3", "u4", "u5"):
+        login(Client(), name, "wrong", "10.6.6.6")
+    make_user("victor-viewer", "viewer")
+    assert login(Client(), "victor-viewer", PASSWORD, "10.6.6.6").status_code == 429
+    assert login(Client(), "victor-viewer", PASSWORD, "10.7.7.7").status_code == 302  # others are not
+
+
+def test_a_right_password_before_the_limit_resets_the_count(db):
+    make_user("olga-operator", "operator")
+    for _ in range(4):
+        login(Client(), "olga-operator", "wrong")
+    assert login(Client(), "olga-operator", PASSWORD).status_code == 302
+    for _ in range(4):
+        login(Client(), "olga-operator", "wrong")
+    assert login(Client(), "olga-operator", PASSWORD).status_code == 302
+
+
+def test_the_admin_login_is_guarded_alike(db):
+    admin = make_user("ada-admin", "admin")
+    admin.is_staff = True
+    admin.save()
+    for _ in range(5):
+        login(Client(), "ada-admin", "wrong", path="/admin/login/")
+    assert login(Client(), "ada-admin", PASSWORD, path="/admin/login/").status_code == 429
+
+
+def test_guessing_tokens_is_throttled_per_address_and_valid_tokens_still_work(db):
+    from lifecycle_site.api.models import ApiToken
+
+    _record, token = ApiToken.issue(make_user("tess-token", "viewer"), "ci")
+    guesser = Client(REMOTE_ADDR="10.5.5.5")
+    answers = [guesser.get("/api/v1/nodes", HTTP_AUTHORIZATION=f"Bearer guess-{i}").status_code for i in range(21)]
+    assert answers == [401] * 20 + [429]
+    refused = guesser.get("/api/v1/nodes", HTTP_AUTHORIZATION="Bearer guess-22")
+    assert refused.json()["error"]["code"] == "too_many_attempts"
+    assert AccessDenial.objects.filter(code="bad_token").count() == 20  # the blocked ones cost no row
+    # A valid token is no guess (2^256 of them): it works, from there too.
+    assert guesser.get("/api/v1/nodes", HTTP_AUTHORIZATION=f"Bearer {token}").status_code == 200
+    assert Client(REMOTE_ADDR="10.5.5.6").get("/api/v1/nodes", HTTP_AUTHORIZATION="Bearer guess").status_code == 401
