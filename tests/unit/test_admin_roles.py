@@ -232,3 +232,14 @@ def test_groups_and_their_permissions_are_for_superusers_only(root_client):
     assert set(viewer.permissions.values_list("pk", flat=True)) == before
 
     assert root_client.get(group_url).status_code == 200
+
+
+def test_the_roles_are_complete_after_the_first_migrate(db):
+    """The test database is made by one migrate, as a fresh install is: every permission a role
+    names exists then and is in the role (the audit and api apps migrate after fleet)."""
+    from lifecycle_site.fleet.roles import ROLES
+
+    for role, dotted in ROLES.items():
+        have = {f"{p.content_type.app_label}.{p.codename}"
+                for p in Group.objects.get(name=role).permissions.select_related("content_type")}
+        assert have == set(dotted), f"{role} lacks {set(dotted) - have}"
