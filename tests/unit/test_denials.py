@@ -94,3 +94,4 @@ def test_admins_review_them_in_the_admin_and_cannot_change_them(db):
     viewer = Client()
     viewer.force_login(make_user("victor-viewer", "viewer"))
     assert viewer.get("/admin/audit/accessdenial/").status_code == 302  # not staff: to the admin login
+
