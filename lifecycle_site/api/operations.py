@@ -92,6 +92,8 @@ def run_detail(request: HttpRequest, run_id: str) -> JsonResponse:
 
 @api_view()
 def robot_runs(request: HttpRequest, name: str) -> JsonResponse:
+    if not Robot.objects.filter(name=name).exists():
+        raise Http404(f"There is no robot {name!r}.")
     runs = GroupRun.objects.select_related("robot", "requested_by").filter(robot__name=name)[:50]
     return JsonResponse({"runs": [r.as_dict() for r in runs]})
 
@@ -104,9 +106,11 @@ def desired_state(request: HttpRequest, key: str) -> JsonResponse:
         return body
     if "desired_state" not in body:
         return error("missing_field", 'Send {"desired_state": "active"} (or null to clear it).', 400)
-    wanted = body["desired_state"] or ""
+    wanted = body["desired_state"]
+    if wanted is None:  # null clears it; false, 0, [] are not a state (nor "none")
+        wanted = ""
     allowed = [value for value, _ in node._meta.get_field("desired_state").choices]
-    if wanted not in allowed:
+    if not isinstance(wanted, str) or wanted not in allowed:
         return error("invalid_field", "desired_state must be unconfigured, inactive, active or null.", 400)
     node.desired_state = wanted
     node.save(update_fields=["desired_state"])

@@ -207,3 +207,24 @@ def test_admin_role_opens_the_admin_site(db):
     user.groups.remove(Group.objects.get(name="admin"))
     user.refresh_from_db()
     assert not user.is_staff
+
+
+@pytest.mark.parametrize("value", ["false", "0", "[]", '"none"', '"ACTIVE"', "{}"])
+def test_a_desired_state_that_is_not_a_state_is_refused_and_nothing_changes(operator_client, node, value):
+    node.desired_state = "active"
+    node.save()
+    response = operator_client.put(f"/api/v1/nodes/{node.key}/desired-state", '{"desired_state": %s}' % value,
+                                   content_type="application/json")
+    assert response.status_code == 400 and error_code(response) == "invalid_field"
+    node.refresh_from_db()
+    assert node.desired_state == "active"
+    response = operator_client.put(f"/api/v1/nodes/{node.key}/desired-state", '{"desired_state": null}',
+                                   content_type="application/json")
+    assert response.status_code == 200 and response.json()["desired_state"] is None
+
+
+def test_runs_of_an_unknown_robot_are_404_and_of_a_known_one_a_list(operator_client, node):
+    response = operator_client.get("/api/v1/robots/ghost/runs")
+    assert response.status_code == 404 and error_code(response) == "not_found" and "ghost" in response.json()[
+        "error"]["message"]
+    assert operator_client.get(f"/api/v1/robots/{node.robot.name}/runs").json() == {"runs": []}
