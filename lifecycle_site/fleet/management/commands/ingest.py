@@ -57,14 +57,14 @@ RENEW = "if redis.call('get', KEYS[1]) == ARGV[1] then return redis.call('pexpir
 RELEASE = "if redis.call('get', KEYS[1]) == ARGV[1] then return redis.call('del', KEYS[1]) end return 0"
 
 
-def entry_id(raw: bytes | str) -> tuple[int, int]:
-    text = raw.decode() if isinstance(raw, bytes) else raw
-    ms, _, seq = text.partition("-")
-    return int(ms), int(seq or 0)
-
-
 def _text(raw: bytes | str) -> str:
+    """A stream name or entry id as redis-py hands it over (bytes unless decoded) as text."""
     return raw.decode() if isinstance(raw, bytes) else raw
+
+
+def entry_id(raw: bytes | str) -> tuple[int, int]:
+    ms, _, seq = _text(raw).partition("-")
+    return int(ms), int(seq or 0)
 
 
 def is_after(raw: bytes | str, cursor: str) -> bool:
@@ -230,7 +230,7 @@ class Ingest:
         self.settle(replies or [])
         applied = 0
         for raw_stream, entries in replies or []:
-            stream = raw_stream.decode() if isinstance(raw_stream, bytes) else raw_stream
+            stream = _text(raw_stream)
             if not entries:
                 self.catching_up.discard(stream)
                 continue
@@ -268,8 +268,7 @@ class Ingest:
             else:
                 pushes = self.store_logs(row, fresh)
             if fresh:
-                last = fresh[-1][0]
-                setattr(row, f"{kind}_cursor", last.decode() if isinstance(last, bytes) else last)
+                setattr(row, f"{kind}_cursor", _text(fresh[-1][0]))
             row.save(update_fields=[
                 f"{kind}_cursor", f"{kind}_instance", f"{kind}_seq", "facts_lost", "facts_rejected",
                 "logs_lost", "logs_dropped",
@@ -278,8 +277,7 @@ class Ingest:
         # Stored and acknowledged: Redis keeps only what is not (MAXLEN then bounds a backlog,
         # not a history), so a small Redis (Edge: 40 MB, noeviction) never fills up with it.
         if entries:
-            last = entries[-1][0]
-            self.redis.xtrim(stream, minid=last.decode() if isinstance(last, bytes) else last)
+            self.redis.xtrim(stream, minid=_text(entries[-1][0]))
         push(pushes)
         return len(fresh)
 
@@ -383,7 +381,7 @@ class Ingest:
                 lag = group.get("lag")
                 if lag is None:
                     last = group.get("last-delivered-id") or b"0-0"
-                    last = last.decode() if isinstance(last, bytes) else last
+                    last = _text(last)
                     lag = len(self.redis.xrange(stream, f"({last}", "+", count=10_000))
                 totals[name] = totals.get(name, 0) + int(lag) + int(group.get("pending") or 0)
         return totals
