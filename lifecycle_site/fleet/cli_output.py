@@ -9,7 +9,9 @@ import math
 from collections.abc import Iterable
 from typing import Any
 
-from django.core.management.base import DjangoHelpFormatter
+from django.core.exceptions import ValidationError
+from django.core.management.base import CommandError, DjangoHelpFormatter
+from django.db import models
 
 from lifecycle_site.fleet.gateway_client import MAX_SERVICE_TIMEOUT
 from lifecycle_site.fleet.models import GroupRun, ManagedNode
@@ -250,3 +252,12 @@ def unknown_node(ref: str, robot: str | None, known: list[str], same_name: list[
         return (f"There is no node id {ref!r}; a ROS name needs --robot R. Node ids of that name: "
                 f"{sample(same_name, 'lifecycle nodes -a')}.")
     return f"There is no node {ref!r}. Node ids look like ROBOT.NAME; known: {sample(known, 'lifecycle nodes -a')}."
+
+
+def clean_or_fail(instance: models.Model) -> None:
+    """``full_clean()``, its problems as one CommandError line ("name: ...; domain_id: ...")."""
+    try:
+        instance.full_clean()
+    except ValidationError as exc:
+        problems = "; ".join(f"{field}: {' '.join(msgs)}" for field, msgs in exc.message_dict.items())
+        raise CommandError(problems) from None

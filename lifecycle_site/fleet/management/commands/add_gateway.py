@@ -14,10 +14,10 @@ from urllib.parse import urlsplit, urlunsplit
 
 import redis
 from django.conf import settings
-from django.core.exceptions import ValidationError
 from django.core.management.base import BaseCommand, CommandError
 
 from lifecycle_site.fleet import gateways
+from lifecycle_site.fleet.cli_output import clean_or_fail
 from lifecycle_site.fleet.models import Gateway
 
 
@@ -58,11 +58,7 @@ class Command(BaseCommand):
         created = gateway.pk is None
         if description:
             gateway.description = description
-        try:
-            gateway.full_clean()
-        except ValidationError as exc:
-            problems = "; ".join(f"{field}: {' '.join(msgs)}" for field, msgs in exc.message_dict.items())
-            raise CommandError(problems) from None
+        clean_or_fail(gateway)
         password = secrets.token_urlsafe(32)
         gateway.redis_password_sha256 = gateways.password_sha256(password)
         url = gateway_url(redis_url or settings.REDIS_URL, gateway.redis_user, password)

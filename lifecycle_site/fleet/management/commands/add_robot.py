@@ -1,9 +1,9 @@
 """``manage.py add_robot NAME --domain N [--namespace NS] [--gateway G]``: register (or update) a robot."""
 from __future__ import annotations
 
-from django.core.exceptions import ValidationError
 from django.core.management.base import BaseCommand, CommandError
 
+from lifecycle_site.fleet.cli_output import clean_or_fail
 from lifecycle_site.fleet.models import Gateway, Robot
 from ros_gateway.shared import protocol
 
@@ -35,11 +35,7 @@ class Command(BaseCommand):
         robot.domain_id, robot.namespace, robot.enabled = domain, namespace.rstrip("/"), not disabled
         if description:
             robot.description = description
-        try:
-            robot.full_clean()
-        except ValidationError as exc:
-            problems = "; ".join(f"{field}: {' '.join(msgs)}" for field, msgs in exc.message_dict.items())
-            raise CommandError(problems) from None
+        clean_or_fail(robot)
         robot.save()
         verb = "Registered" if created else "Updated"
         where = f"ROS domain {domain}" + (f", namespace {robot.namespace}" if robot.namespace else "")
