@@ -33,10 +33,15 @@ UNREACHABLE = "unreachable"
 Process = tuple[int, bytes | str]
 
 
+def participants(node_name: str, incarnation: frozenset) -> set[bytes | str]:
+    """The DDS participants publishing the node's transition events (the node's name while
+    none is known)."""
+    return {bytes(gid)[:GUID_PREFIX_BYTES] for gid in incarnation} or {node_name}
+
+
 def process_of(domain_id: int, node_name: str, incarnation: frozenset) -> Process:
-    """The DDS participant publishing the node's transition events."""
-    prefixes = {bytes(gid)[:GUID_PREFIX_BYTES] for gid in incarnation}
-    return (domain_id, min(prefixes)) if prefixes else (domain_id, node_name)
+    """The one process a node is probed with (the first of its participants)."""
+    return domain_id, min(participants(node_name, incarnation))  # all bytes, or the one name
 
 
 class Liveness:
@@ -58,8 +63,8 @@ class Liveness:
         is held back only if none of them belongs to a process that may answer."""
         if not self.unreachable:
             return False
-        prefixes = {bytes(gid)[:GUID_PREFIX_BYTES] for gid in domain.incarnation(node_name)} or {node_name}
-        return all((domain.domain_id, prefix) in self.unreachable for prefix in prefixes)
+        return all((domain.domain_id, participant) in self.unreachable
+                   for participant in participants(node_name, domain.incarnation(node_name)))
 
     def _groups(self) -> dict[Process, list[LiveNode]]:
         """Watched nodes by process: the live ones, and those of unreachable processes."""
