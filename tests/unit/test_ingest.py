@@ -213,6 +213,7 @@ def test_the_ingest_process_catches_up_in_order_after_a_stop(cell):
 
 def test_runs_of_a_gateway_silent_past_the_bound_end_failed_and_others_stay(cell, settings):
     from lifecycle_site.fleet.models import GroupRun
+    from lifecycle_site.fleet.runs import fail_runs_of_silent_gateways
 
     _part, robot = cell
     other = Robot.objects.create(name="ingest-arm", domain_id=43, gateway=Gateway.objects.create(name="cell-j"))
@@ -220,13 +221,12 @@ def test_runs_of_a_gateway_silent_past_the_bound_end_failed_and_others_stay(cell
         GroupRun.objects.create(id="run-of-cell-i", robot=robot, operation="bringup", status="running"),
         GroupRun.objects.create(id="run-of-cell-j", robot=other, operation="bringup", status="running"))}
     settings.LIFECYCLE = {**settings.LIFECYCLE, "RUN_ORPHAN_AFTER": 60.0}
-    ingest = Ingest()
     stack.write_beat("cell-i", at=time.time() - 30)  # silent, but not for long enough
     stack.write_beat("cell-j", at=time.time())
-    ingest.settle_orphaned_runs()
+    fail_runs_of_silent_gateways()
     assert set(GroupRun.objects.values_list("status", flat=True)) == {"running"}
     stack.write_beat("cell-i", at=time.time() - 61)
-    ingest.settle_orphaned_runs()
+    fail_runs_of_silent_gateways()
     failed = GroupRun.objects.get(id=runs["ingest-agv"].id)
     assert failed.status == "failed" and failed.finished is not None
     assert failed.message.startswith("the gateway cell-i has been silent since ") and "on record" in failed.message

@@ -19,7 +19,7 @@ import signal
 import socket
 import time
 import uuid
-from datetime import datetime, timedelta, timezone
+from datetime import datetime, timezone
 from typing import Any
 
 import redis
@@ -30,7 +30,8 @@ from django.db import DatabaseError, InterfaceError, OperationalError, connectio
 from lifecycle_site.fleet import gateways as gw
 from lifecycle_site.fleet.facts import FactRejected, apply_facts, parse_time, push, record_messages
 from lifecycle_site.fleet.log_store import LogTargets, prune_logs, store_batch
-from lifecycle_site.fleet.models import Gateway, GroupRun
+from lifecycle_site.fleet.models import Gateway
+from lifecycle_site.fleet.runs import fail_runs_of_silent_gateways
 from ros_gateway.shared import protocol
 
 log = logging.getLogger("lifecycle_site.ingest")
@@ -148,7 +149,7 @@ class Ingest:
         if self.is_due("beats", BEATS_S):
             self.copy_beats()
             self.publish_configs()
-            self.settle_orphaned_runs()
+            fail_runs_of_silent_gateways()
         if self.is_due("users", USERS_S):
             self.keep_users()
         if self.is_due("prune", PRUNE_S):
@@ -340,28 +341,6 @@ class Ingest:
             if beat is not None:
                 changes.update(beat_fields(beat))
             Gateway.objects.filter(name=name).update(**changes)
-
-    def settle_orphaned_runs(self) -> None:
-        """Runs of a gateway that has been silent past LIFECYCLE_RUN_ORPHAN_AFTER, with nothing
-        of it left to store, end failed: a killed gateway that stays away would otherwise leave
-        them running for good (one that comes back settles them itself, gateway.started)."""
-        open_states = (GroupRun.Status.QUEUED, GroupRun.Status.RUNNING)
-        names = set(GroupRun.objects.filter(status__in=open_states).values_list("robot__gateway__name", flat=True))
-        if not names:
-            return
-        now = datetime.now(timezone.utc)
-        after = timedelta(seconds=settings.LIFECYCLE["RUN_ORPHAN_AFTER"])
-        rows = list(Gateway.objects.filter(name__in=names))
-        for row, state in zip(rows, gw.statuses(rows), strict=True):
-            if state.online or state.last_beat is None or now - state.last_beat < after or row.backlog:
-                continue
-            settled = GroupRun.objects.filter(robot__gateway=row, status__in=open_states).update(
-                status=GroupRun.Status.FAILED, finished=now,
-                message=f"the gateway {row.name} has been silent since {state.last_beat:%Y-%m-%d %H:%M:%S} UTC, "
-                "so the run could not finish; what finished before is on record")
-            if settled:
-                log.warning("gateway %s: %d run(s) failed, the gateway is silent since %s", row.name, settled,
-                            state.last_beat.isoformat())
 
     def backlogs(self, names: list[str]) -> dict[str, int]:
         """Entries not yet stored, per gateway: the group's lag (Redis 7) or an estimate, plus
