@@ -33,7 +33,7 @@ class AppendOnlyRecord(models.Model):
     def save(self, *args, **kwargs) -> None:
         if self.pk is not None:
             raise AppendOnlyError("Audit records cannot be changed.")
-        if self.requested_by is not None and not self.requested_by_name:
+        if not self.requested_by_name and self.requested_by is not None:
             self.requested_by_name = self.requested_by.get_username()
         super().save(*args, **kwargs)
 

@@ -9,19 +9,16 @@ Fact shapes: ros_gateway/shared/protocol.py and the wire contract in docs/archit
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
-from datetime import datetime, timezone
+from datetime import datetime
 from typing import Any, Iterable
 
-from asgiref.sync import async_to_sync
-from channels.layers import get_channel_layer
-from django.contrib.auth import get_user_model
 from django.db import IntegrityError, InterfaceError, OperationalError, transaction
 from django.db.models import Q
 from django.db.models.functions import Coalesce
 
 from lifecycle_site.audit.models import ParameterRecord, TransitionRecord
-from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
+from lifecycle_site.fleet.fact_context import Applied, FactRejected, Hints, KnownRecords, optional_time, parse_time
+from lifecycle_site.fleet.models import GroupRun, ManagedNode
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 
@@ -32,116 +29,36 @@ GONE_REASONS = ("unreachable",)
 DONE = (GroupRun.Status.SUCCEEDED, GroupRun.Status.FAILED, GroupRun.Status.PARTIAL)
 
 
-class FactRejected(ValueError):
-    """A fact the site cannot apply (malformed, or about what its gateway does not own)."""
-
-
-@dataclass
-class Applied:
-    """What applying a list of facts did."""
-
-    transitions: dict[str, TransitionRecord] = field(default_factory=dict)  # by fact id, made now or before
-    parameters: dict[str, ParameterRecord] = field(default_factory=dict)
-    created: list[TransitionRecord] = field(default_factory=list)  # made by this call (pages get them)
-    rejected: int = 0
-
-    def transition_record(self, facts: Iterable[dict]) -> TransitionRecord | None:
-        """The audit record of the (first) transition fact among ``facts``."""
-        for fact in facts:
-            if isinstance(fact, dict) and fact.get("type") == protocol.TRANSITION:
-                return self.transitions.get(str(fact.get("id")))
-        return None
-
-
-def parse_time(value: Any, what: str = "time") -> datetime:
-    """An ISO-8601 time as an aware datetime (UTC when it carries no offset)."""
-    try:
-        moment = datetime.fromisoformat(str(value))
-    except ValueError:
-        raise FactRejected(f"{what} {value!r} is not an ISO-8601 time") from None
-    return moment if moment.tzinfo else moment.replace(tzinfo=timezone.utc)
-
-
-def optional_time(value: Any, what: str) -> datetime | None:
-    return None if value in (None, "") else parse_time(value, what)
-
-
-class _Gateway:
-    """One gateway's robots and nodes, read once per call and kept while its facts are applied."""
-
-    def __init__(self, name: str) -> None:
-        self.name = name
-        self.robots = {r.name: r for r in Robot.objects.filter(gateway__name=name).select_related("gateway")}
-        self.nodes: dict[int, dict[str, ManagedNode | None]] = {}  # None: known not to exist
-
-    def prefetch(self, facts: list) -> None:
-        """Read the nodes the facts name, in one query (not all nodes of their robots: a
-        reply's three facts on a robot of 100 nodes read 1 node, not 100)."""
-        wanted: dict[int, set[str]] = {}
-        for fact in facts:
-            if isinstance(fact, dict) and isinstance(fact.get("node"), str):
-                robot = self.robots.get(fact.get("robot"))
-                if robot is not None:
-                    wanted.setdefault(robot.id, set()).add(fact["node"])
-        if not wanted:
-            return
-        query = Q()
-        for robot_id, names in wanted.items():
-            query |= Q(robot_id=robot_id, name__in=names)
-            known = self.nodes.setdefault(robot_id, {})
-            for name in names:
-                known.setdefault(name, None)
-        for node in ManagedNode.objects.filter(query):
-            self.nodes[node.robot_id][node.name] = node
-
-    def robot(self, fact: dict, required: bool = True) -> Robot | None:
-        """The fact's robot; it must be one of this gateway's. ``required=False`` allows a robot
-        that no longer exists (its audit records are still kept, by name)."""
-        name = fact.get("robot")
-        robot = self.robots.get(name)
-        if robot is None and (required or Robot.objects.filter(name=name).exists()):
-            raise FactRejected(f"robot {name!r} is not one of gateway {self.name}'s robots")
-        return robot
-
-    def load_robot(self, robot: Robot) -> None:
-        """Every node of the robot (for a fact about all of them)."""
-        known = self.nodes.setdefault(robot.id, {})
-        known.update({n.name: n for n in ManagedNode.objects.filter(robot=robot)})
-
-    def node(self, robot: Robot, name: str) -> ManagedNode | None:
-        known = self.nodes.setdefault(robot.id, {})
-        if name not in known:
-            known[name] = ManagedNode.objects.filter(robot=robot, name=name).first()
-        node = known[name]
-        if node is not None:
-            node.robot = robot  # as_dict and key need no query
-        return node
-
-    def new_node(self, robot: Robot, name: str, at: datetime, **fields: Any) -> ManagedNode:
-        if not name.startswith("/"):
-            raise FactRejected(f"{name!r} is not a fully qualified node name")
-        node, _ = ManagedNode.objects.get_or_create(
-            robot=robot, name=name, defaults={"alive": True, "first_seen": at, "last_seen": at, **fields}
-        )
-        self.nodes.setdefault(robot.id, {})[name] = node
-        node.robot = robot
-        return node
-
-
-def apply_facts(gateway: str, facts: Iterable[dict]) -> Applied:
+def apply_facts(gateway: str, facts: Iterable[dict], hints: Hints | None = None) -> Applied:
     """Apply a gateway's facts in order, in one transaction; a fact that cannot be applied is
-    logged, counted in ``rejected`` and skipped (the others still are)."""
+    logged, counted in ``rejected`` and skipped (the others still are).
+
+    All facts are first applied in one go; only when one of them fails is the batch rolled back
+    and applied again fact by fact, each in a savepoint of its own (the usual batch, a reply's
+    two or three facts, costs no savepoint)."""
+    facts = list(facts)
+    try:
+        return _apply_all(gateway, facts, hints, isolated=False)
+    except (OperationalError, InterfaceError):
+        raise  # the database itself is unavailable: the whole batch is tried again
+    except Exception:  # noqa: BLE001 - some fact fails: find which, apply the others
+        return _apply_all(gateway, facts, hints, isolated=True)
+
+
+def _apply_all(gateway: str, facts: list, hints: Hints | None, isolated: bool) -> Applied:
     applied = Applied()
     with transaction.atomic():
-        facts = list(facts)
-        known = _Gateway(gateway)
+        known = KnownRecords(gateway, hints, isolated)
         known.prefetch(facts)
         for fact in facts:
+            if not isolated:
+                apply_fact(known, fact, applied)
+                continue
             try:
                 with transaction.atomic():  # a savepoint: a fact that fails, fails alone
                     apply_fact(known, fact, applied)
             except (OperationalError, InterfaceError):
-                raise  # the database itself is unavailable: the whole batch is tried again
+                raise
             except Exception as exc:  # noqa: BLE001 - whatever a malformed fact causes, it must not block the rest
                 applied.rejected += 1
                 known.nodes.clear()  # what the failed fact created is gone
@@ -151,7 +68,7 @@ def apply_facts(gateway: str, facts: Iterable[dict]) -> Applied:
     return applied
 
 
-def apply_fact(known: _Gateway, fact: dict, applied: Applied) -> None:
+def apply_fact(known: KnownRecords, fact: dict, applied: Applied) -> None:
     if not isinstance(fact, dict):
         raise FactRejected("a fact must be a JSON object")
     if fact.get("gateway") != known.name:
@@ -163,7 +80,7 @@ def apply_fact(known: _Gateway, fact: dict, applied: Applied) -> None:
     handler(known, fact, parse_time(fact.get("at"), "at"), applied)
 
 
-def _node_seen(known: _Gateway, fact: dict, at: datetime, applied: Applied) -> None:
+def _node_seen(known: KnownRecords, fact: dict, at: datetime, applied: Applied) -> None:
     robot = known.robot(fact)
     node = known.node(robot, fact["node"])
     if node is None:
@@ -173,7 +90,7 @@ def _node_seen(known: _Gateway, fact: dict, at: datetime, applied: Applied) -> N
                                                   first_seen=Coalesce("first_seen", at))
 
 
-def _node_gone(known: _Gateway, fact: dict, at: datetime, applied: Applied) -> None:
+def _node_gone(known: KnownRecords, fact: dict, at: datetime, applied: Applied) -> None:
     robot = known.robot(fact)
     node = known.node(robot, fact["node"])
     if node is not None:
@@ -181,7 +98,7 @@ def _node_gone(known: _Gateway, fact: dict, at: datetime, applied: Applied) -> N
         ManagedNode.objects.filter(pk=node.pk).update(alive=False, gone_reason=reason, last_seen=at)
 
 
-def _node_state(known: _Gateway, fact: dict, at: datetime, applied: Applied) -> None:
+def _node_state(known: KnownRecords, fact: dict, at: datetime, applied: Applied) -> None:
     robot = known.robot(fact)
     state_id = int(fact["state_id"])
     changes = {"state_id": state_id, "state_label": sm.state_label(state_id), "state_changed": at}
@@ -196,7 +113,7 @@ def _node_state(known: _Gateway, fact: dict, at: datetime, applied: Applied) -> 
     )
 
 
-def _robot_nodes(known: _Gateway, fact: dict, at: datetime, applied: Applied) -> None:
+def _robot_nodes(known: KnownRecords, fact: dict, at: datetime, applied: Applied) -> None:
     robot = known.robot(fact)
     listed = fact["nodes"]
     if not isinstance(listed, list) or not all(isinstance(n, str) for n in listed):
@@ -211,11 +128,13 @@ def _robot_nodes(known: _Gateway, fact: dict, at: datetime, applied: Applied) ->
             known.new_node(robot, name, at)
 
 
-def _user_id(value: Any) -> int | None:
+def _requester(known: KnownRecords, value: Any) -> dict[str, Any]:
+    """The audit record's requested_by fields for the fact's user_id (none for a deleted user)."""
     if value is None:
-        return None
+        return {}
     user_id = int(value)
-    return user_id if get_user_model().objects.filter(pk=user_id).exists() else None
+    name = known.username(user_id)
+    return {} if name is None else {"requested_by_id": user_id, "requested_by_name": name}
 
 
 def _label(state_id: int | None) -> str:
@@ -226,7 +145,7 @@ def _optional_int(value: Any) -> int | None:
     return None if value is None else int(value)
 
 
-def _transition(known: _Gateway, fact: dict, at: datetime, applied: Applied) -> None:
+def _transition(known: KnownRecords, fact: dict, at: datetime, applied: Applied) -> None:
     fact_id = str(fact["id"])
     existing = TransitionRecord.objects.select_related("node").filter(fact_id=fact_id).first()
     if existing is not None:
@@ -258,24 +177,21 @@ def _transition(known: _Gateway, fact: dict, at: datetime, applied: Applied) -> 
         result_state_label=_label(result),
         outcome=outcome,
         source=source,
-        requested_by_id=_user_id(fact.get("user_id")),
+        **_requester(known, fact.get("user_id")),
         requested_at=requested_at,
         completed_at=completed_at,
         duration_ms=round((completed_at - requested_at).total_seconds() * 1000, 2) if completed_at else None,
         error=str(fact.get("error") or ""),
         run_id=str(fact.get("run_id") or ""),
     )
-    try:
-        with transaction.atomic():
-            record.save()
-    except IntegrityError:  # applied meanwhile by another process
-        record = TransitionRecord.objects.select_related("node").get(fact_id=fact_id)
-    else:
+    if _save_once(known, record):
         applied.created.append(record)
+    else:
+        record = TransitionRecord.objects.select_related("node").get(fact_id=fact_id)
     applied.transitions[fact_id] = record
 
 
-def _parameter(known: _Gateway, fact: dict, at: datetime, applied: Applied) -> None:
+def _parameter(known: KnownRecords, fact: dict, at: datetime, applied: Applied) -> None:
     fact_id = str(fact["id"])
     existing = ParameterRecord.objects.filter(fact_id=fact_id).first()
     if existing is not None:
@@ -296,18 +212,30 @@ def _parameter(known: _Gateway, fact: dict, at: datetime, applied: Applied) -> N
         outcome=outcome,
         reason=str(fact.get("reason") or ""),
         source=source,
-        requested_by_id=_user_id(fact.get("user_id")),
+        **_requester(known, fact.get("user_id")),
         at=at,
     )
-    try:
-        with transaction.atomic():
-            record.save()
-    except IntegrityError:
+    if not _save_once(known, record):
         record = ParameterRecord.objects.get(fact_id=fact_id)
     applied.parameters[fact_id] = record
 
 
-def _run(known: _Gateway, fact: dict, at: datetime, applied: Applied) -> None:
+def _save_once(known: KnownRecords, record: TransitionRecord | ParameterRecord) -> bool:
+    """Save an audit record unless one with its fact id was saved meanwhile by another process
+    (the request path and the ingest process both apply a reply's facts): False then. Outside
+    isolated mode that race fails the batch, which is then applied again isolated."""
+    if not known.isolated:
+        record.save()
+        return True
+    try:
+        with transaction.atomic():
+            record.save()
+    except IntegrityError:
+        return False
+    return True
+
+
+def _run(known: KnownRecords, fact: dict, at: datetime, applied: Applied) -> None:
     run_id = str(fact["run_id"])
     status = fact["status"]
     if status not in GroupRun.Status.values:
@@ -330,14 +258,14 @@ def _run(known: _Gateway, fact: dict, at: datetime, applied: Applied) -> None:
             node_timeout=float(fact.get("node_timeout") or 5.0), **changes,
         )
         return
-    if run.robot.name not in known.robots:
+    if not known.owns(run.robot.name):
         raise FactRejected(f"run {run_id} is for robot {run.robot.name}, not one of gateway {known.name}'s")
     if run.status in DONE and status not in DONE:
         return  # a late progress report of a run that is over
     GroupRun.objects.filter(pk=run_id).update(**changes)
 
 
-def _gateway_started(known: _Gateway, fact: dict, at: datetime, applied: Applied) -> None:
+def _gateway_started(known: KnownRecords, fact: dict, at: datetime, applied: Applied) -> None:
     message = (f"the gateway {known.name} restarted while it ran (instance {fact.get('instance', '?')}); "
                "its last results are kept")
     GroupRun.objects.filter(
@@ -355,46 +283,3 @@ HANDLERS = {
     protocol.RUN: _run,
     protocol.GATEWAY_STARTED: _gateway_started,
 }
-
-
-# --- telling the pages -----------------------------------------------------------------------
-
-def record_messages(records: Iterable[TransitionRecord]) -> list[tuple[str, dict]]:
-    """The node pages' live audit rows for new records: (group, message) pairs."""
-    return [
-        (protocol.node_group(record.node.key), {"type": "audit.record", "record": record.as_dict()})
-        for record in records
-        if record.node_id is not None and record.node is not None
-    ]
-
-
-# Live updates sent side by side (fewer than the channel layer's Redis pool of 100 connections).
-PUSH_CONCURRENCY = 50
-
-
-def push(messages: list[tuple[str, dict]]) -> None:
-    """Send (group, message) pairs to the Channels layer; a failure is logged, never raised
-    (what was stored is there for the next page load)."""
-    if not messages:
-        return
-    layer = get_channel_layer()
-    if layer is None:
-        return
-
-    async def send_all() -> list:
-        import asyncio
-
-        # A few at a time: the channel layer's Redis pool holds at most 100 connections, and a
-        # group_send beyond them fails ("Too many connections"), losing its message.
-        results: list = []
-        for start in range(0, len(messages), PUSH_CONCURRENCY):
-            chunk = messages[start : start + PUSH_CONCURRENCY]
-            results += await asyncio.gather(*(layer.group_send(g, m) for g, m in chunk), return_exceptions=True)
-        return results
-
-    try:
-        failures = [r for r in async_to_sync(send_all)() if isinstance(r, Exception)]
-    except Exception as exc:  # noqa: BLE001 - the channel layer's errors are many; none must stop us
-        failures = [exc]
-    if failures:
-        log.warning("could not push %d of %d live updates: %s", len(failures), len(messages), failures[0])

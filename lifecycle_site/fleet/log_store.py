@@ -10,7 +10,7 @@ from django.db import connection, transaction
 from django.db.models import Count
 from django.utils import timezone
 
-from lifecycle_site.fleet.facts import FactRejected, parse_time
+from lifecycle_site.fleet.fact_context import FactRejected, parse_time
 from lifecycle_site.fleet.models import LogRecord, ManagedNode, Robot
 from ros_gateway.shared import protocol
 

@@ -12,8 +12,10 @@ from dataclasses import dataclass, field
 from django.utils import timezone
 
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.fleet.facts import apply_facts, push, record_messages
+from lifecycle_site.fleet.fact_context import Hints
+from lifecycle_site.fleet.facts import apply_facts
 from lifecycle_site.fleet.gateway_client import GatewayError, call_gateway
+from lifecycle_site.fleet.live_updates import push, record_messages
 from lifecycle_site.fleet.models import ManagedNode
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
@@ -67,13 +69,13 @@ def request_transition(node: ManagedNode, requested, user, source: str, timeout:
         )
     except GatewayError as exc:
         details = {"state": node.state, **exc.details}
-        record = _apply(gateway, exc.facts)
+        record = _apply(gateway, exc.facts, Hints(node, user))
         if record is not None:
             details["record_id"] = record.id
         elif exc.code in RECORDED_HERE:
             details["record_id"] = record_rejection(node, requested, user, source, exc.message).id
         return Outcome(STATUS_BY_CODE.get(exc.code, exc.status), exc.code, exc.message, details)
-    record = _apply(gateway, reply.get("facts") or [])
+    record = _apply(gateway, reply.get("facts") or [], Hints(node, user))
     common = {"from": reply["from"], "transition": reply["transition"],
               "record_id": record.id if record is not None else None}
     outcome = reply["outcome"]
@@ -91,12 +93,12 @@ def request_transition(node: ManagedNode, requested, user, source: str, timeout:
     return Outcome(422, "transition_failed", reply["message"], details)
 
 
-def _apply(gateway: str, facts: list) -> TransitionRecord | None:
+def _apply(gateway: str, facts: list, hints: Hints) -> TransitionRecord | None:
     """Store what the gateway reported with its reply (the node's new state, the audit record
     of the attempt) and show the record on the node's page; returns that record."""
     if not facts:
         return None
-    applied = apply_facts(gateway, facts)
+    applied = apply_facts(gateway, facts, hints)
     push(record_messages(applied.created))
     return applied.transition_record(facts)
 

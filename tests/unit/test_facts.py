@@ -7,6 +7,7 @@ from datetime import datetime, timedelta, timezone
 import pytest
 
 from lifecycle_site.audit.models import ParameterRecord, TransitionRecord
+from lifecycle_site.fleet.fact_context import Hints
 from lifecycle_site.fleet.facts import apply_facts
 from lifecycle_site.fleet.models import Gateway, GroupRun, ManagedNode, Robot
 from ros_gateway.shared import protocol
@@ -139,3 +140,33 @@ def test_the_audit_record_of_a_robot_deleted_meanwhile_is_kept_by_name(cell):
     apply_facts("cell-f", [part.transition("gone-agv", "/lidar", sm.ACTIVATE, "activate", 2, 3)])
     record = TransitionRecord.objects.get()
     assert (record.robot, record.node, record.robot_name, record.node_name) == (None, None, "gone-agv", "/lidar")
+
+
+def test_a_replys_facts_with_the_request_paths_hints_cost_five_queries(cell, django_assert_num_queries):
+    """BEGIN, the node's state, the record's fact id, the insert, COMMIT: no savepoint per fact,
+    no second read of the node, robot or user the request already holds."""
+    part, robot = cell
+    user = make_user("hint-operator", "operator")
+    apply_facts("cell-f", [part.fact(protocol.NODE_SEEN, robot=robot.name, node="/lidar")])
+    lidar = ManagedNode.objects.select_related("robot__gateway").get(robot=robot, name="/lidar")
+    reply = [part.fact(protocol.NODE_STATE, robot=robot.name, node="/lidar", state_id=sm.INACTIVE),
+             part.transition(robot.name, "/lidar", sm.CONFIGURE, "configure", 1, 2, user_id=user.pk)]
+    with django_assert_num_queries(5):
+        applied = apply_facts("cell-f", reply, Hints(lidar, user))
+    record = applied.transition_record(reply)
+    assert (record.requested_by_id, record.requested_by_name, record.node_id) == (user.pk, "hint-operator", lidar.pk)
+    assert node(robot).state_label == "inactive"
+
+
+def test_hints_about_one_robot_still_let_facts_name_the_gateways_other_robots(cell):
+    part, robot = cell
+    second = Robot.objects.create(name="facts-agv-2", domain_id=42, gateway=robot.gateway)
+    outsider = Robot.objects.create(name="not-mine", domain_id=43, gateway=Gateway.objects.create(name="cell-h"))
+    apply_facts("cell-f", [part.fact(protocol.NODE_SEEN, robot=robot.name, node="/lidar")])
+    lidar = ManagedNode.objects.select_related("robot__gateway").get(robot=robot, name="/lidar")
+    applied = apply_facts("cell-f", [
+        part.fact(protocol.NODE_SEEN, robot=second.name, node="/camera"),
+        part.fact(protocol.NODE_SEEN, robot=outsider.name, node="/camera"),
+    ], Hints(lidar))
+    assert applied.rejected == 1
+    assert list(second.nodes.values_list("name", flat=True)) == ["/camera"] and not outsider.nodes.exists()

@@ -10,7 +10,7 @@ from django.db import IntegrityError, connection
 from django.utils import timezone as dj_timezone
 
 from lifecycle_site.fleet import log_store as store
-from lifecycle_site.fleet.facts import FactRejected
+from lifecycle_site.fleet.fact_context import FactRejected
 from lifecycle_site.fleet.log_store import LogRow
 from lifecycle_site.fleet.models import Gateway, LogRecord, ManagedNode, Robot
 from ros_gateway.shared import protocol

@@ -28,7 +28,9 @@ from django.core.management.base import BaseCommand
 from django.db import DatabaseError, InterfaceError, OperationalError, connection, transaction
 
 from lifecycle_site.fleet import gateways as gw
-from lifecycle_site.fleet.facts import FactRejected, apply_facts, parse_time, push, record_messages
+from lifecycle_site.fleet.fact_context import FactRejected, parse_time
+from lifecycle_site.fleet.facts import apply_facts
+from lifecycle_site.fleet.live_updates import push, record_messages
 from lifecycle_site.fleet.log_store import LogTargets, prune_logs, store_batch
 from lifecycle_site.fleet.models import Gateway
 from lifecycle_site.fleet.runs import fail_runs_of_silent_gateways
