@@ -1,0 +1,235 @@
+"""Scenario 7: the site under a control room's load. 50 WebSocket clients (half on the fleet
+page, half on node pages) stay connected while API clients send 100 requests/s for 60 s, ten
+of them transitions each second (ten nodes, each walked through configure, activate,
+deactivate, cleanup by its own client, so no request waits for another on the same node).
+
+Reported: every API answer's latency (reads and transitions apart), errors (any answer that
+is not 2xx, any failed connection), sockets dropped before the end, how late each client's
+requests were against their schedule (the load generator's own lag), "transition requested ->
+new state on its node page" for every transition, and the resident memory of daphne, the
+gateway and the ingest process before and after.
+"""
+from __future__ import annotations
+
+import asyncio
+import re
+import threading
+import time
+from dataclasses import dataclass, field
+
+from tests.benchmarks.harness import BenchContext, Stack
+from tests.benchmarks.report import ScenarioResult, Series, percentile
+from tests.benchmarks.system import loadavg, rss_mb
+from tests.benchmarks.web import Http, ws_connect
+
+NAME = "load"
+TITLE = "7. Load: 50 WebSocket clients + 100 API requests/s (10 transitions/s) for 60 s"
+DOMAIN = 126  # shared with the quiet scenario; scenarios run one after the other
+ROBOT = "bench-load"
+NODES = 10
+CYCLE = ["configure", "activate", "deactivate", "cleanup"]
+GOAL = {"configure": "inactive", "activate": "active", "deactivate": "inactive", "cleanup": "unconfigured"}
+SOCKETS = 50
+REQUESTS_PER_S = 100
+TRANSITIONS_PER_S = 10
+# Threads sharing the read load, each its own keep-alive connection, so the offered rate holds
+# while answers take up to READERS / read rate (~0.2 s); beyond, the lag figure says so.
+READERS = 18
+NODE_BADGE = re.compile(r'class="badge big state-([a-z]+)"')
+API_P99_TARGET_MS = 100.0
+
+
+@dataclass
+class Tally:
+    """What every client thread adds to, under one lock."""
+
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    errors: list[str] = field(default_factory=list)
+    requested: dict[str, list[tuple[float, str]]] = field(default_factory=dict)  # node -> (sent, goal)
+
+    def error(self, what: str) -> None:
+        with self.lock:
+            self.errors.append(what)
+
+
+def paced(rate: float, seconds: float, stop: threading.Event, lag: Series):
+    """Yield at ``rate`` per second for ``seconds``; a late tick is recorded, never made up for."""
+    interval, began = 1.0 / rate, time.monotonic()
+    tick = 0
+    while not stop.is_set():
+        due = began + tick * interval
+        if due - began >= seconds:
+            return
+        now = time.monotonic()
+        if now < due:
+            time.sleep(due - now)
+        else:
+            lag.add((now - due) * 1000)
+        yield
+        tick += 1
+
+
+def read_paths(keys: list[str]) -> list[str]:
+    paths = ["/api/v1/nodes", "/api/v1/robots", "/api/v1/gateways", "/api/v1/transitions?limit=20"]
+    paths += [f"/api/v1/nodes/{key}" for key in keys[:3]]
+    paths += [f"/api/v1/nodes/{key}/logs?limit=20" for key in keys[:3]]
+    return paths
+
+
+def reader(stack: Stack, paths: list[str], rate: float, seconds: float, stop: threading.Event, series: Series,
+           lag: Series, tally: Tally) -> None:
+    api = Http("127.0.0.1", stack.web_port, token=stack.token, timeout=10)
+    try:
+        for i, _ in enumerate(paced(rate, seconds, stop, lag)):
+            path = paths[i % len(paths)]
+            try:
+                answer = api.get(path)
+            except OSError as exc:
+                tally.error(f"GET {path}: {type(exc).__name__}: {exc}")
+                continue
+            series.add(answer.ms)
+            if answer.status != 200:
+                tally.error(f"GET {path}: {answer.status} {answer.body[:200]!r}")
+    finally:
+        api.close()
+
+
+def operator(stack: Stack, key: str, seconds: float, stop: threading.Event, series: Series, lag: Series,
+             tally: Tally) -> None:
+    """One node's transitions, one a second, round the cycle."""
+    api = Http("127.0.0.1", stack.web_port, token=stack.token, timeout=30)
+    sent: list[tuple[float, str]] = []
+    try:
+        for i, _ in enumerate(paced(TRANSITIONS_PER_S / NODES, seconds, stop, lag)):
+            label = CYCLE[i % len(CYCLE)]
+            began = time.monotonic()
+            try:
+                answer = api.transition(key, label)
+            except OSError as exc:
+                tally.error(f"{key} {label}: {type(exc).__name__}: {exc}")
+                continue
+            series.add(answer.ms)
+            if answer.status != 200:
+                tally.error(f"{key} {label}: {answer.status} {answer.body[:200]!r}")
+                continue
+            sent.append((began, GOAL[label]))
+    finally:
+        api.close()
+        with tally.lock:
+            tally.requested[key] = sent
+
+
+@dataclass
+class Sockets:
+    opened: int = 0
+    dropped: list[str] = field(default_factory=list)
+    messages: int = 0
+    shown: dict[str, list[tuple[float, str]]] = field(default_factory=dict)  # node -> (arrived, state)
+
+
+async def watch(stack: Stack, path: str, key: str | None, sockets: Sockets, ready: asyncio.Event,
+                stop: asyncio.Event, total: int) -> None:
+    try:
+        async with ws_connect(stack.web, path) as ws:
+            sockets.opened += 1
+            if sockets.opened == total:
+                ready.set()
+            while not stop.is_set():
+                try:
+                    message = await asyncio.wait_for(ws.recv(), 0.25)
+                except asyncio.TimeoutError:
+                    continue
+                arrived = time.monotonic()
+                sockets.messages += 1
+                if key is not None and isinstance(message, str) and 'id="node-state"' in message:
+                    match = NODE_BADGE.search(message)
+                    if match:
+                        sockets.shown.setdefault(key, []).append((arrived, match.group(1)))
+    except Exception as exc:  # noqa: BLE001 - whatever ends a socket early is what we count
+        sockets.dropped.append(f"{path}: {type(exc).__name__}: {exc}")
+        ready.set()
+
+
+def show_latencies(requested: dict[str, list[tuple[float, str]]], shown: dict[str, list[tuple[float, str]]],
+                   series: Series) -> int:
+    """For each transition, the first time its node page showed the goal state after it was
+    sent; returns how many were never shown."""
+    missing = 0
+    for key, sent in requested.items():
+        arrivals = shown.get(key, [])
+        for began, goal in sent:
+            first = next((t for t, state in arrivals if t >= began and state == goal), None)
+            if first is None:
+                missing += 1
+            else:
+                series.add((first - began) * 1000)
+    return missing
+
+
+def run(ctx: BenchContext) -> ScenarioResult:
+    result = ScenarioResult(NAME, TITLE, load_before=loadavg())
+    seconds = 10.0 if ctx.quick else 60.0
+    reads = result.new_series("API reads (GET nodes, node, robots, gateways, transitions, logs)")
+    moves = result.new_series("API transitions (10 nodes, one each per second)")
+    lag = result.new_series("load generator's lag behind its schedule")
+    shown = result.new_series("transition requested -> new state on its node page")
+    with ctx.stack(NAME, [(ROBOT, DOMAIN)]) as stack:
+        stack.start_robot("robot", DOMAIN, generic=NODES, prefix="load_node")
+        keys = [f"{ROBOT}.load_node_{i:03d}" for i in range(NODES)]
+        stack.wait_nodes(keys, 90, state="unconfigured")
+        processes = {"daphne": stack.site, "gateway": stack.gateway, "ingest": stack.ingest}
+        rss_before = {name: rss_mb(child.pid) for name, child in processes.items()}
+        tally, sockets = Tally(), Sockets()
+
+        async def measure() -> None:
+            stop_sockets, ready = asyncio.Event(), asyncio.Event()
+            paths = [("/ws/fleet/", None) if i % 2 == 0 else (f"/ws/nodes/{keys[(i // 2) % NODES]}/",
+                                                               keys[(i // 2) % NODES]) for i in range(SOCKETS)]
+            watchers = [asyncio.create_task(watch(stack, path, key, sockets, ready, stop_sockets, SOCKETS))
+                        for path, key in paths]
+            await asyncio.wait_for(ready.wait(), 60)
+            await asyncio.sleep(1.0)  # the snapshots on connect are not pushes
+            stop_load = threading.Event()
+            read_rate = (REQUESTS_PER_S - TRANSITIONS_PER_S) / READERS
+            threads = [threading.Thread(target=reader, args=(stack, read_paths(keys), read_rate, seconds, stop_load,
+                                                             reads, lag, tally)) for _ in range(READERS)]
+            threads += [threading.Thread(target=operator, args=(stack, key, seconds, stop_load, moves, lag, tally))
+                        for key in keys]
+            began = time.monotonic()
+            for thread in threads:
+                thread.start()
+            try:
+                while any(t.is_alive() for t in threads):
+                    await asyncio.sleep(0.2)
+            finally:
+                stop_load.set()
+                for thread in threads:
+                    thread.join(30)
+                result.figure("load phase lasted", time.monotonic() - began, "s")
+            await asyncio.sleep(1.0)  # the last pushes
+            still_open = sum(1 for w in watchers if not w.done())
+            stop_sockets.set()
+            await asyncio.gather(*watchers, return_exceptions=True)
+            result.figure("sockets open at the end", still_open)
+
+        asyncio.run(measure())
+        rss_after = {name: rss_mb(child.pid) for name, child in processes.items()}
+    never = show_latencies(tally.requested, sockets.shown, shown)
+    sent = len(reads.values) + len(moves.values)
+    result.figure("API requests answered", sent)
+    result.figure("API requests per second (achieved)", sent / result.figures["load phase lasted"][0], "/s")
+    result.figure("API errors (non-2xx or failed connection)", len(tally.errors))
+    result.figure("WebSocket clients connected", sockets.opened)
+    result.figure("WebSocket clients dropped before the end", len(sockets.dropped))
+    result.figure("WebSocket messages received", sockets.messages)
+    result.figure("transitions never shown on their node page", never)
+    for name in processes:
+        result.figure(f"{name} memory before -> after", rss_after[name] - rss_before[name], "MB growth")
+        result.figure(f"{name} memory after", rss_after[name], "MB")
+    result.notes.extend(tally.errors[:10])
+    result.notes.extend(sockets.dropped[:10])
+    api_p99 = percentile(reads.values + moves.values, 99)
+    result.check("API errors", len(tally.errors), "= 0", not tally.errors)
+    result.check("sockets dropped", len(sockets.dropped), "= 0", not sockets.dropped and sockets.opened == SOCKETS)
+    result.check("API p99 (all requests)", api_p99, f"< {API_P99_TARGET_MS:g}", api_p99 < API_P99_TARGET_MS, "ms")
+    return result
