@@ -8,22 +8,18 @@ from __future__ import annotations
 
 import asyncio
 import json
-from importlib import import_module
 
 from channels.db import database_sync_to_async
 from channels.generic.websocket import AsyncWebsocketConsumer
-from django.conf import settings
-from django.contrib.auth import HASH_SESSION_KEY, SESSION_KEY, get_user_model
 from django.template.loader import render_to_string
-from django.utils.crypto import constant_time_compare
 
-from lifecycle_site.dashboard import snapshots
+from lifecycle_site.dashboard import snapshots, socket_checks
 from lifecycle_site.prefix import forwarded_prefix, script_prefix
 from ros_gateway.shared import protocol
 
 GATEWAY_CHECK_S = 3.0  # also how soon a socket closes after logout, deactivation or role removal
-NOT_LOGGED_IN = 4401
-NO_ROLE = 4403
+NOT_LOGGED_IN = socket_checks.NOT_LOGGED_IN
+NO_ROLE = socket_checks.NO_ROLE
 NOT_FOUND = 4404
 
 
@@ -86,22 +82,13 @@ class LiveConsumer(AsyncWebsocketConsumer):
             await asyncio.sleep(GATEWAY_CHECK_S)
 
     def refusal(self) -> int | None:
-        """Whether this socket may still receive updates, read afresh: the session still
-        exists (no logout), is the same user's (password unchanged), the user is active and
-        still has a role that may view. A close code if not."""
-        if self.session_key is None:
+        """Whether this socket may still receive updates (socket_checks.check_session, kept a
+        second per session), and it is still this socket's user: a close code if not."""
+        verdict = socket_checks.check_session(self.session_key)
+        if verdict.refusal is None and verdict.user_id != self.scope["user"].pk:
             return NOT_LOGGED_IN
-        store = import_module(settings.SESSION_ENGINE).SessionStore(self.session_key)
-        data = store.load()  # empty when the session is gone
-        user = get_user_model().objects.filter(pk=data.get(SESSION_KEY), is_active=True).first()
-        if user is None or user.pk != self.scope["user"].pk:
-            return NOT_LOGGED_IN
-        if not constant_time_compare(data.get(HASH_SESSION_KEY, ""), user.get_session_auth_hash()):
-            return NOT_LOGGED_IN
-        if not user.has_perm("fleet.view_managednode"):
-            return NO_ROLE
-        self.can_operate = user.has_perm("fleet.operate_node")
-        return None
+        self.can_operate = verdict.can_operate
+        return verdict.refusal
 
     def gateway_views(self) -> list[dict]:
         """The gateways of what the page shows (fleet.gateways.describe() dicts)."""

@@ -5,6 +5,7 @@ from functools import lru_cache
 from typing import Iterable
 from urllib.parse import quote
 
+from django.core.cache import cache
 from django.template.loader import render_to_string
 from django.urls import reverse
 from django.utils.http import RFC3986_SUBDELIMS
@@ -80,8 +81,17 @@ def fleet() -> list[dict]:
     return groups
 
 
+# Every open page's socket asks for its gateways every few seconds (consumers.watch_gateway):
+# answers are kept this long in the process's memory, so fifty screens cost one read.
+GATEWAY_VIEWS_TTL_S = 1.0
+
+
 def gateway_views() -> list[dict]:
     """What fleet() says of the gateways, without the nodes (for the fleet page's watch)."""
+    return cache.get_or_set("socket-gateway-views", _gateway_views, GATEWAY_VIEWS_TTL_S)
+
+
+def _gateway_views() -> list[dict]:
     rows = list(Gateway.objects.order_by("name"))
     names: dict[int, list[str]] = {}
     for gateway_id, name in Robot.objects.order_by("name").values_list("gateway_id", "name"):
@@ -95,13 +105,19 @@ def gateway_views() -> list[dict]:
 
 def node_gateway(key: str) -> list[dict]:
     """The gateway of a node's robot, as a one-item list (empty if the node is gone)."""
-    node = ManagedNode.objects.select_related("robot__gateway").filter(key=key).first()
-    return [gateway_of(node.robot)] if node else []
+    def read() -> list[dict]:
+        node = ManagedNode.objects.select_related("robot__gateway").filter(key=key).first()
+        return [gateway_of(node.robot)] if node else []
+
+    return cache.get_or_set(f"socket-node-gateway:{key}", read, GATEWAY_VIEWS_TTL_S)
 
 
 def robot_gateway(name: str) -> list[dict]:
-    robot = Robot.objects.select_related("gateway").filter(name=name).first()
-    return [gateway_of(robot)] if robot else []
+    def read() -> list[dict]:
+        robot = Robot.objects.select_related("gateway").filter(name=name).first()
+        return [gateway_of(robot)] if robot else []
+
+    return cache.get_or_set(f"socket-robot-gateway:{name}", read, GATEWAY_VIEWS_TTL_S)
 
 
 def offline(groups: list[dict]) -> list[dict]:

@@ -18,6 +18,7 @@ import time
 from dataclasses import dataclass, field
 
 from tests.benchmarks.harness import BenchContext, Stack
+from tests.benchmarks.profiling import profiled
 from tests.benchmarks.report import ScenarioResult, Series, percentile
 from tests.benchmarks.system import loadavg, rss_mb
 from tests.benchmarks.web import Http, ws_connect
@@ -212,7 +213,8 @@ def run(ctx: BenchContext) -> ScenarioResult:
             await asyncio.gather(*watchers, return_exceptions=True)
             result.figure("sockets open at the end", still_open)
 
-        asyncio.run(measure())
+        with profiled(ctx, stack, NAME):
+            asyncio.run(measure())
         rss_after = {name: rss_mb(child.pid) for name, child in processes.items()}
     never = show_latencies(tally.requested, sockets.shown, shown)
     sent = len(reads.values) + len(moves.values)
