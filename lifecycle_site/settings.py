@@ -6,12 +6,14 @@ its embedded defaults: SQLite and a local Redis under ./var, bound to loopback.
 """
 from __future__ import annotations
 
+import ipaddress
 import os
 import secrets
 from datetime import timedelta
 from pathlib import Path
 
 import dj_database_url
+from django.core.exceptions import ImproperlyConfigured
 
 BASE_DIR = Path(__file__).resolve().parent.parent
 DATA_DIR = Path(os.environ.get("LIFECYCLE_DATA_DIR", BASE_DIR / "var")).resolve()
@@ -224,3 +226,18 @@ LIFECYCLE = {
     # In-memory log buffer of the gateway; records beyond it are dropped and counted.
     "LOG_BUFFER": int(os.environ.get("LIFECYCLE_LOG_BUFFER", 20000)),
 }
+
+# GET /metrics answers without an API token to these client addresses (comma-separated
+# addresses or networks, e.g. "127.0.0.1,10.20.0.0/16"); everyone else needs a token.
+# Behind a reverse proxy every client has the proxy's address: use a token there.
+def _networks(variable: str) -> list[ipaddress.IPv4Network | ipaddress.IPv6Network]:
+    networks = []
+    for part in filter(None, (p.strip() for p in os.environ.get(variable, "").split(","))):
+        try:
+            networks.append(ipaddress.ip_network(part, strict=False))
+        except ValueError:
+            raise ImproperlyConfigured(f"{variable}: {part!r} is not an address or network (e.g. 10.0.0.0/8)") from None
+    return networks
+
+
+LIFECYCLE_METRICS_ALLOW = _networks("LIFECYCLE_METRICS_ALLOW")

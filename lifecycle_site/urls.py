@@ -2,6 +2,8 @@ from django.contrib import admin
 from django.contrib.auth import views as auth_views
 from django.urls import include, path
 
+from lifecycle_site.monitoring import views as monitoring
+
 admin.site.site_header = "ROS 2 lifecycle manager"
 admin.site.site_title = "Lifecycle manager admin"
 
@@ -9,6 +11,9 @@ urlpatterns = [
     path("login/", auth_views.LoginView.as_view(), name="login"),
     path("logout/", auth_views.LogoutView.as_view(), name="logout"),
     path("admin/", admin.site.urls),
+    path("healthz", monitoring.healthz, name="healthz"),
+    path("readyz", monitoring.readyz, name="readyz"),
+    path("metrics", monitoring.metrics, name="metrics"),
     path("api/v1/", include("lifecycle_site.api.urls")),
     path("", include("lifecycle_site.dashboard.urls")),
 ]

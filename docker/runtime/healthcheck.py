@@ -1,6 +1,6 @@
 """Docker HEALTHCHECK of the image; what "healthy" means depends on the container's role.
 
-web      the site answers GET /login/ (with a Host it accepts) with a non-error status
+web      the site answers GET /healthz (with a Host it accepts) with a non-error status
 ingest   the ingest lease in Redis is held (P:site:ingest:lease)
 gateway  its heartbeat in Redis (P:gw:NAME:beat) is fresh and written from this container
 redis    redis-server answers PING
@@ -38,7 +38,7 @@ def check_web(details: dict[str, str]) -> str | None:
     if host.startswith("."):  # ".plant.local" allows any subdomain
         host = "health" + host
     request = urllib.request.Request(
-        f"http://127.0.0.1:{details.get('port', '8000')}/login/", headers={"Host": host}
+        f"http://127.0.0.1:{details.get('port', '8000')}/healthz", headers={"Host": host}
     )
     try:
         with urllib.request.urlopen(request, timeout=8) as response:
@@ -47,7 +47,7 @@ def check_web(details: dict[str, str]) -> str | None:
         status = exc.code
     except (urllib.error.URLError, OSError) as exc:
         return f"site does not answer: {exc}"
-    return None if status < 400 else f"GET /login/ answered {status}"
+    return None if status < 400 else f"GET /healthz answered {status}"
 
 
 def _redis(url: str):

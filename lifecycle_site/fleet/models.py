@@ -54,6 +54,7 @@ class Gateway(models.Model):
     facts_rejected = models.PositiveBigIntegerField(default=0, help_text="Facts the site could not apply.")
     logs_lost = models.PositiveBigIntegerField(default=0, help_text="Log batches trimmed before they were read.")
     logs_dropped = models.PositiveBigIntegerField(default=0, help_text="Log records its buffer dropped.")
+    logs_received = models.PositiveBigIntegerField(default=0, help_text="Log records stored from it.")
     facts_cursor = models.CharField(max_length=40, blank=True, help_text="Last applied entry of its facts stream.")
     logs_cursor = models.CharField(max_length=40, blank=True, help_text="Last stored entry of its logs stream.")
     facts_instance = models.CharField(max_length=32, blank=True)

@@ -3,14 +3,18 @@ import pytest
 
 @pytest.fixture(autouse=True)
 def fresh_site_caches():
-    """The site's per-process caches (what a token grants, the gateway's heartbeat) start empty
+    """The site's per-process caches (what a token grants, the gateway's heartbeat, the local-memory cache) start empty
     in each test: rolling the database back between tests sends none of the signals that
     would clear them."""
+    from django.core.cache import cache
+
     from lifecycle_site.api.grants import forget
     from lifecycle_site.fleet import gateways
 
     forget()
     gateways.forget()
+    cache.clear()  # what live sockets share (dashboard.socket_checks, snapshots)
     yield
     forget()
     gateways.forget()
+    cache.clear()

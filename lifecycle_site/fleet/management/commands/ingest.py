@@ -274,7 +274,7 @@ class Ingest:
                 setattr(row, f"{kind}_cursor", _text(fresh[-1][0]))
             row.save(update_fields=[
                 f"{kind}_cursor", f"{kind}_instance", f"{kind}_seq", "facts_lost", "facts_rejected",
-                "logs_lost", "logs_dropped",
+                "logs_lost", "logs_dropped", "logs_received",
             ])
         self.redis.xack(stream, protocol.INGEST_GROUP, *[entry for entry, _ in entries])
         # Stored and acknowledged: Redis keeps only what is not (MAXLEN then bounds a backlog,
@@ -321,6 +321,7 @@ class Ingest:
                     raise FactRejected(f"it names gateway {batch.get('gateway')!r}")
                 with transaction.atomic():
                     pushes += store_batch(targets, batch)
+                row.logs_received += len(batch.get("records") or [])
             except (OperationalError, InterfaceError):
                 raise  # the database itself is unavailable: the whole batch is tried again
             except Exception as exc:  # noqa: BLE001 - a malformed batch must not block the stream
