@@ -220,3 +220,15 @@ def not_found(request: HttpRequest, path: str = "") -> JsonResponse:
     """Unknown API paths answer in JSON too, whatever the method."""
     where = "/api/v1/" + path
     return error("not_found", f"There is no API endpoint {cut(where)}; see docs/api.md.", 404)
+
+
+def bad_request(request: HttpRequest, exception: Exception | None = None):
+    """For handler400 in lifecycle_site/urls.py: what Django refuses before any view (a Host not
+    in ALLOWED_HOSTS, too many fields) in the error shape under /api/, its own page elsewhere."""
+    if not request.path_info.startswith("/api/"):
+        from django.views.defaults import bad_request as page
+
+        return page(request, exception)
+    if isinstance(exception, RequestDataTooBig):
+        return body_too_large()
+    return error("bad_request", f"The request was refused: {cut(str(exception or 'malformed request'))}", 400)

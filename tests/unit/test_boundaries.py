@@ -201,3 +201,19 @@ def test_a_body_that_is_not_utf8_is_named_so(operator_client, node):
     response = send(operator_client, "post", f"/api/v1/nodes/{node.key}/transition", body)
     message = refusal(response, 400, "malformed_json")
     assert message.startswith("The request body is not UTF-8 text")
+
+
+def test_refusals_before_any_view_can_answer_in_json():
+    # For handler400 (lifecycle_site/urls.py): Django's HTML page answered a Host header not in
+    # ALLOWED_HOSTS, even under /api/.
+    from django.core.exceptions import DisallowedHost
+    from django.test import RequestFactory
+
+    from lifecycle_site.api.auth import bad_request
+
+    api = bad_request(RequestFactory().get("/api/v1/robots"), DisallowedHost("Invalid HTTP_HOST header: 'x'"))
+    assert api.status_code == 400 and api["Content-Type"] == "application/json"
+    assert json.loads(api.content)["error"]["code"] == "bad_request"
+    assert "Invalid HTTP_HOST header" in json.loads(api.content)["error"]["message"]
+    page = bad_request(RequestFactory().get("/audit/"), DisallowedHost("x"))
+    assert page.status_code == 400 and page["Content-Type"].startswith("text/html")
