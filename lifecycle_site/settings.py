@@ -191,6 +191,10 @@ STATIC_ROOT.mkdir(exist_ok=True)
 WHITENOISE_STATIC_PREFIX = "/static/"
 # Serve straight from the source folders unless collectstatic ran (as in the images).
 WHITENOISE_USE_FINDERS = not (STATIC_ROOT / "css").exists()
+# Request limits (docs/api.md, "Limits"): a body over 1 MiB, files included, is refused with 413
+# (by lifecycle_site/serve.py before it is read, and by Django); at most 1000 form or query fields.
+DATA_UPLOAD_MAX_MEMORY_SIZE = 1024 * 1024
+DATA_UPLOAD_MAX_NUMBER_FIELDS = 1000
 
 LOGGING = {
     "version": 1,

@@ -158,6 +158,24 @@ def start_gateway(name: str = "local", **env: str) -> Process:
     )
 
 
+def start_site(name: str = "daphne", **env: str) -> tuple[Process, str]:
+    """The site served as ``make demo`` and the image serve it (``python -m lifecycle_site.serve``:
+    daphne with answers at the HTTP layer's limits), on a free loopback port; and its base URL."""
+    port = free_port()
+    process = Process(
+        name, [sys.executable, "-m", "lifecycle_site.serve", "-b", "127.0.0.1", "-p", str(port),
+               "lifecycle_site.asgi:application"], environment(**env), log_dir(),
+    )
+
+    def listening() -> bool:
+        with socket.socket() as probe:
+            return probe.connect_ex(("127.0.0.1", port)) == 0
+
+    wait_for(lambda: listening() or not process.alive(), 30, f"{name} to listen")
+    assert process.alive(), process.output()
+    return process, f"http://127.0.0.1:{port}"
+
+
 class Restartable:
     """A process that a test may stop and start again (the ingest process, Redis), under one
     object that the session fixture stops at the end, whichever instance is running then."""

@@ -61,7 +61,7 @@ case "$role" in
         "$PYTHON" "$RUNTIME/config.py" setup   # migrate, admin account, robots from the configuration
         health_info
         log "serving on 0.0.0.0:${PORT:-8000}${LIFECYCLE_URL_PREFIX:+ (links under $LIFECYCLE_URL_PREFIX/)}"
-        exec "$PYTHON" -m daphne --proxy-headers -b 0.0.0.0 -p "${PORT:-8000}" "$@" lifecycle_site.asgi:application
+        exec "$PYTHON" -m lifecycle_site.serve --proxy-headers -b 0.0.0.0 -p "${PORT:-8000}" "$@" lifecycle_site.asgi:application
         ;;
     ingest)
         load_config

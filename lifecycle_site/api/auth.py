@@ -6,12 +6,15 @@ import math
 from functools import wraps
 from typing import Any, Callable
 
+from django.conf import settings
+from django.core.exceptions import RequestDataTooBig, SuspiciousOperation, TooManyFieldsSent
 from django.http import Http404, HttpRequest, JsonResponse
 from django.middleware.csrf import CsrfViewMiddleware
 from django.utils import timezone
 from django.views.decorators.csrf import csrf_exempt
 
 from lifecycle_site.api import grants
+from lifecycle_site.api.limits import MAX_DEPTH, MAX_DIGITS, body_limit, cut, size_text
 from lifecycle_site.api.models import ApiToken, hash_token
 from lifecycle_site.audit import denials
 from lifecycle_site.fleet.gateway_client import GatewayError
@@ -41,6 +44,17 @@ class NonFiniteNumber(ValueError):
         )
 
 
+class TooDeep(ValueError):
+    """Lists or objects nested deeper than MAX_DEPTH."""
+
+
+class TooManyDigits(ValueError):
+    """An integer longer than MAX_DIGITS digits."""
+
+    def __init__(self, digits: int) -> None:
+        super().__init__(f"a number has {digits:,} digits; at most {MAX_DIGITS:,} are accepted")
+
+
 class _Literal(str):
     """How a non-finite number's own text is kept while parsing, to name it in the refusal."""
 
@@ -50,10 +64,20 @@ def _float(text: str) -> float | _Literal:
     return value if math.isfinite(value) else _Literal(text)
 
 
+def _int(text: str) -> int:
+    digits = len(text) - text.startswith("-")
+    if digits > MAX_DIGITS:  # int() would refuse it too, with advice meant for programmers
+        raise TooManyDigits(digits)
+    return int(text)
+
+
 def _first_literal(value: Any, path: tuple = ()) -> tuple[tuple, str] | None:
+    """The first non-finite number's place and text; TooDeep past MAX_DEPTH levels."""
     if isinstance(value, _Literal):
         return path, str(value)
     items = value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, list) else ()
+    if items and len(path) >= MAX_DEPTH:
+        raise TooDeep
     for key, item in items:
         found = _first_literal(item, (*path, key))
         if found is not None:
@@ -63,8 +87,13 @@ def _first_literal(value: Any, path: tuple = ()) -> tuple[tuple, str] | None:
 
 def loads_finite(text: str | bytes) -> Any:
     """``json.loads``, but NaN, Infinity, -Infinity and numbers too large for a double, anywhere
-    in the document (nested lists included), raise NonFiniteNumber naming the first one."""
-    document = json.loads(text, parse_constant=_Literal, parse_float=_float)
+    in the document (nested lists included), raise NonFiniteNumber naming the first one.
+    TooDeep for lists or objects nested deeper than MAX_DEPTH, TooManyDigits for an integer
+    longer than MAX_DIGITS."""
+    try:
+        document = json.loads(text, parse_constant=_Literal, parse_float=_float, parse_int=_int)
+    except RecursionError:  # the parser nests a call per level: thousands of "[" end here
+        raise TooDeep from None
     found = _first_literal(document)
     if found is not None:
         path, literal = found
@@ -79,13 +108,28 @@ def json_body(request: HttpRequest, empty: bytes = b""):
     ``empty`` stands in for an empty body (b"" keeps an empty body malformed)."""
     try:
         return loads_finite(request.body or empty)
+    except RequestDataTooBig:
+        return body_too_large()
+    except TooDeep:
+        return error("too_deep", f"Nothing was sent: the request body nests lists or objects deeper than "
+                     f"{MAX_DEPTH} levels; no endpoint takes more than 3.", 400)
+    except TooManyDigits as exc:
+        return error("malformed_json", f"Nothing was sent: {exc}.", 400)
     except NonFiniteNumber as exc:
         return error(
             "non_finite_number", f"Nothing was sent: {exc}.", 400,
             value=exc.literal, path=list(exc.path),
         )
-    except (ValueError, UnicodeDecodeError) as exc:
+    except UnicodeDecodeError as exc:
+        return error("malformed_json", f"The request body is not UTF-8 text: {exc}.", 400)
+    except ValueError as exc:
         return error("malformed_json", f"The request body is not valid JSON: {exc}.", 400)
+
+
+def body_too_large() -> JsonResponse:
+    limit = size_text(body_limit())
+    return error("body_too_large", f"The request body is larger than {limit}, the most this site takes; "
+                 "nothing was done.", 413, limit=body_limit())
 
 
 def _token_user(request: HttpRequest):
@@ -158,12 +202,33 @@ def api_view(methods: tuple[str, ...] = ("GET",), permission: str = VIEW_PERMISS
                 return error("not_found", str(exc) or "Not found.", 404)
             except GatewayError as exc:
                 return error(exc.code, exc.message, exc.status, **exc.details)
+            except RequestDataTooBig:
+                return body_too_large()
+            except TooManyFieldsSent:
+                return error("too_many_fields", "The query string has more than "
+                             f"{settings.DATA_UPLOAD_MAX_NUMBER_FIELDS:,} fields; send fewer.", 400)
+            except SuspiciousOperation as exc:  # Django's other refusals of a malformed request
+                return error("bad_request", f"The request was refused: {exc}", 400)
 
         return wrapper
 
     return decorate
 
 
+@csrf_exempt  # a POST to an unknown path is a 404, not a CSRF refusal
 def not_found(request: HttpRequest, path: str = "") -> JsonResponse:
-    """Unknown API paths answer in JSON too."""
-    return error("not_found", f"There is no API endpoint /api/v1/{path}; see docs/api.md.", 404)
+    """Unknown API paths answer in JSON too, whatever the method."""
+    where = "/api/v1/" + path
+    return error("not_found", f"There is no API endpoint {cut(where)}; see docs/api.md.", 404)
+
+
+def bad_request(request: HttpRequest, exception: Exception | None = None):
+    """For handler400 in lifecycle_site/urls.py: what Django refuses before any view (a Host not
+    in ALLOWED_HOSTS, too many fields) in the error shape under /api/, its own page elsewhere."""
+    if not request.path_info.startswith("/api/"):
+        from django.views.defaults import bad_request as page
+
+        return page(request, exception)
+    if isinstance(exception, RequestDataTooBig):
+        return body_too_large()
+    return error("bad_request", f"The request was refused: {cut(str(exception or 'malformed request'))}", 400)

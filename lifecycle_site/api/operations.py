@@ -6,13 +6,15 @@ import math
 from django.http import Http404, HttpRequest, JsonResponse
 
 from lifecycle_site.api.auth import api_view, error, json_body
+from lifecycle_site.api.limits import MAX_NODES, shown
 from lifecycle_site.api.views import get_node
 from lifecycle_site.fleet.gateway_client import MAX_SERVICE_TIMEOUT
-from lifecycle_site.fleet.models import GroupRun, Robot
-from lifecycle_site.fleet.runs import RunRefused, start_run, wait_for
+from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
+from lifecycle_site.fleet.runs import OPERATIONS, RunRefused, start_run, wait_for
 from ros_gateway.shared import param_types
 
 OPERATE = "fleet.operate_node"
+NODE_NAME_LENGTH = ManagedNode._meta.get_field("name").max_length
 
 
 def _body(request: HttpRequest) -> dict | JsonResponse:
@@ -48,18 +50,27 @@ def _answer(request: HttpRequest, run: GroupRun) -> JsonResponse:
 def robot_operation(request: HttpRequest, name: str) -> JsonResponse:
     robot = Robot.objects.filter(name=name).first()
     if robot is None:
-        raise Http404(f"There is no robot named {name!r}.")
+        raise Http404(f"There is no robot named {shown(name)}.")
     body = _body(request)
     if isinstance(body, JsonResponse):
         return body
     if "operation" not in body:
         return error("missing_field", 'Send {"operation": "bringup"} (bringup, pause, resume, reset, shutdown).', 400)
+    operation = body["operation"]
+    if not isinstance(operation, str) or operation not in OPERATIONS:
+        return error("unknown_operation", f"{shown(operation)} is not an operation; use one of "
+                     f"{', '.join(OPERATIONS)}.", 400)
     nodes = body.get("nodes") or []
     if not isinstance(nodes, list) or not all(isinstance(n, str) for n in nodes):
         return error("invalid_field", "'nodes' must be a list of ROS node names.", 400)
+    if len(nodes) > MAX_NODES:
+        return error("too_many_items", f"'nodes' names {len(nodes):,} nodes; at most {MAX_NODES} are taken "
+                     "in one operation (leave it out to run every node of the robot).", 400, limit=MAX_NODES)
+    if any(len(n) > NODE_NAME_LENGTH for n in nodes):
+        return error("invalid_field", f"A node name is at most {NODE_NAME_LENGTH} characters long.", 400)
     try:
         run = start_run(
-            robot, str(body["operation"]), user=request.user, source="api",
+            robot, operation, user=request.user, source="api",
             policy=str(body.get("policy", GroupRun.Policy.STOP)),
             node_timeout=_positive(body.get("timeout"), "timeout", 5.0), nodes=nodes,
         )
@@ -86,14 +97,14 @@ def node_restart(request: HttpRequest, key: str) -> JsonResponse:
 def run_detail(request: HttpRequest, run_id: str) -> JsonResponse:
     run = GroupRun.objects.select_related("robot", "requested_by").filter(pk=run_id).first()
     if run is None:
-        raise Http404(f"There is no run {run_id!r}.")
+        raise Http404(f"There is no run {shown(run_id)}.")
     return _answer(request, run)
 
 
 @api_view()
 def robot_runs(request: HttpRequest, name: str) -> JsonResponse:
     if not Robot.objects.filter(name=name).exists():
-        raise Http404(f"There is no robot {name!r}.")
+        raise Http404(f"There is no robot {shown(name)}.")
     runs = GroupRun.objects.select_related("robot", "requested_by").filter(robot__name=name)[:50]
     return JsonResponse({"runs": [r.as_dict() for r in runs]})
 

@@ -5,6 +5,7 @@ from django.http import HttpRequest, HttpResponse, JsonResponse
 from django.utils import timezone
 
 from lifecycle_site.api.auth import api_view, error, json_body
+from lifecycle_site.api.limits import MAX_PARAMETERS
 from lifecycle_site.api.views import get_node
 from lifecycle_site.audit.models import ParameterRecord
 from lifecycle_site.fleet.facts import apply_facts
@@ -56,6 +57,9 @@ def node_parameters(request: HttpRequest, key: str) -> JsonResponse:
         return values
     if not isinstance(values, dict) or not values:
         return error("missing_field", 'Send the new values as {"name": value, ...}.', 400)
+    if len(values) > MAX_PARAMETERS:  # each one is sent to the node and audited
+        return error("too_many_items", f"The body names {len(values):,} parameters; at most {MAX_PARAMETERS} "
+                     "are taken in one request (nothing was sent).", 400, limit=MAX_PARAMETERS)
     results = apply(node, values, request.user, "api")
     if all(r["successful"] for r in results):
         return JsonResponse({"node": node.key, "results": results})

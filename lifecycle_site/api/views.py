@@ -6,6 +6,7 @@ from django.db.models import Count, Q
 from django.http import Http404, HttpRequest, JsonResponse
 
 from lifecycle_site.api.auth import api_view, error, json_body
+from lifecycle_site.api.limits import shown
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.fleet import gateways as gateway_status
 from lifecycle_site.fleet.gateway_client import MAX_SERVICE_TIMEOUT, GatewayError, call_gateway
@@ -78,7 +79,7 @@ def nodes(request: HttpRequest) -> JsonResponse:
     robot = request.GET.get("robot")
     if robot:
         if not Robot.objects.filter(name=robot).exists():
-            return error("not_found", f"There is no robot named {robot!r}.", 404)
+            return error("not_found", f"There is no robot named {shown(robot)}.", 404)
         queryset = queryset.filter(robot__name=robot)
     return JsonResponse({"nodes": [node_dict(n) for n in queryset]})
 
@@ -105,7 +106,7 @@ def node_detail(request: HttpRequest, key: str) -> JsonResponse:
 def get_node(key: str) -> ManagedNode:
     node = ManagedNode.objects.select_related("robot__gateway").filter(key=key).first()
     if node is None:
-        raise Http404(f"There is no node with id {key!r}; GET /api/v1/nodes lists them.")
+        raise Http404(f"There is no node with id {shown(key)}; GET /api/v1/nodes lists them.")
     return node
 
 
@@ -124,7 +125,7 @@ def transition(request: HttpRequest, key: str) -> JsonResponse:
     except sm.UnknownTransition:
         return error(
             "unknown_transition",
-            f"{requested!r} is not a lifecycle transition; use one of {', '.join(sm.EXTERNAL_LABELS)} "
+            f"{shown(requested)} is not a lifecycle transition; use one of {', '.join(sm.EXTERNAL_LABELS)} "
             "or an id 1-7.",
             400,
         )
@@ -157,7 +158,7 @@ def transitions(request: HttpRequest) -> JsonResponse:
     robot = request.GET.get("robot")
     if robot:
         if not Robot.objects.filter(name=robot).exists() and not records.filter(robot_name=robot).exists():
-            return error("not_found", f"There is no robot named {robot!r}.", 404)
+            return error("not_found", f"There is no robot named {shown(robot)}.", 404)
         records = records.filter(robot_name=robot)
     if request.GET.get("node"):
         wanted = request.GET["node"]

@@ -137,8 +137,13 @@ def resolve_transition(requested: str | int, state_id: int) -> Transition | None
     """
     if isinstance(requested, bool):
         raise UnknownTransition(str(requested))
-    if isinstance(requested, str) and requested.strip().isdigit():
-        requested = int(requested.strip())
+    if isinstance(requested, str) and requested.strip().isascii() and requested.strip().isdigit():
+        # Only 0-9: "²" and "١" are digits to str.isdigit() (int() fails on the first), and
+        # no id has more than 2 digits (int() fails past 4300).
+        text = requested.strip()
+        if len(text) > 9:
+            raise UnknownTransition(text[:20])
+        requested = int(text)
     if isinstance(requested, int):
         transition = TRANSITIONS_BY_ID.get(requested)
         if transition is None or not transition.external:

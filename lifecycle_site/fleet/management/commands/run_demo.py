@@ -153,7 +153,9 @@ class Command(BaseCommand):
         supervisor.add(
             Child(
                 "daphne",
-                [python, "-m", "daphne", "-b", "127.0.0.1", "-p", str(port), "lifecycle_site.asgi:application"],
+                # daphne, answering at its HTTP limits (lifecycle_site/serve.py)
+                [python, "-m", "lifecycle_site.serve", "-b", "127.0.0.1", "-p", str(port),
+                 "lifecycle_site.asgi:application"],
                 logs / "daphne.log",
             )
         )
