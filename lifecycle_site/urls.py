@@ -20,3 +20,5 @@ urlpatterns = [
 
 # Refused changes (PermissionDenied anywhere, the admin included) are on record.
 handler403 = "lifecycle_site.audit.denials.permission_denied"
+# A bad request (a Host not allowed, say) answers in the API's JSON shape under /api/.
+handler400 = "lifecycle_site.api.auth.bad_request"

@@ -9,6 +9,7 @@ from django.http import HttpRequest, HttpResponse
 from django.shortcuts import render
 from django.views.decorators.http import require_POST
 
+from lifecycle_site.api import limits
 from lifecycle_site.api.auth import NonFiniteNumber, loads_finite
 from lifecycle_site.api.parameters import apply, fetch
 from lifecycle_site.dashboard.access import operator_required, viewer_required
@@ -138,6 +139,9 @@ def apply_file(request: HttpRequest, key: str) -> HttpResponse:
         return _section(request, node, import_error="The preview was damaged; import the file again.")
     if not values:
         return _section(request, node, nothing_changed=True)
+    if len(values) > limits.MAX_PARAMETERS:
+        return _section(request, node, import_error=f"The file sets {len(values)} parameters; at most "
+                        f"{limits.MAX_PARAMETERS} can be set at once. Nothing was sent.")
     try:
         results = {r["name"]: r for r in apply(node, values, request.user, "dashboard")}
     except GatewayError as exc:

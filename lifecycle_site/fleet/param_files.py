@@ -41,9 +41,14 @@ def load(text: str, node_name: str) -> dict[str, Any]:
     """The values a file gives this node: its own section, else a ``/**`` section, else the
     only section there is. Raises ParameterFileError with a readable reason."""
     try:
+        if any(isinstance(event, yaml.AliasEvent) for event in yaml.parse(text, Loader=yaml.SafeLoader)):
+            # *name repeats a value: nested ones turn a few lines into gigabytes
+            raise ParameterFileError("aliases (*name) are not supported in a parameter file; write the values out")
         document = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise ParameterFileError(f"not valid YAML: {exc}") from None
+    except RecursionError:
+        raise ParameterFileError("not valid YAML: lists or mappings nested too deeply") from None
     if not isinstance(document, dict) or not document:
         raise ParameterFileError("expected a mapping such as '/node: {ros__parameters: {...}}'")
     bare = node_name.lstrip("/")

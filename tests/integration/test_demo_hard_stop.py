@@ -17,13 +17,13 @@ CHILDREN = {  # what run_demo starts, told apart by a word of their command line
     "redis-server": 1,
     "ros_gateway": 1,
     "ros_gateway.demo.robot": 4,
-    "daphne": 1,
+    "lifecycle_site.serve": 1,
 }
 
 
 def _kind(process: psutil.Process) -> str:
     words = process.cmdline()
-    for kind in ("ros_gateway.demo.robot", "daphne", "ros_gateway"):
+    for kind in ("ros_gateway.demo.robot", "lifecycle_site.serve", "ros_gateway"):
         if kind in words:
             return kind
     return "redis-server" if "redis-server" in " ".join(words[:1]) else " ".join(words)

@@ -248,7 +248,8 @@ class Command(BaseCommand):
         except sm.UnknownTransition:
             raise CliExit(EXIT_USAGE, f"{requested!r} is not a lifecycle transition; use one of "
                           f"{', '.join(sm.EXTERNAL_LABELS)} or an id 1-7.", "unknown_transition") from None
-        return int(requested) if requested.strip().isdigit() else requested.strip().lower()
+        text = requested.strip()
+        return int(text) if text.isascii() and text.isdigit() else text.lower()
 
     def user(self, username: str | None):
         """The site user a change is made as, who must be allowed to operate nodes."""
