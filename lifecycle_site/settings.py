@@ -60,7 +60,7 @@ URL_PREFIX = os.environ.get("LIFECYCLE_URL_PREFIX", "").rstrip("/")
 FORCE_SCRIPT_NAME = URL_PREFIX or None
 LIFECYCLE_TRUST_FORWARDED_PREFIX = env_bool("LIFECYCLE_TRUST_FORWARDED_PREFIX", False)
 
-# The site is served by ``python -m daphne`` (make demo, the image). "daphne" is not an app
+# The site is served by daphne (``python -m lifecycle_site.serve``: make demo, the image). "daphne" is not an app
 # here: it only replaces runserver, and importing it (twisted, autobahn, cryptography) costs
 # every other process, the gateway and the CLI, ~26 MB.
 INSTALLED_APPS = [

@@ -204,7 +204,7 @@ class Stack:
             env=gateway_env,
         )
         self.site = self.spawn(
-            "daphne", [PYTHON, "-m", "daphne", "-b", "127.0.0.1", "-p", str(self.web_port),
+            "daphne", [PYTHON, "-m", "lifecycle_site.serve", "-b", "127.0.0.1", "-p", str(self.web_port),
                        "lifecycle_site.asgi:application"]
         )
         wait_for(lambda: self._answers() or not self.site.alive(), 30, "daphne to listen")

@@ -87,7 +87,7 @@ class NetSite:
         self.gateways: dict[str, netns.NsProcess] = {}
         port = free_port()
         self.ingest = self._spawn("ingest", [PYTHON, "manage.py", "ingest"])
-        self.site = self._spawn("daphne", [PYTHON, "-m", "daphne", "-b", "127.0.0.1", "-p", str(port),
+        self.site = self._spawn("daphne", [PYTHON, "-m", "lifecycle_site.serve", "-b", "127.0.0.1", "-p", str(port),
                                            "lifecycle_site.asgi:application"])
         self.api = Http("127.0.0.1", port, token=ctx.template.token)
         wait_for(lambda: "holding the ingest lease" in self.ingest.output() or not self.ingest.alive(), 60,

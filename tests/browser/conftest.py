@@ -61,7 +61,8 @@ def site(gateway):  # noqa: F811
     port = stack.free_port()
     process = stack.Process(
         "daphne",
-        [sys.executable, "-m", "daphne", "-b", "127.0.0.1", "-p", str(port), "lifecycle_site.asgi:application"],
+        [sys.executable, "-m", "lifecycle_site.serve", "-b", "127.0.0.1", "-p", str(port),
+         "lifecycle_site.asgi:application"],
         stack.environment(LIFECYCLE_TRUST_FORWARDED_PREFIX="1"),
         stack.log_dir(),
     )

@@ -82,7 +82,7 @@ def test_a_transition_through_a_tls_only_redis(tls_redis, live_db, tmp_path):
         stack.Process("tls-ingest", [sys.executable, "manage.py", "ingest"], stack.environment(**site_env),
                       stack.log_dir()),
         stack.start_gateway("cell-tls", **gateway_env),
-        stack.Process("tls-daphne", [sys.executable, "-m", "daphne", "-b", "127.0.0.1", "-p", str(port),
+        stack.Process("tls-daphne", [sys.executable, "-m", "lifecycle_site.serve", "-b", "127.0.0.1", "-p", str(port),
                                      "lifecycle_site.asgi:application"], stack.environment(**site_env),
                       stack.log_dir()),
         stack.start_robot("tls-robot", stack.domain(24), "lidar_driver"),
