@@ -53,6 +53,12 @@ if env_bool("LIFECYCLE_BEHIND_TLS_PROXY", False):
     # The proxy terminates TLS and says so; without this, CSRF origin checks fail behind it.
     SECURE_PROXY_SSL_HEADER = ("HTTP_X_FORWARDED_PROTO", "https")
     SESSION_COOKIE_SECURE = CSRF_COOKIE_SECURE = True
+    # Browsers that saw the site over TLS refuse plain HTTP to it for this long. Sent only on
+    # answers to HTTPS requests (SecurityMiddleware), so a plain-HTTP demo never gets it.
+    SECURE_HSTS_SECONDS = int(os.environ.get("LIFECYCLE_HSTS_SECONDS", 365 * 24 * 3600))
+    # Off by default: on a plant network the site's name may be the parent of hosts that serve
+    # plain HTTP (the device's own name is usually not).
+    SECURE_HSTS_INCLUDE_SUBDOMAINS = env_bool("LIFECYCLE_HSTS_INCLUDE_SUBDOMAINS", False)
 # Django's defaults, spelled out because docs/security.md promises them.
 SESSION_COOKIE_HTTPONLY = True
 SESSION_COOKIE_SAMESITE = CSRF_COOKIE_SAMESITE = "Lax"

@@ -1,11 +1,15 @@
 """Security headers of the site's answers."""
 from __future__ import annotations
 
+import json
+import os
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 from django.conf import settings
-from django.test import Client
+from django.test import Client, override_settings
 
 from lifecycle_site.fleet.models import ManagedNode, Robot
 from ros_gateway.shared import state_machine as sm
@@ -57,3 +61,56 @@ def test_templates_carry_no_inline_script_or_handler():
         for tag in re.findall(r"<script\b[^>]*>", text):
             assert "src=" in tag, (template, tag)
         assert "style=" not in text and "<style" not in text, template
+
+
+def site_settings(**env: str) -> dict:
+    """The security settings a fresh process gets from lifecycle_site/settings.py with ``env``."""
+    script = ("import json, lifecycle_site.settings as s; print(json.dumps({n: getattr(s, n, None) for n in "
+              f"{sorted(TLS_SETTINGS)!r}}}))")
+    environment = {k: v for k, v in os.environ.items() if not k.startswith(("LIFECYCLE_BEHIND", "LIFECYCLE_HSTS"))}
+    answer = subprocess.run([sys.executable, "-c", script], env={**environment, **env}, capture_output=True,
+                            text=True, timeout=120, cwd=settings.BASE_DIR, check=True)
+    values = json.loads(answer.stdout)
+    values["SECURE_PROXY_SSL_HEADER"] = tuple(values["SECURE_PROXY_SSL_HEADER"] or ()) or None
+    return {name: TLS_SETTINGS[name] if value is None else value for name, value in values.items()}
+
+
+# What each setting is when settings.py leaves it alone (Django's defaults).
+TLS_SETTINGS = {"SECURE_PROXY_SSL_HEADER": None, "SECURE_HSTS_SECONDS": 0, "SECURE_HSTS_INCLUDE_SUBDOMAINS": False,
+                "SESSION_COOKIE_SECURE": False, "CSRF_COOKIE_SECURE": False}
+
+
+def logged_in(values: dict, **headers: str):
+    """The login page, then the login form posted, under ``values``: both answers."""
+    with override_settings(**values):
+        client = Client(**headers)  # a new Client: the middleware reads the settings when it starts
+        page = client.get("/login/")
+        posted = client.post("/login/", {"username": "hanna-cookie", "password": "a-test-password-123",
+                                         "csrfmiddlewaretoken": page.cookies[settings.CSRF_COOKIE_NAME].value})
+    assert posted.status_code == 302, posted.status_code
+    return page, posted
+
+
+def test_hsts_and_secure_cookies_only_behind_a_tls_proxy(db):
+    make_user("hanna-cookie", "viewer")
+    plain = site_settings()
+    for headers in ({}, {"HTTP_X_FORWARDED_PROTO": "https"}):  # nobody trusts that header here
+        page, posted = logged_in(plain, **headers)
+        assert "Strict-Transport-Security" not in page and "Strict-Transport-Security" not in posted, headers
+        assert not page.cookies[settings.CSRF_COOKIE_NAME]["secure"], headers
+        session = posted.cookies[settings.SESSION_COOKIE_NAME]
+        assert not session["secure"] and session["httponly"] and session["samesite"] == "Lax", headers
+
+    tls = site_settings(LIFECYCLE_BEHIND_TLS_PROXY="1")
+    page, posted = logged_in(tls, HTTP_X_FORWARDED_PROTO="https")
+    assert page["Strict-Transport-Security"] == "max-age=31536000"
+    assert page.cookies[settings.CSRF_COOKIE_NAME]["secure"]
+    session = posted.cookies[settings.SESSION_COOKIE_NAME]
+    assert session["secure"] and session["httponly"] and session["samesite"] == "Lax"
+    # The proxy's own health checks over plain HTTP: no HSTS on a plain answer.
+    assert "Strict-Transport-Security" not in logged_in(tls)[0]
+
+    tuned = site_settings(LIFECYCLE_BEHIND_TLS_PROXY="1", LIFECYCLE_HSTS_SECONDS="600",
+                          LIFECYCLE_HSTS_INCLUDE_SUBDOMAINS="1")
+    page, _ = logged_in(tuned, HTTP_X_FORWARDED_PROTO="https")
+    assert page["Strict-Transport-Security"] == "max-age=600; includeSubDomains"
