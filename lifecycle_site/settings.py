@@ -13,6 +13,7 @@ from datetime import timedelta
 from pathlib import Path
 
 import dj_database_url
+from csp.constants import NONE, SELF
 from django.core.exceptions import ImproperlyConfigured
 
 BASE_DIR = Path(__file__).resolve().parent.parent
@@ -54,6 +55,35 @@ if env_bool("LIFECYCLE_BEHIND_TLS_PROXY", False):
     # The proxy terminates TLS and says so; without this, CSRF origin checks fail behind it.
     SECURE_PROXY_SSL_HEADER = ("HTTP_X_FORWARDED_PROTO", "https")
     SESSION_COOKIE_SECURE = CSRF_COOKIE_SECURE = True
+    # Browsers that saw the site over TLS refuse plain HTTP to it for this long. Sent only on
+    # answers to HTTPS requests (SecurityMiddleware), so a plain-HTTP demo never gets it.
+    SECURE_HSTS_SECONDS = int(os.environ.get("LIFECYCLE_HSTS_SECONDS", 365 * 24 * 3600))
+    # Off by default: on a plant network the site's name may be the parent of hosts that serve
+    # plain HTTP (the device's own name is usually not).
+    SECURE_HSTS_INCLUDE_SUBDOMAINS = env_bool("LIFECYCLE_HSTS_INCLUDE_SUBDOMAINS", False)
+# Django's defaults, spelled out because docs/security.md promises them.
+SESSION_COOKIE_HTTPONLY = True
+SESSION_COOKIE_SAMESITE = CSRF_COOKIE_SAMESITE = "Lax"
+SECURE_CONTENT_TYPE_NOSNIFF = True
+SECURE_REFERRER_POLICY = "same-origin"
+SECURE_CROSS_ORIGIN_OPENER_POLICY = "same-origin"
+X_FRAME_OPTIONS = "DENY"
+# Content-Security-Policy (django-csp): scripts, styles and sockets from the site itself only;
+# no inline script, no eval (htmx is told not to need them: templates/base.html).
+CONTENT_SECURITY_POLICY = {
+    "DIRECTIVES": {
+        "default-src": [SELF],
+        "script-src": [SELF],
+        "style-src": [SELF],
+        "img-src": [SELF],
+        "font-src": [SELF],
+        "connect-src": [SELF],  # 'self' covers ws:// and wss:// to the same host and port
+        "object-src": [NONE],
+        "base-uri": [NONE],
+        "form-action": [SELF],
+        "frame-ancestors": [NONE],
+    },
+}
 
 # Sub-path behind a reverse proxy that strips it (see lifecycle_site/prefix.py).
 URL_PREFIX = os.environ.get("LIFECYCLE_URL_PREFIX", "").rstrip("/")
@@ -82,6 +112,7 @@ INSTALLED_APPS = [
 
 MIDDLEWARE = [
     "django.middleware.security.SecurityMiddleware",
+    "csp.middleware.CSPMiddleware",
     "whitenoise.middleware.WhiteNoiseMiddleware",
     "lifecycle_site.prefix.ForwardedPrefixMiddleware",
     "lifecycle_site.no_store.NoStoreMiddleware",

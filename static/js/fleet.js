@@ -57,6 +57,10 @@
   }
 
   document.addEventListener("DOMContentLoaded", function () {
+    // The filters apply in the page: Enter in the name field must not reload it.
+    document.querySelectorAll("form[data-local]").forEach(function (form) {
+      form.addEventListener("submit", function (event) { event.preventDefault(); });
+    });
     document.querySelectorAll("[data-filter]").forEach(function (el) {
       el.addEventListener("input", function () { apply(); remember(); });
     });

@@ -80,6 +80,8 @@
 
   levelEl.addEventListener("change", refilter);
   textEl.addEventListener("input", refilter);
+  // The filters apply in the page: Enter in the text field must not reload it.
+  root.querySelector("form[data-local]").addEventListener("submit", function (event) { event.preventDefault(); });
   pauseEl.addEventListener("click", function () {
     paused = !paused;
     pauseEl.textContent = paused ? "Resume" : "Pause";

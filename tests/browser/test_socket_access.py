@@ -1,16 +1,22 @@
 """A live-update socket stops when its user may no longer see the fleet: after logout, after
-the account is deactivated, after its role is removed. Real daphne, Redis and gateway; the
-sockets carry a session from the login form, as a browser's do."""
+the account is deactivated, after its role is removed; a page of another origin cannot open
+one. Real daphne, Redis and gateway; the sockets carry a session from the login form, as a
+browser's do."""
 from __future__ import annotations
 
 import asyncio
+import threading
 import time
+from contextlib import contextmanager
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from typing import Iterator
 from urllib.parse import urlparse
 
 import pytest
 from django.contrib.auth.models import Group
 from websockets.exceptions import ConnectionClosed
 
+from lifecycle_site.audit.models import AccessDenial
 from tests.benchmarks.web import Http, ws_connect
 from tests.browser.conftest import PASSWORD, ROBOT
 from tests.conftest import make_user
@@ -100,3 +106,70 @@ def test_an_open_page_follows_when_its_users_access_ends(browser, site, robot):
         expect(page.locator("#id_username")).to_be_visible()  # logged out: the login form
     finally:
         page.close()
+
+
+ATTACK_PAGE = """<!doctype html><title>another site</title><script>
+window.result = {opened: false, messages: [], closed: false};
+const socket = new WebSocket("ws://127.0.0.1:%(port)d/ws/fleet/");
+socket.onopen = () => { window.result.opened = true; };
+socket.onmessage = (event) => { window.result.messages.push(String(event.data).slice(0, 200)); };
+socket.onclose = () => { window.result.closed = true; };
+</script>"""
+
+
+@contextmanager
+def page_server(html: str) -> Iterator[str]:
+    """Another program on the same host serving its own page (another port: another origin)."""
+
+    class Handler(BaseHTTPRequestHandler):
+        def do_GET(self) -> None:  # noqa: N802 (http.server's name)
+            body = html.encode()
+            self.send_response(200)
+            self.send_header("Content-Type", "text/html; charset=utf-8")
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *args) -> None:
+            pass
+
+    server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{server.server_address[1]}/"
+    finally:
+        server.shutdown()
+        server.server_close()
+        thread.join(5)
+
+
+def test_a_page_of_another_origin_cannot_open_the_socket_with_the_users_cookie(browser, site, robot):
+    """The browser sends the session cookie of 127.0.0.1 with a socket opened by a page on
+    127.0.0.1:<other port> (cookies are per host, not per port): the site refuses it."""
+    from playwright.sync_api import expect
+
+    user = make_user("sock-victim", "operator")
+    user.set_password(PASSWORD)
+    user.save()
+    context = browser.new_context()
+    page = context.new_page()
+    try:
+        page.goto(site + "login/")
+        page.fill("#id_username", "sock-victim")
+        page.fill("#id_password", PASSWORD)
+        page.click("button[type=submit]")
+        expect(page.locator("h2", has_text=ROBOT)).to_be_visible(timeout=20_000)
+        before = AccessDenial.objects.filter(code="socket_origin").count()
+        with page_server(ATTACK_PAGE % {"port": urlparse(site).port}) as attacker:
+            page.goto(attacker)
+            page.wait_for_function("window.result && (window.result.closed || window.result.messages.length)",
+                                   timeout=15_000)
+            result = page.evaluate("window.result")
+    finally:
+        context.close()
+    assert not result["opened"] and not result["messages"], f"the other origin's page read the fleet: {result}"
+    denial = AccessDenial.objects.filter(code="socket_origin").order_by("-id").first()
+    assert AccessDenial.objects.filter(code="socket_origin").count() == before + 1
+    assert denial.username == "sock-victim" and denial.path == "/ws/fleet/", denial  # the cookie came along
+    assert attacker.rstrip("/") in denial.detail, denial.detail
