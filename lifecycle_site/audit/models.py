@@ -169,7 +169,9 @@ class AccessDenial(models.Model):
     method = models.CharField(max_length=8)
     path = models.CharField(max_length=300)
     status = models.PositiveSmallIntegerField()
-    code = models.CharField(max_length=32, help_text="unauthorized, forbidden, csrf_failed, bad_token, login_failed")
+    code = models.CharField(
+        max_length=32, help_text="unauthorized, forbidden, csrf_failed, bad_token, login_failed, socket_origin"
+    )
     detail = models.CharField(max_length=200, blank=True)
 
     class Meta:

@@ -35,7 +35,10 @@ def test_edit_a_parameter_and_bring_up_the_robot(browser, site, robot, operator)
     page.screenshot(path=ARTIFACTS / "node-parameters.png", full_page=True)
 
     # Bring up the whole robot, continuing past the node that fails, and watch it happen.
-    page.goto(site)
+    with page.expect_websocket() as live:
+        page.goto(site)
+    # The live snapshot on connect redraws the robot sections (forms included): choose after it.
+    live.value.wait_for_event("framereceived")
     section = page.locator(f"#robot-{ROBOT}")
     section.locator("select[name=policy]").select_option("continue")
     page.once("dialog", lambda dialog: dialog.accept())

@@ -243,3 +243,14 @@ def test_the_roles_are_complete_after_the_first_migrate(db):
         have = {f"{p.content_type.app_label}.{p.codename}"
                 for p in Group.objects.get(name=role).permissions.select_related("content_type")}
         assert have == set(dotted), f"{role} lacks {set(dotted) - have}"
+
+
+def test_a_password_shorter_than_twelve_characters_is_refused(ada_client):
+    """OWASP ASVS 2.1.1: at least 12 characters (Django's default minimum is 8)."""
+    response = ada_client.post(
+        "/admin/auth/user/add/",
+        {"username": "short-pw", "usable_password": "true", "password1": "Xq7-pl4n-9k", "password2": "Xq7-pl4n-9k"},
+    )
+    assert response.status_code == 200  # the form again, with the reason
+    assert "at least 12 characters" in response.content.decode()
+    assert not get_user_model().objects.filter(username="short-pw").exists()

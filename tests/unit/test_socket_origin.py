@@ -34,7 +34,7 @@ def opens(cookie: str, origin: str | None, host: str = SITE, **headers: str) -> 
         communicator.scope["client"] = ("192.0.2.7", 50123)
         connected, _ = await communicator.connect(timeout=10)
         if connected:
-            await communicator.disconnect()
+            await communicator.disconnect(timeout=10)  # let it end by itself: a cancelled consumer may hang the loop
         return connected
 
     return async_to_sync(attempt)()
