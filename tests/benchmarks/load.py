@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from tests.benchmarks.harness import BenchContext, Stack
 from tests.benchmarks.profiling import profiled
 from tests.benchmarks.report import ScenarioResult, Series, percentile
-from tests.benchmarks.system import loadavg, rss_mb
+from tests.benchmarks.system import loadavg, tree_cpu_seconds, tree_rss_mb
 from tests.benchmarks.web import Http, ws_connect
 
 NAME = "load"
@@ -178,8 +178,11 @@ def run(ctx: BenchContext) -> ScenarioResult:
         stack.start_robot("robot", DOMAIN, generic=NODES, prefix="load_node")
         keys = [f"{ROBOT}.load_node_{i:03d}" for i in range(NODES)]
         stack.wait_nodes(keys, 90, state="unconfigured")
+        robot = stack.children[-1]
         processes = {"daphne": stack.site, "gateway": stack.gateway, "ingest": stack.ingest}
-        rss_before = {name: rss_mb(child.pid) for name, child in processes.items()}
+        rss_before = {name: tree_rss_mb(child.pid) for name, child in processes.items()}
+        busy = {**processes, "robot process": robot}
+        cpu_before = {name: tree_cpu_seconds(child.pid) for name, child in busy.items()}
         tally, sockets = Tally(), Sockets()
 
         async def measure() -> None:
@@ -196,7 +199,8 @@ def run(ctx: BenchContext) -> ScenarioResult:
                                                              reads, lag, tally)) for _ in range(READERS)]
             threads += [threading.Thread(target=operator, args=(stack, key, seconds, stop_load, moves, lag, tally))
                         for key in keys]
-            began = time.monotonic()
+            began, cpu_began = time.monotonic(), time.process_time()
+            cpu_before.update({name: tree_cpu_seconds(child.pid) for name, child in busy.items()})
             for thread in threads:
                 thread.start()
             try:
@@ -206,7 +210,14 @@ def run(ctx: BenchContext) -> ScenarioResult:
                 stop_load.set()
                 for thread in threads:
                     thread.join(30)
-                result.figure("load phase lasted", time.monotonic() - began, "s")
+                lasted = time.monotonic() - began
+                result.figure("load phase lasted", lasted, "s")
+                # The generator shares the machine: if it is busy itself, its clients' latencies grow too.
+                result.figure("load generator's own CPU (of one core)",
+                              100 * (time.process_time() - cpu_began) / lasted, "%")
+                for name, child in busy.items():
+                    share = 100 * (tree_cpu_seconds(child.pid) - cpu_before[name]) / lasted
+                    result.figure(f"{name} CPU during the load (of one core)", share, "%")
             await asyncio.sleep(1.0)  # the last pushes
             still_open = sum(1 for w in watchers if not w.done())
             stop_sockets.set()
@@ -215,7 +226,7 @@ def run(ctx: BenchContext) -> ScenarioResult:
 
         with profiled(ctx, stack, NAME):
             asyncio.run(measure())
-        rss_after = {name: rss_mb(child.pid) for name, child in processes.items()}
+        rss_after = {name: tree_rss_mb(child.pid) for name, child in processes.items()}
     never = show_latencies(tally.requested, sockets.shown, shown)
     sent = len(reads.values) + len(moves.values)
     result.figure("API requests answered", sent)
