@@ -53,7 +53,7 @@ class Gateway:
         self.instance = protocol.new_id()
         self.started = datetime.now(timezone.utc)
         self._stopping = asyncio.Event()
-        self.relay = Relay(config.name, config.redis_url, config.prefix)
+        self.relay = Relay(config.name, config.redis_url, config.prefix, instance=self.instance)
         self.outbox = Outbox(self.relay, config.name, self.instance)
         self.changes = StateChanges()
         self.registry = NodeRegistry(self.changes)
@@ -150,7 +150,8 @@ class Gateway:
                 pass
 
     async def _take_lease(self) -> None:
-        """Only one process acts as this gateway. A killed predecessor's lease runs out within
+        """Only one process acts as this gateway. A predecessor on this host whose process has
+        ended (killed, say) is replaced at once (lease.py); elsewhere its lease runs out within
         its time-to-live, so a respawned gateway waits for it rather than failing."""
         ttl = self.config.lease_ttl
         deadline = asyncio.get_running_loop().time() + 2 * ttl + 1
@@ -192,6 +193,7 @@ class Gateway:
             "nodes": self.registry.alive_count(),
             "unreachable_processes": len(self.liveness.unreachable),
             "outbox": self.outbox.counters(),
+            "client": self.relay.client_name,
             "stopped": False,
         }
 

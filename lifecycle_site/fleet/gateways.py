@@ -78,6 +78,8 @@ def forget(**_: Any) -> None:
     """Read heartbeats (and the Redis address) afresh: settings changed, or a test wrote one."""
     with _beats_lock:
         _beats.clear()
+        _clients.clear()
+        _seen_connected.clear()
     redis_client.cache_clear()
 
 
@@ -115,6 +117,49 @@ def read_beats(names: Iterable[str]) -> dict[str, tuple[dict | None, str]]:
     return {n: (kept[n][1], kept[n][2]) for n in names}
 
 
+# --- whether a gateway's process still exists --------------------------------------------
+# A gateway names its Redis connections (protocol.client_name) and says so in its beat. A
+# process that ends, killed included, closes them at once, so the site knows it is gone long
+# before its heartbeat grows old. Only a name this process has seen connected counts when it
+# is missing: a Redis the site cannot list clients of (its ACL), or one behind a proxy that
+# hides them, makes no gateway look gone.
+_clients: dict[str, tuple[float, frozenset[str] | None]] = {}  # "" -> (read at, connected names)
+_seen_connected: dict[str, str] = {}  # gateway -> the client name it was last seen connected with
+
+
+def connected_clients() -> frozenset[str] | None:
+    """The names of the connections Redis has now (read at most once per BEAT_CACHE_S), or
+    None when they cannot be listed."""
+    now = time.monotonic()
+    with _beats_lock:
+        cached = _clients.get("")
+    if cached is not None and 0 <= now - cached[0] < BEAT_CACHE_S:
+        return cached[1]
+    try:
+        names: frozenset[str] | None = frozenset(
+            c.get("name") or "" for c in redis_client().client_list(_type="normal")) - {""}
+    except redis.RedisError:
+        names = None
+    with _beats_lock:
+        _clients[""] = (now, names)
+    return names
+
+
+def process_gone(gateway: str, client: str) -> bool:
+    """Whether the gateway process whose connections bear ``client`` has ended: seen connected
+    before, not connected now."""
+    if not client:
+        return False
+    names = connected_clients()
+    if names is None:
+        return False
+    with _beats_lock:
+        if client in names:
+            _seen_connected[gateway] = client
+            return False
+        return _seen_connected.get(gateway) == client
+
+
 def _utc(epoch: Any) -> datetime | None:
     try:
         return datetime.fromtimestamp(float(epoch), timezone.utc)
@@ -140,6 +185,7 @@ def _when(moment: datetime) -> str:
 
 
 ONLINE, OFFLINE, STOPPED, NEVER, UNREACHABLE = "online", "offline", "stopped", "never", "unreachable"
+ENDED = "ended"  # a reason, not a status: OFFLINE because its process ended
 
 
 @dataclass(frozen=True)
@@ -151,6 +197,7 @@ class GatewayStatus:
     last_beat: datetime | None = None
     beat: dict = field(default_factory=dict)
     redis_error: str = ""
+    ended: bool = False  # OFFLINE because its process has ended (its Redis connections closed)
 
     @property
     def online(self) -> bool:
@@ -164,6 +211,8 @@ class GatewayStatus:
             return "it has never reported"
         if self.state == STOPPED:
             return f"it stopped at {_when(self.last_beat)}"
+        if self.ended:
+            return f"its process has ended: its connection to Redis closed (last heartbeat {_when(self.last_beat)})"
         return f"no heartbeat since {_when(self.last_beat)}"
 
     def refusal(self, robot: str | None = None) -> str:
@@ -192,6 +241,8 @@ def _status(name: str, beat: dict | None, error: str, known_last_beat: datetime 
     if beat.get("stopped"):
         return GatewayStatus(name, STOPPED, at, beat)
     fresh = at is not None and time.time() - at.timestamp() <= settings.LIFECYCLE["GATEWAY_OFFLINE_AFTER"]
+    if fresh and process_gone(name, str(beat.get("client") or "")):
+        return GatewayStatus(name, OFFLINE, at, beat, ended=True)
     return GatewayStatus(name, ONLINE if fresh else OFFLINE, at, beat)
 
 

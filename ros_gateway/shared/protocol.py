@@ -107,6 +107,12 @@ def lease_key(prefix: str, gateway: str) -> str:
     return gateway_key(prefix, gateway, "lease")
 
 
+def client_name(gateway: str, instance: str) -> str:
+    """The name a gateway instance gives its Redis connections (CLIENT SETNAME), so that the
+    site sees at once when its process has ended: its connections close with it."""
+    return f"lcm-gw:{gateway}:{instance}"
+
+
 def channel_layer_key_patterns(prefix: str) -> list[str]:
     """Keys channels-redis touches when a gateway sends to a group (group sets, and the
     browsers' channel queues they list)."""
