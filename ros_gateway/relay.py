@@ -175,6 +175,21 @@ class Relay:
             return "nobody (it was released meanwhile)"
         return current.decode() if isinstance(current, bytes) else current
 
+    async def claim(self, request_id: str) -> str | None:
+        """Take a command before carrying it out. Returns "" when this instance has it now,
+        else who has: protocol.ABANDONED when the site gave up on it, or another holder; None
+        when Redis could not be asked (then it is not carried out: nobody would learn how it went)."""
+        key = protocol.claim_key(self.prefix, self.gateway, request_id)
+        mine = json.dumps({"instance": self.instance, "at": time.time()})
+        try:
+            if await self.redis.set(key, mine, nx=True, ex=protocol.CLAIM_TTL_S):
+                return ""
+            holder = await self.redis.get(key)
+        except Exception as exc:
+            self.complain("claiming a command", exc)
+            return None
+        return (holder.decode() if isinstance(holder, bytes) else holder) or "someone (it expired meanwhile)"
+
     async def renew_lease(self, instance: str, ttl: float) -> bool:
         """Extend the lease; False if another instance holds it now (this one was frozen or
         cut off for longer than its lease)."""

@@ -66,7 +66,7 @@ class Gateway:
         self.driver = NodeDriver(self.domains, self.registry, self.outbox, self.logs, config.service_timeout)
         self.runs = GroupRunner(self.domains, self.registry, self.driver, self.outbox, self.relay)
         self.commands = CommandHandler(Parts(self.relay, self.registry, self.domains, self.driver, self.params,
-                                             self.runs, config.service_timeout))
+                                             self.runs, config.service_timeout, self.outbox))
         # Who hears of a state change, in this order: the site (a fact), the pages (a push),
         # the stuck-transition check, and automatic recovery.
         self.changes.subscribe("report", self._report)
