@@ -38,16 +38,23 @@ def channel_prefix() -> str:
     return settings.CHANNEL_LAYERS["default"].get("CONFIG", {}).get("prefix", "lifecycle")
 
 
+# Every read of the site's Redis answers within this (a reply is awaited in blocking pops of
+# at most a second each: gateway_client.WAIT_SLICE_S), so a Redis that hangs (stopped, or
+# cut off without a reset) makes a request answer 503 after seconds, not minutes.
+SOCKET_TIMEOUT_S = 3.0
+
+
 @lru_cache(maxsize=1)
 def redis_client() -> redis.Redis:
     """The site's connection pool to Redis (the default user: it manages the gateways' users).
 
-    A Redis that is down shows as an error within seconds (connect timeout); the read
-    timeout only has to outlast the longest blocking wait for a reply."""
+    A connection the pool kept across a Redis restart is dead: its command is tried again on
+    a fresh one (ConnectionError). A timeout is not tried again: a Redis that does not answer
+    would only make the user wait three times as long for the same 503."""
     return redis.Redis.from_url(
-        settings.REDIS_URL, socket_connect_timeout=2, socket_timeout=3 * MAX_SERVICE_TIMEOUT + 15,
-        retry_on_error=[redis.ConnectionError, redis.TimeoutError],
-        retry=Retry(ExponentialBackoff(cap=0.5, base=0.05), 2),
+        settings.REDIS_URL, socket_connect_timeout=2, socket_timeout=SOCKET_TIMEOUT_S,
+        retry_on_error=[redis.ConnectionError],
+        retry=Retry(ExponentialBackoff(cap=0.5, base=0.05), 2, supported_errors=(redis.ConnectionError,)),
         health_check_interval=30,
     )
 
