@@ -173,7 +173,7 @@ class _Call:
         except redis.RedisError:
             return False
         instance = _instance(holder)
-        return bool(instance) and gateways.process_gone(self.gateway, protocol.client_name(self.gateway, instance))
+        return bool(instance) and gateways.process_gone(protocol.client_name(self.gateway, instance))
 
     def settle(self, trouble: Exception | None) -> dict:
         """No reply in time: withdraw the command if the gateway has not taken it; else say what
@@ -194,7 +194,7 @@ class _Call:
             if popped is not None:
                 return self.result(popped)
             instance = _instance(holder)
-            if instance and gateways.process_gone(self.gateway, protocol.client_name(self.gateway, instance)):
+            if instance and gateways.process_gone(protocol.client_name(self.gateway, instance)):
                 text = (f"Gateway {self.gateway} took the command, but its process ended before it answered: "
                         f"whether it reached {self.robot or 'the robot'} is not known. Check the node's state "
                         "before you try again.")

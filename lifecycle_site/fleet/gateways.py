@@ -11,6 +11,7 @@ import json
 import logging
 import threading
 import time
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from functools import lru_cache
@@ -131,7 +132,8 @@ def read_beats(names: Iterable[str]) -> dict[str, tuple[dict | None, str]]:
 # is missing: a Redis the site cannot list clients of (its ACL), or one behind a proxy that
 # hides them, makes no gateway look gone.
 _clients: dict[str, tuple[float, frozenset[str] | None]] = {}  # "" -> (read at, connected names)
-_seen_connected: dict[str, str] = {}  # gateway -> the client name it was last seen connected with
+_seen_connected: OrderedDict[str, None] = OrderedDict()  # client names seen connected, the latest last
+SEEN_KEPT = 1024
 
 
 def connected_clients() -> frozenset[str] | None:
@@ -152,9 +154,9 @@ def connected_clients() -> frozenset[str] | None:
     return names
 
 
-def process_gone(gateway: str, client: str) -> bool:
-    """Whether the gateway process whose connections bear ``client`` has ended: seen connected
-    before, not connected now."""
+def process_gone(client: str) -> bool:
+    """Whether the gateway process whose connections bear the name ``client`` has ended: seen
+    connected before, not connected now."""
     if not client:
         return False
     names = connected_clients()
@@ -162,9 +164,12 @@ def process_gone(gateway: str, client: str) -> bool:
         return False
     with _beats_lock:
         if client in names:
-            _seen_connected[gateway] = client
+            _seen_connected[client] = None
+            _seen_connected.move_to_end(client)
+            while len(_seen_connected) > SEEN_KEPT:
+                _seen_connected.popitem(last=False)
             return False
-        return _seen_connected.get(gateway) == client
+        return client in _seen_connected
 
 
 def _utc(epoch: Any) -> datetime | None:
@@ -248,7 +253,7 @@ def _status(name: str, beat: dict | None, error: str, known_last_beat: datetime 
     if beat.get("stopped"):
         return GatewayStatus(name, STOPPED, at, beat)
     fresh = at is not None and time.time() - at.timestamp() <= settings.LIFECYCLE["GATEWAY_OFFLINE_AFTER"]
-    if fresh and process_gone(name, str(beat.get("client") or "")):
+    if fresh and process_gone(str(beat.get("client") or "")):
         return GatewayStatus(name, OFFLINE, at, beat, ended=True)
     return GatewayStatus(name, ONLINE if fresh else OFFLINE, at, beat)
 
