@@ -62,7 +62,8 @@ class Gateway:
         self.params = ParameterKeeper(self.domains, self.registry, self.outbox, self.relay)
         self.liveness = Liveness(self.registry, self.domains, config.liveness_interval, config.liveness_timeout)
         self.discovery = Discovery(self.registry, self.domains, self._new_domain, self.outbox,
-                                   config.service_timeout, self.params.forget, self.liveness.holds_back)
+                                   config.service_timeout, self.params.forget, self.liveness.holds_back,
+                                   self.liveness.suspect)
         self.driver = NodeDriver(self.domains, self.registry, self.outbox, self.logs, config.service_timeout)
         self.runs = GroupRunner(self.domains, self.registry, self.driver, self.outbox, self.relay)
         self.commands = CommandHandler(Parts(self.relay, self.registry, self.domains, self.driver, self.params,
