@@ -131,6 +131,7 @@ class _Call:
         self.claim_key = protocol.claim_key(prefix, gateway, message["request_id"])
         self.client = gateways.redis_client()
         self.target = f" to {robot}" if robot else ""
+        self.claim_seen: dict[str, float] = {}  # gateway instance that took the command -> first read (monotonic)
 
     def not_carried_out(self, reason: str, outcome: str = "rejected") -> list[dict]:
         return protocol.not_carried_out(self.gateway, self.message, reason, "site", outcome)
@@ -173,7 +174,10 @@ class _Call:
         except redis.RedisError:
             return False
         instance = _instance(holder)
-        return bool(instance) and gateways.process_gone(protocol.client_name(self.gateway, instance))
+        if not instance:
+            return False
+        seen = self.claim_seen.setdefault(instance, time.monotonic())  # it had its connection then
+        return gateways.process_gone(protocol.client_name(self.gateway, instance), seen)
 
     def settle(self, trouble: Exception | None) -> dict:
         """No reply in time: withdraw the command if the gateway has not taken it; else say what
@@ -187,6 +191,7 @@ class _Call:
                 withdrawn.details["carried_out"] = False
                 raise withdrawn
             holder = self.client.get(self.claim_key)
+            read = self.claim_seen.setdefault(_instance(holder), time.monotonic())
             popped = self.client.lpop(self.reply_key)
         except redis.RedisError as exc:
             trouble = exc
@@ -194,7 +199,7 @@ class _Call:
             if popped is not None:
                 return self.result(popped)
             instance = _instance(holder)
-            if instance and gateways.process_gone(protocol.client_name(self.gateway, instance)):
+            if instance and gateways.process_gone(protocol.client_name(self.gateway, instance), read):
                 text = (f"Gateway {self.gateway} took the command, but its process ended before it answered: "
                         f"whether it reached {self.robot or 'the robot'} is not known. Check the node's state "
                         "before you try again.")

@@ -9,9 +9,9 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import os
 import threading
 import time
-from collections import OrderedDict
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from functools import lru_cache
@@ -43,6 +43,9 @@ def channel_prefix() -> str:
 # at most a second each: gateway_client.WAIT_SLICE_S), so a Redis that hangs (stopped, or
 # cut off without a reset) makes a request answer 503 after seconds, not minutes.
 SOCKET_TIMEOUT_S = 3.0
+# The name of this process's connections: seeing it in CLIENT LIST shows that the list is
+# Redis's own (not a proxy's), so a gateway's name missing from it means something.
+SITE_CLIENT = f"lcm-site:{os.getpid()}"
 
 
 @lru_cache(maxsize=1)
@@ -53,7 +56,7 @@ def redis_client() -> redis.Redis:
     a fresh one (ConnectionError). A timeout is not tried again: a Redis that does not answer
     would only make the user wait three times as long for the same 503."""
     return redis.Redis.from_url(
-        settings.REDIS_URL, socket_connect_timeout=2, socket_timeout=SOCKET_TIMEOUT_S,
+        settings.REDIS_URL, socket_connect_timeout=2, socket_timeout=SOCKET_TIMEOUT_S, client_name=SITE_CLIENT,
         retry_on_error=[redis.ConnectionError],
         retry=Retry(ExponentialBackoff(cap=0.5, base=0.05), 2, supported_errors=(redis.ConnectionError,)),
         health_check_interval=30,
@@ -87,7 +90,6 @@ def forget(**_: Any) -> None:
     with _beats_lock:
         _beats.clear()
         _clients.clear()
-        _seen_connected.clear()
     redis_client.cache_clear()
 
 
@@ -116,7 +118,8 @@ def read_beats(names: Iterable[str]) -> dict[str, tuple[dict | None, str]]:
         prefix = channel_prefix()
         try:
             raws = redis_client().mget([protocol.beat_key(prefix, n) for n in stale])
-            fresh = {n: (now, _parse_beat(raw), "") for n, raw in zip(stale, raws, strict=True)}
+            read = time.monotonic()  # each beat was written before this
+            fresh = {n: (read, _parse_beat(raw), "") for n, raw in zip(stale, raws, strict=True)}
         except redis.RedisError as exc:
             fresh = {n: (now, None, str(exc) or type(exc).__name__) for n in stale}
         with _beats_lock:
@@ -128,48 +131,42 @@ def read_beats(names: Iterable[str]) -> dict[str, tuple[dict | None, str]]:
 # --- whether a gateway's process still exists --------------------------------------------
 # A gateway names its Redis connections (protocol.client_name) and says so in its beat. A
 # process that ends, killed included, closes them at once, so the site knows it is gone long
-# before its heartbeat grows old. Only a name this process has seen connected counts when it
-# is missing: a Redis the site cannot list clients of (its ACL), or one behind a proxy that
-# hides them, makes no gateway look gone.
+# before its heartbeat grows old. A name counts as missing only from a list of clients read
+# after the site read what that process wrote (its beat, its claim of a command: written
+# through such a connection), and only from a list that shows the site's own connection: a
+# Redis the site may not list clients of (its ACL), or a proxy that hides them, makes no
+# gateway look gone.
 _clients: dict[str, tuple[float, frozenset[str] | None]] = {}  # "" -> (read at, connected names)
-_seen_connected: OrderedDict[str, None] = OrderedDict()  # client names seen connected, the latest last
-SEEN_KEPT = 1024
 
 
-def connected_clients() -> frozenset[str] | None:
-    """The names of the connections Redis has now (read at most once per BEAT_CACHE_S), or
-    None when they cannot be listed."""
+def connected_clients(not_before: float = 0.0) -> tuple[float, frozenset[str] | None]:
+    """When (monotonic, just before asking) and which connection names Redis listed, or None
+    for the names when it cannot be asked; read again when older than BEAT_CACHE_S or than
+    ``not_before``."""
     now = time.monotonic()
     with _beats_lock:
         cached = _clients.get("")
-    if cached is not None and 0 <= now - cached[0] < BEAT_CACHE_S:
-        return cached[1]
+    if cached is not None and cached[0] >= not_before and 0 <= now - cached[0] < BEAT_CACHE_S:
+        return cached
     try:
         names: frozenset[str] | None = frozenset(
             c.get("name") or "" for c in redis_client().client_list(_type="normal")) - {""}
     except redis.RedisError:
         names = None
+    if names is not None and SITE_CLIENT not in names:
+        names = None  # not Redis's own list
     with _beats_lock:
         _clients[""] = (now, names)
-    return names
+    return now, names
 
 
-def process_gone(client: str) -> bool:
-    """Whether the gateway process whose connections bear the name ``client`` has ended: seen
-    connected before, not connected now."""
+def process_gone(client: str, written_before: float) -> bool:
+    """Whether the gateway process whose connections bear the name ``client`` has ended, given
+    that it wrote something the site read by ``written_before`` (monotonic)."""
     if not client:
         return False
-    names = connected_clients()
-    if names is None:
-        return False
-    with _beats_lock:
-        if client in names:
-            _seen_connected[client] = None
-            _seen_connected.move_to_end(client)
-            while len(_seen_connected) > SEEN_KEPT:
-                _seen_connected.popitem(last=False)
-            return False
-        return client in _seen_connected
+    _, names = connected_clients(not_before=written_before)
+    return names is not None and client not in names
 
 
 def _utc(epoch: Any) -> datetime | None:
@@ -244,7 +241,8 @@ class GatewayStatus:
         }
 
 
-def _status(name: str, beat: dict | None, error: str, known_last_beat: datetime | None) -> GatewayStatus:
+def _status(name: str, beat: dict | None, error: str, known_last_beat: datetime | None,
+            read_at: float = 0.0) -> GatewayStatus:
     if error:
         return GatewayStatus(name, UNREACHABLE, known_last_beat, redis_error=error)
     if beat is None:
@@ -253,7 +251,7 @@ def _status(name: str, beat: dict | None, error: str, known_last_beat: datetime 
     if beat.get("stopped"):
         return GatewayStatus(name, STOPPED, at, beat)
     fresh = at is not None and time.time() - at.timestamp() <= settings.LIFECYCLE["GATEWAY_OFFLINE_AFTER"]
-    if fresh and process_gone(str(beat.get("client") or "")):
+    if fresh and process_gone(str(beat.get("client") or ""), read_at):
         return GatewayStatus(name, OFFLINE, at, beat, ended=True)
     return GatewayStatus(name, ONLINE if fresh else OFFLINE, at, beat)
 
@@ -269,8 +267,10 @@ def statuses(gateways: Iterable[Gateway | str]) -> list[GatewayStatus]:
     gateways = list(gateways)
     names = [g.name if isinstance(g, Gateway) else g for g in gateways]
     beats = read_beats(names)
+    with _beats_lock:
+        read_at = {n: _beats[n][0] if n in _beats else time.monotonic() for n in names}
     return [
-        _status(name, *beats[name], gateway.last_beat if isinstance(gateway, Gateway) else None)
+        _status(name, *beats[name], gateway.last_beat if isinstance(gateway, Gateway) else None, read_at[name])
         for name, gateway in zip(names, gateways, strict=True)
     ]
 
