@@ -18,7 +18,7 @@ from typing import Any
 import redis
 from django.conf import settings
 
-from lifecycle_site.fleet import gateways
+from lifecycle_site.fleet import gateways, presence
 from lifecycle_site.fleet.gateways import MAX_SERVICE_TIMEOUT, channel_prefix
 from ros_gateway.shared import protocol
 
@@ -177,7 +177,7 @@ class _Call:
         if not instance:
             return False
         seen = self.claim_seen.setdefault(instance, time.monotonic())  # it had its connection then
-        return gateways.process_gone(protocol.client_name(self.gateway, instance), seen)
+        return presence.process_gone(self.client, protocol.client_name(self.gateway, instance), seen)
 
     def settle(self, trouble: Exception | None) -> dict:
         """No reply in time: withdraw the command if the gateway has not taken it; else say what
@@ -199,7 +199,7 @@ class _Call:
             if popped is not None:
                 return self.result(popped)
             instance = _instance(holder)
-            if instance and gateways.process_gone(protocol.client_name(self.gateway, instance), read):
+            if instance and presence.process_gone(self.client, protocol.client_name(self.gateway, instance), read):
                 text = (f"Gateway {self.gateway} took the command, but its process ended before it answered: "
                         f"whether it reached {self.robot or 'the robot'} is not known. Check the node's state "
                         "before you try again.")

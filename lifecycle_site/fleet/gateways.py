@@ -9,7 +9,6 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import os
 import threading
 import time
 from dataclasses import dataclass, field
@@ -26,6 +25,7 @@ from django.db.models.signals import post_delete, post_save
 from redis.backoff import ExponentialBackoff
 from redis.retry import Retry
 
+from lifecycle_site.fleet import presence
 from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
 from ros_gateway.shared import protocol
 
@@ -43,9 +43,6 @@ def channel_prefix() -> str:
 # at most a second each: gateway_client.WAIT_SLICE_S), so a Redis that hangs (stopped, or
 # cut off without a reset) makes a request answer 503 after seconds, not minutes.
 SOCKET_TIMEOUT_S = 3.0
-# The name of this process's connections: seeing it in CLIENT LIST shows that the list is
-# Redis's own (not a proxy's), so a gateway's name missing from it means something.
-SITE_CLIENT = f"lcm-site:{os.getpid()}"
 
 
 @lru_cache(maxsize=1)
@@ -56,7 +53,7 @@ def redis_client() -> redis.Redis:
     a fresh one (ConnectionError). A timeout is not tried again: a Redis that does not answer
     would only make the user wait three times as long for the same 503."""
     return redis.Redis.from_url(
-        settings.REDIS_URL, socket_connect_timeout=2, socket_timeout=SOCKET_TIMEOUT_S, client_name=SITE_CLIENT,
+        settings.REDIS_URL, socket_connect_timeout=2, socket_timeout=SOCKET_TIMEOUT_S, client_name=presence.SITE_CLIENT,
         retry_on_error=[redis.ConnectionError],
         retry=Retry(ExponentialBackoff(cap=0.5, base=0.05), 2, supported_errors=(redis.ConnectionError,)),
         health_check_interval=30,
@@ -89,7 +86,7 @@ def forget(**_: Any) -> None:
     """Read heartbeats (and the Redis address) afresh: settings changed, or a test wrote one."""
     with _beats_lock:
         _beats.clear()
-        _clients.clear()
+    presence.forget()
     redis_client.cache_clear()
 
 
@@ -126,47 +123,6 @@ def read_beats(names: Iterable[str]) -> dict[str, tuple[dict | None, str]]:
             _beats.update(fresh)
         kept.update(fresh)
     return {n: (kept[n][1], kept[n][2]) for n in names}
-
-
-# --- whether a gateway's process still exists --------------------------------------------
-# A gateway names its Redis connections (protocol.client_name) and says so in its beat. A
-# process that ends, killed included, closes them at once, so the site knows it is gone long
-# before its heartbeat grows old. A name counts as missing only from a list of clients read
-# after the site read what that process wrote (its beat, its claim of a command: written
-# through such a connection), and only from a list that shows the site's own connection: a
-# Redis the site may not list clients of (its ACL), or a proxy that hides them, makes no
-# gateway look gone.
-_clients: dict[str, tuple[float, frozenset[str] | None]] = {}  # "" -> (read at, connected names)
-
-
-def connected_clients(not_before: float = 0.0) -> tuple[float, frozenset[str] | None]:
-    """When (monotonic, just before asking) and which connection names Redis listed, or None
-    for the names when it cannot be asked; read again when older than BEAT_CACHE_S or than
-    ``not_before``."""
-    now = time.monotonic()
-    with _beats_lock:
-        cached = _clients.get("")
-    if cached is not None and cached[0] >= not_before and 0 <= now - cached[0] < BEAT_CACHE_S:
-        return cached
-    try:
-        names: frozenset[str] | None = frozenset(
-            c.get("name") or "" for c in redis_client().client_list(_type="normal")) - {""}
-    except redis.RedisError:
-        names = None
-    if names is not None and SITE_CLIENT not in names:
-        names = None  # not Redis's own list
-    with _beats_lock:
-        _clients[""] = (now, names)
-    return now, names
-
-
-def process_gone(client: str, written_before: float) -> bool:
-    """Whether the gateway process whose connections bear the name ``client`` has ended, given
-    that it wrote something the site read by ``written_before`` (monotonic)."""
-    if not client:
-        return False
-    _, names = connected_clients(not_before=written_before)
-    return names is not None and client not in names
 
 
 def _utc(epoch: Any) -> datetime | None:
@@ -251,7 +207,7 @@ def _status(name: str, beat: dict | None, error: str, known_last_beat: datetime 
     if beat.get("stopped"):
         return GatewayStatus(name, STOPPED, at, beat)
     fresh = at is not None and time.time() - at.timestamp() <= settings.LIFECYCLE["GATEWAY_OFFLINE_AFTER"]
-    if fresh and process_gone(str(beat.get("client") or ""), read_at):
+    if fresh and presence.process_gone(redis_client(), str(beat.get("client") or ""), read_at):
         return GatewayStatus(name, OFFLINE, at, beat, ended=True)
     return GatewayStatus(name, ONLINE if fresh else OFFLINE, at, beat)
 
