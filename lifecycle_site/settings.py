@@ -177,6 +177,25 @@ REDIS_URL = os.environ.get("REDIS_URL", "redis://127.0.0.1:6479/0")
 # socket with 1011: redis-py 8 made that timeout 5 s by default (it had none before, so a
 # Redis lost during the pop hung the consumer). Set here whatever the version: 10 s more.
 CHANNEL_LAYER_SOCKET_TIMEOUT_S = 15.0
+
+
+def _channel_layer_retry() -> dict:
+    """After a Redis restart the connections the channel layer pooled are dead, and redis-py
+    does not try a command again unless told: a WebSocket that drew one failed its handshake
+    (HTTP 500) until every dead connection had been drawn once. A dead connection is replaced
+    and its command tried again; a timeout is not (a Redis that hangs would only stall longer).
+    Pooled connections idle for a while are checked with a PING before use."""
+    from redis.asyncio.retry import Retry
+    from redis.backoff import ExponentialBackoff
+    from redis.exceptions import ConnectionError as RedisConnectionError
+
+    return {
+        "retry_on_error": [RedisConnectionError],
+        "retry": Retry(ExponentialBackoff(cap=0.5, base=0.05), 2, supported_errors=(RedisConnectionError,)),
+        "health_check_interval": 10,
+    }
+
+
 CHANNEL_LAYERS = {
     "default": {
         "BACKEND": "channels_redis.core.RedisChannelLayer",
@@ -186,6 +205,7 @@ CHANNEL_LAYERS = {
                 "address": REDIS_URL,
                 "socket_timeout": CHANNEL_LAYER_SOCKET_TIMEOUT_S,
                 "socket_connect_timeout": 5.0,
+                **_channel_layer_retry(),
             }],
             "prefix": os.environ.get("LIFECYCLE_CHANNEL_PREFIX", "lifecycle"),
             "capacity": 1000,

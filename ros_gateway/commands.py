@@ -17,6 +17,7 @@ from ros_gateway.lifecycle import (
     available_transitions,
     read_state,
 )
+from ros_gateway.outbox import Outbox
 from ros_gateway.param_keeper import ParameterKeeper
 from ros_gateway.registry import LiveNode, NodeRegistry
 from ros_gateway.relay import Relay
@@ -49,6 +50,7 @@ class Parts:
     params: ParameterKeeper
     runs: GroupRunner
     service_timeout: float
+    outbox: Outbox
 
 
 class CommandHandler:
@@ -60,26 +62,49 @@ class CommandHandler:
 
     @staticmethod
     def _current(command: dict) -> bool:
-        """False (and logged) for a command whose requester has stopped waiting."""
+        """False for a command whose requester has stopped waiting."""
         try:
             deadline = float(command.get("deadline", 0))
         except (TypeError, ValueError):
             deadline = 0.0
-        if deadline > time.time():  # also False for NaN
-            return True
-        log.warning("dropped command %s: its requester stopped waiting", command.get("command"))
-        return False
+        return deadline > time.time()  # also False for NaN
+
+    def _not_carried_out(self, command: dict, why: str) -> None:
+        """Put a command that will not be carried out on record (as not carried out, at the time
+        the user asked); the site may have recorded it already: the fact ids make it once."""
+        log.warning("did not carry out command %s of %s: %s", command.get("command"), command.get("requested_at"),
+                    why)
+        text = f"Not carried out: {why}; nothing was sent to {command.get('robot') or 'the robot'}."
+        relay = self.parts.relay
+        for fact in protocol.not_carried_out(relay.gateway, command, text, relay.instance):
+            self.parts.outbox.emit_fact(fact)
 
     async def run(self, stopping: asyncio.Event) -> None:
+        relay = self.parts.relay
         while not stopping.is_set():
-            command = await self.parts.relay.next_command()
+            command = await relay.next_command()
             if command is None:
-                continue
-            if not self._current(command):
                 continue
             if command["request_id"] in self._seen:
                 continue  # a retried push after a lost connection: carried out once only
             self._seen.append(command["request_id"])
+            if not self._current(command):
+                self._not_carried_out(command, f"gateway {relay.gateway} received it after the site had stopped "
+                                               "waiting for it (the gateway was frozen, overloaded or cut off)")
+                continue
+            # The site, once it stops waiting, claims the command as abandoned: whoever is first
+            # decides, so the site can say for sure whether it was carried out.
+            holder = await relay.claim(command["request_id"])
+            if holder is None:
+                self._not_carried_out(command, f"gateway {relay.gateway} could not confirm it to the site (Redis "
+                                               "did not answer)")
+                continue
+            if holder == protocol.ABANDONED:
+                self._not_carried_out(command, f"the site stopped waiting before gateway {relay.gateway} took it")
+                continue
+            if holder:
+                log.warning("skipped command %s: %s has it", command.get("command"), holder)
+                continue
             await self._slots.acquire()
             spawn(self._serve(command))
 

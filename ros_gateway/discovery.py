@@ -55,8 +55,10 @@ def robots_from_config(config: dict) -> tuple[dict[int, RobotInfo], dict[int, di
 class Discovery:
     def __init__(self, registry: NodeRegistry, domains: dict[int, RosDomain], new_domain: DomainFactory,
                  outbox: Outbox, service_timeout: float, forget_parameters: Callable[[str], None],
-                 holds_back: HoldsBack = lambda domain, name: False) -> None:
+                 holds_back: HoldsBack = lambda domain, name: False,
+                 unresponsive: Callable[[LiveNode], None] = lambda node: None) -> None:
         self.registry, self.domains, self.new_domain, self.outbox = registry, domains, new_domain, outbox
+        self.unresponsive = unresponsive
         self.service_timeout = service_timeout
         self.forget_parameters = forget_parameters
         self.holds_back = holds_back
@@ -155,16 +157,19 @@ class Discovery:
             self.forget_parameters(node.key)
         node.incarnation = current
 
-    async def read_state(self, node: LiveNode) -> None:
+    async def read_state(self, node: LiveNode) -> bool | None:
+        """Read the node's state; False if it did not answer, None if not asked (a command
+        on it is running and reads the state itself)."""
         domain = self.domains.get(node.robot.domain_id)
         if domain is None or node.lock.locked():
-            return  # a command is running; it reads the state itself
+            return None
         try:
             state_id = await read_state(domain, node.name, self.service_timeout)
         except NodeUnreachable as exc:
             log.info("could not read the state of %s on %s: %s", node.name, node.robot.name, exc)
-            return
+            return False
         self.registry.set_state(node, state_id, read=True)
+        return True
 
     async def resync_states(self) -> None:
         """Fallback for lost transition events: re-read every live node's state."""
@@ -180,8 +185,10 @@ class Discovery:
 
     async def _check_settled(self, node: LiveNode, state_id: int) -> None:
         await asyncio.sleep(2 * self.service_timeout)
-        if node.alive and node.state_id == state_id:
-            await self.read_state(node)
+        if node.alive and node.state_id == state_id and await self.read_state(node) is False:
+            # Stuck in a transition and silent: its process may be gone (killed in the middle
+            # of a transition), which only the DDS lease would tell, 20 s or more from now.
+            self.unresponsive(node)
 
     # -- transition events (handed over from the executor threads) -----------------------
     def on_transition_event(self, domain_id: int, name: str, msg) -> None:

@@ -10,7 +10,9 @@ back until a probe is answered again. At 1,000 nodes in 20 processes that is 20 
 service calls per interval.
 
 A process busy in a transition (a node of it in a transition state, or one our command is
-driving) is not probed: a single-threaded robot cannot answer while its callback runs.
+driving) is not probed: a single-threaded robot cannot answer while its callback runs. Unless
+discovery found a node of it stuck in that state and silent (``suspect``): killed in the middle
+of a transition, its process would otherwise be seen gone only when its DDS lease runs out.
 """
 from __future__ import annotations
 
@@ -51,6 +53,7 @@ class Liveness:
         self.interval, self.timeout, self.misses = interval, timeout, misses
         self.unreachable: dict[Process, float] = {}  # process -> since (monotonic)
         self._probing: set[Process] = set()
+        self._suspects: set[Process] = set()  # probed although busy: stuck in a transition, silent
         self.probes = 0  # service calls made, for the gateway's statistics
 
     @property
@@ -65,6 +68,10 @@ class Liveness:
             return False
         return all((domain.domain_id, participant) in self.unreachable
                    for participant in participants(node_name, domain.incarnation(node_name)))
+
+    def suspect(self, node: LiveNode) -> None:
+        """Probe the node's process even though the node sits in a transition state."""
+        self._suspects.add(process_of(node.robot.domain_id, node.name, node.incarnation))
 
     def _groups(self) -> dict[Process, list[LiveNode]]:
         """Watched nodes by process: the live ones, and those of unreachable processes."""
@@ -81,10 +88,11 @@ class Liveness:
         for process in list(self.unreachable):
             if process not in groups:  # its nodes left the graph or our robots for good
                 del self.unreachable[process]
+        self._suspects &= set(groups)
         for process, nodes in groups.items():
-            if process in self._probing or process[0] not in self.domains:
+            if process in self._probing or process[0] not in self.domains or any(n.lock.locked() for n in nodes):
                 continue
-            if any(n.lock.locked() or (n.alive and not sm.is_primary(n.state_id)) for n in nodes):
+            if process not in self._suspects and any(n.alive and not sm.is_primary(n.state_id) for n in nodes):
                 continue  # busy in a transition: it may not answer until that is over
             self._probing.add(process)
             spawn(self._probe(process, nodes))
@@ -99,6 +107,7 @@ class Liveness:
                     await read_state(domain, node.name, self.timeout)
                 except NodeUnreachable:
                     continue
+                self._suspects.discard(process)
                 if self.unreachable.pop(process, None) is not None:
                     log.info("the process of %s on %s answers again", node.name, node.robot.name)
                 return
@@ -108,6 +117,7 @@ class Liveness:
             self._probing.discard(process)
 
     def _lost(self, process: Process, nodes: list[LiveNode]) -> None:
+        self._suspects.discard(process)
         self.unreachable[process] = time.monotonic()
         missed = f"{self.misses} probe{'s' if self.misses > 1 else ''} of {self.timeout:g} s"
         log.warning("no answer from the process of %s on %s (%s): its %d node(s) are unreachable",

@@ -65,6 +65,12 @@ class Outbox:
         self._wake.set()
         return fact
 
+    def emit_fact(self, fact: dict) -> dict:
+        """Queue a fact made elsewhere (protocol.not_carried_out) under this instance's envelope,
+        keeping its id (so that the site records it once) and its time."""
+        fields = {k: v for k, v in fact.items() if k not in ("type", "gateway", "instance", "seq")}
+        return self.emit(fact["type"], **fields)
+
     def emit_logs(self, records: list[list], dropped: int = 0) -> None:
         """Queue one batch of log records (at most LOG_BATCH)."""
         self.logs.add({**self._envelope(self.logs, None), "dropped": dropped, "records": records})

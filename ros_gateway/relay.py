@@ -18,6 +18,7 @@ from redis.asyncio.retry import Retry
 from redis.backoff import ExponentialBackoff
 from redis.exceptions import ConnectionError, TimeoutError
 
+from ros_gateway import lease
 from ros_gateway.shared import protocol
 
 log = logging.getLogger(__name__)
@@ -26,7 +27,7 @@ log = logging.getLogger(__name__)
 COMMAND_WAIT_S = 1.0
 
 
-def redis_client(url: str) -> aioredis.Redis:
+def redis_client(url: str, client_name: str | None = None) -> aioredis.Redis:
     return aioredis.Redis.from_url(
         url,
         socket_connect_timeout=2,
@@ -35,6 +36,8 @@ def redis_client(url: str) -> aioredis.Redis:
         retry_on_error=[ConnectionError, TimeoutError],
         retry=Retry(ExponentialBackoff(cap=0.5, base=0.05), 3),
         health_check_interval=15,
+        # Every connection bears this process's name: when they close, the site knows it ended.
+        client_name=client_name,
     )
 
 
@@ -48,12 +51,18 @@ def safe_url(url: str) -> str:
     return f"{scheme}://{user + ':***' if user else '***'}@{tail}"
 
 
+# Compare-and-delete: a lease is removed only while it still names the holder that was checked.
+DELETE_IF = "if redis.call('get', KEYS[1]) == ARGV[1] then return redis.call('del', KEYS[1]) end return 0"
+
+
 class Relay:
-    def __init__(self, gateway: str, redis_url: str, prefix: str, quiet: float = 30.0) -> None:
+    def __init__(self, gateway: str, redis_url: str, prefix: str, quiet: float = 30.0, instance: str = "") -> None:
         self.gateway = gateway
         self.prefix = prefix
+        self.instance = instance or protocol.new_id()
+        self.client_name = protocol.client_name(gateway, self.instance)
         self.url = safe_url(redis_url)
-        self.redis = redis_client(redis_url)
+        self.redis = redis_client(redis_url, self.client_name)
         self.layer = get_channel_layer()
         self._quiet = quiet
         self._last_complaint = 0.0
@@ -145,16 +154,41 @@ class Relay:
 
     async def take_lease(self, instance: str, ttl: float) -> str | None:
         """Hold this gateway's lease for ``ttl`` seconds; returns None when held, else the
-        holder's description (another live instance of the same gateway)."""
+        holder's description (another live instance of the same gateway). A holder that is
+        provably dead (lease.py) is replaced at once rather than waited out."""
         key = self.key("lease")
-        holder = json.dumps({"instance": instance})
-        if await self.redis.set(key, holder, nx=True, px=int(ttl * 1000)):
-            return None
-        current = await self.redis.get(key)
-        if current is not None and json.loads(current).get("instance") == instance:
-            await self.redis.pexpire(key, int(ttl * 1000))
-            return None
+        mine = json.dumps(lease.identity(instance))
+        for _ in range(2):
+            if await self.redis.set(key, mine, nx=True, px=int(ttl * 1000)):
+                return None
+            current = await self.redis.get(key)
+            holder = _parse(current)
+            if holder.get("instance") == instance:
+                await self.redis.pexpire(key, int(ttl * 1000))
+                return None
+            if not (current is not None and lease.provably_dead(holder)):
+                break
+            if await self.redis.eval(DELETE_IF, 1, key, current):
+                log.info("took over gateway %r from instance %s: its process %s on this host has ended", self.gateway,
+                         holder.get("instance"), holder.get("pid"))
+        if current is None:
+            return "nobody (it was released meanwhile)"
         return current.decode() if isinstance(current, bytes) else current
+
+    async def claim(self, request_id: str) -> str | None:
+        """Take a command before carrying it out. Returns "" when this instance has it now,
+        else who has: protocol.ABANDONED when the site gave up on it, or another holder; None
+        when Redis could not be asked (then it is not carried out: nobody would learn how it went)."""
+        key = protocol.claim_key(self.prefix, self.gateway, request_id)
+        mine = json.dumps({"instance": self.instance, "at": time.time()})
+        try:
+            if await self.redis.set(key, mine, nx=True, ex=protocol.CLAIM_TTL_S):
+                return ""
+            holder = await self.redis.get(key)
+        except Exception as exc:
+            self.complain("claiming a command", exc)
+            return None
+        return (holder.decode() if isinstance(holder, bytes) else holder) or "someone (it expired meanwhile)"
 
     async def renew_lease(self, instance: str, ttl: float) -> bool:
         """Extend the lease; False if another instance holds it now (this one was frozen or
@@ -168,8 +202,8 @@ class Relay:
     async def release_lease(self, instance: str) -> None:
         try:
             current = await self.redis.get(self.key("lease"))
-            if current is not None and json.loads(current).get("instance") == instance:
-                await self.redis.delete(self.key("lease"))
+            if current is not None and _parse(current).get("instance") == instance:
+                await self.redis.eval(DELETE_IF, 1, self.key("lease"), current)
         except Exception:
             pass
 
@@ -178,3 +212,12 @@ class Relay:
             await self.redis.aclose()
         except Exception:
             pass
+
+
+def _parse(raw: bytes | str | None) -> dict:
+    """A lease's holder (an older gateway wrote only its instance; anything else: {})."""
+    try:
+        value = json.loads(raw) if raw is not None else {}
+    except ValueError:
+        return {}
+    return value if isinstance(value, dict) else {}

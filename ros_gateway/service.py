@@ -53,7 +53,7 @@ class Gateway:
         self.instance = protocol.new_id()
         self.started = datetime.now(timezone.utc)
         self._stopping = asyncio.Event()
-        self.relay = Relay(config.name, config.redis_url, config.prefix)
+        self.relay = Relay(config.name, config.redis_url, config.prefix, instance=self.instance)
         self.outbox = Outbox(self.relay, config.name, self.instance)
         self.changes = StateChanges()
         self.registry = NodeRegistry(self.changes)
@@ -62,11 +62,12 @@ class Gateway:
         self.params = ParameterKeeper(self.domains, self.registry, self.outbox, self.relay)
         self.liveness = Liveness(self.registry, self.domains, config.liveness_interval, config.liveness_timeout)
         self.discovery = Discovery(self.registry, self.domains, self._new_domain, self.outbox,
-                                   config.service_timeout, self.params.forget, self.liveness.holds_back)
+                                   config.service_timeout, self.params.forget, self.liveness.holds_back,
+                                   self.liveness.suspect)
         self.driver = NodeDriver(self.domains, self.registry, self.outbox, self.logs, config.service_timeout)
         self.runs = GroupRunner(self.domains, self.registry, self.driver, self.outbox, self.relay)
         self.commands = CommandHandler(Parts(self.relay, self.registry, self.domains, self.driver, self.params,
-                                             self.runs, config.service_timeout))
+                                             self.runs, config.service_timeout, self.outbox))
         # Who hears of a state change, in this order: the site (a fact), the pages (a push),
         # the stuck-transition check, and automatic recovery.
         self.changes.subscribe("report", self._report)
@@ -150,7 +151,8 @@ class Gateway:
                 pass
 
     async def _take_lease(self) -> None:
-        """Only one process acts as this gateway. A killed predecessor's lease runs out within
+        """Only one process acts as this gateway. A predecessor on this host whose process has
+        ended (killed, say) is replaced at once (lease.py); elsewhere its lease runs out within
         its time-to-live, so a respawned gateway waits for it rather than failing."""
         ttl = self.config.lease_ttl
         deadline = asyncio.get_running_loop().time() + 2 * ttl + 1
@@ -192,6 +194,7 @@ class Gateway:
             "nodes": self.registry.alive_count(),
             "unreachable_processes": len(self.liveness.unreachable),
             "outbox": self.outbox.counters(),
+            "client": self.relay.client_name,
             "stopped": False,
         }
 

@@ -6,11 +6,12 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from contextlib import contextmanager
 from copy import deepcopy
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 from urllib.parse import urlparse
 
 from django.conf import settings
@@ -101,6 +102,56 @@ class Process:
     def kill(self) -> None:
         self.stop(signal.SIGKILL)
 
+    @property
+    def pid(self) -> int:
+        return self.popen.pid
+
+
+@contextmanager
+def frozen(pid: int):
+    """The process stopped (SIGSTOP) for the block: it is continued afterwards, whatever happens."""
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        yield
+    finally:
+        try:
+            os.kill(pid, signal.SIGCONT)
+        except ProcessLookupError:
+            pass
+
+
+class Timed:
+    """A call run at once in a thread of its own, timed (a request made while the test does
+    something else: freezes a process, kills one). ``result()`` waits for it, bounded."""
+
+    def __init__(self, call: Callable[[], Any]) -> None:
+        self.began = time.monotonic()
+        self.seconds: float | None = None
+        self._box: dict[str, Any] = {}
+        self._thread = threading.Thread(target=self._run, args=(call,), daemon=True)
+        self._thread.start()
+
+    def _run(self, call: Callable[[], Any]) -> None:
+        from django.db import connections
+
+        try:
+            self._box["value"] = call()
+        except BaseException as exc:  # noqa: BLE001 - handed to result()
+            self._box["error"] = exc
+        finally:
+            self.seconds = time.monotonic() - self.began
+            connections.close_all()  # this thread's own database connections
+
+    def done(self) -> bool:
+        return not self._thread.is_alive()
+
+    def result(self, timeout: float) -> Any:
+        self._thread.join(timeout)
+        assert not self._thread.is_alive(), f"the call did not return within {timeout:g} s"
+        if "error" in self._box:
+            raise self._box["error"]
+        return self._box["value"]
+
 
 def log_dir() -> Path:
     return Path(settings.DATA_DIR) / "logs"
@@ -138,6 +189,21 @@ def write_beat(gateway: str, *, at: float | None = None, stopped: bool = False, 
     redis_client().set(protocol.beat_key(gateways.channel_prefix(), gateway), protocol.encode(beat))
     gateways.forget()
     return beat
+
+
+def facts_read(gateway: str) -> bool:
+    """Whether the site's ingest process has read and stored every fact the gateway has sent."""
+    from lifecycle_site.fleet import gateways
+    from ros_gateway.shared import protocol
+
+    client = redis_client()
+    stream = protocol.facts_stream(gateways.channel_prefix(), gateway)
+    if not client.exists(stream):
+        return True
+    last = client.xinfo_stream(stream)["last-generated-id"]
+    groups = {g["name"]: g for g in client.xinfo_groups(stream)}
+    group = groups.get(protocol.INGEST_GROUP.encode()) or groups.get(protocol.INGEST_GROUP)
+    return group is not None and group["last-delivered-id"] == last and group["pending"] == 0
 
 
 def start_ingest(name: str = "ingest", **env: str) -> Process:

@@ -2,14 +2,13 @@
 from __future__ import annotations
 
 from django.http import HttpRequest, HttpResponse, JsonResponse
-from django.utils import timezone
 
 from lifecycle_site.api.auth import api_view, error, json_body
 from lifecycle_site.api.limits import MAX_PARAMETERS
 from lifecycle_site.api.views import get_node
 from lifecycle_site.audit.models import ParameterRecord
 from lifecycle_site.fleet.facts import apply_facts
-from lifecycle_site.fleet.gateway_client import GatewayError, GatewayOffline, call_gateway
+from lifecycle_site.fleet.gateway_client import GatewayError, call_gateway
 from lifecycle_site.fleet.param_files import dump
 from ros_gateway.shared import protocol
 
@@ -20,23 +19,23 @@ def fetch(node) -> list[dict]:
 
 
 def apply(node, values: dict, user, source: str) -> list[dict]:
-    """Set parameters through the node's gateway; every requested name is audited (by the
-    gateway's facts, applied here before answering, or here when nothing could be sent)."""
+    """Set parameters through the node's gateway; every requested name is audited: by the
+    facts that come with the answer (the gateway's, or the site's for a command it withdrew),
+    applied here before answering, or here when nothing reached the node. Only when the gateway
+    took the command and did not answer is the record left to it (it reports what it did)."""
     gateway = node.robot.gateway.name
     user_id = user.pk if getattr(user, "pk", None) else None
     try:
         reply = call_gateway(gateway, protocol.SET_PARAMETERS, robot=node.robot.name, node=node.name,
                              values=values, user_id=user_id, source=source)
-    except GatewayOffline as exc:
-        now = timezone.now()
-        for name, value in values.items():
-            ParameterRecord(node=node, robot_name=node.robot.name, node_name=node.name, name=name,
-                            new_value=protocol.finite(value), outcome="rejected", reason=exc.message,
-                            source=source, requested_by_id=user_id, at=now).save()
-        raise
     except GatewayError as exc:
         if exc.facts:
             apply_facts(gateway, exc.facts)
+        elif exc.carried_out is False:
+            for name, value in values.items():
+                ParameterRecord(node=node, robot_name=node.robot.name, node_name=node.name, name=name,
+                                new_value=protocol.finite(value), outcome="rejected", reason=exc.message,
+                                source=source, requested_by_id=user_id, at=exc.requested_at).save()
         raise
     if reply.get("facts"):
         apply_facts(gateway, reply["facts"])

@@ -8,19 +8,31 @@ from __future__ import annotations
 
 import asyncio
 import json
+import logging
 
 from channels.db import database_sync_to_async
 from channels.generic.websocket import AsyncWebsocketConsumer
 from django.template.loader import render_to_string
+from redis.exceptions import RedisError
 
 from lifecycle_site.dashboard import snapshots, socket_checks
 from lifecycle_site.prefix import forwarded_prefix, script_prefix
 from ros_gateway.shared import protocol
 
+log = logging.getLogger(__name__)
+
 GATEWAY_CHECK_S = 3.0  # also how soon a socket closes after logout, deactivation or role removal
 NOT_LOGGED_IN = socket_checks.NOT_LOGGED_IN
 NO_ROLE = socket_checks.NO_ROLE
 NOT_FOUND = 4404
+# The site has lost its link to Redis (down, restarting, not answering): the page reconnects
+# on this code by itself, with a growing delay (static/js/live.js, static/js/logs.js). Not
+# 1013 ("try again later"): a server may close only with 1000 or 3000-4999 (autobahn, RFC 6455).
+TRY_AGAIN_LATER = 4503
+LINK_LOST = "The site has lost its link to Redis; reconnecting when it is back."
+# How long joining the page's groups may take before the socket is refused (Redis hangs).
+LINK_TIMEOUT_S = 5.0
+LINK_ERRORS = (RedisError, OSError, asyncio.TimeoutError)
 
 
 class LiveConsumer(AsyncWebsocketConsumer):
@@ -28,6 +40,31 @@ class LiveConsumer(AsyncWebsocketConsumer):
     offline gateways of what the page shows."""
 
     groups_to_join: list[str]
+    accepted = False
+
+    async def __call__(self, scope, receive, send) -> None:
+        """Without Redis no update can reach the page: the socket is then refused or ended with
+        TRY_AGAIN_LATER and a reason, instead of an error (HTTP 500 in the handshake, 1011 after
+        it, and a traceback in the log for each socket)."""
+        try:
+            await super().__call__(scope, receive, send)
+        except LINK_ERRORS as exc:
+            log.warning("WebSocket %s ended: the channel layer's Redis failed (%s: %s)", scope.get("path"),
+                        type(exc).__name__, exc)
+            try:
+                if not self.accepted:  # accepted to be closed with a code the page understands
+                    await send({"type": "websocket.accept"})
+                await send({"type": "websocket.close", "code": TRY_AGAIN_LATER, "reason": LINK_LOST})
+            except Exception:  # noqa: BLE001 - the browser may be gone already
+                pass
+        finally:
+            watcher = getattr(self, "watcher", None)
+            if watcher is not None:
+                watcher.cancel()
+
+    async def accept(self, subprotocol=None, headers=None) -> None:
+        await super().accept(subprotocol, headers)
+        self.accepted = True
 
     async def connect(self) -> None:
         user = self.scope.get("user")
@@ -46,7 +83,7 @@ class LiveConsumer(AsyncWebsocketConsumer):
             await self.close(code=NOT_FOUND)
             return
         for group in self.groups_to_join:
-            await self.channel_layer.group_add(group, self.channel_name)
+            await asyncio.wait_for(self.channel_layer.group_add(group, self.channel_name), LINK_TIMEOUT_S)
         await self.accept()
         self.offline_seen: tuple | None = None
         await self.send_snapshot()
@@ -56,8 +93,11 @@ class LiveConsumer(AsyncWebsocketConsumer):
         watcher = getattr(self, "watcher", None)
         if watcher is not None:
             watcher.cancel()
-        for group in getattr(self, "groups_to_join", []):
-            await self.channel_layer.group_discard(group, self.channel_name)
+        try:
+            for group in getattr(self, "groups_to_join", []):
+                await asyncio.wait_for(self.channel_layer.group_discard(group, self.channel_name), LINK_TIMEOUT_S)
+        except LINK_ERRORS:
+            pass  # Redis is down: the membership expires on its own (group_expiry)
 
     async def prepare(self) -> bool:
         return True

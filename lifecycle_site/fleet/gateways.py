@@ -25,6 +25,7 @@ from django.db.models.signals import post_delete, post_save
 from redis.backoff import ExponentialBackoff
 from redis.retry import Retry
 
+from lifecycle_site.fleet import presence
 from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
 from ros_gateway.shared import protocol
 
@@ -38,16 +39,23 @@ def channel_prefix() -> str:
     return settings.CHANNEL_LAYERS["default"].get("CONFIG", {}).get("prefix", "lifecycle")
 
 
+# Every read of the site's Redis answers within this (a reply is awaited in blocking pops of
+# at most a second each: gateway_client.WAIT_SLICE_S), so a Redis that hangs (stopped, or
+# cut off without a reset) makes a request answer 503 after seconds, not minutes.
+SOCKET_TIMEOUT_S = 3.0
+
+
 @lru_cache(maxsize=1)
 def redis_client() -> redis.Redis:
     """The site's connection pool to Redis (the default user: it manages the gateways' users).
 
-    A Redis that is down shows as an error within seconds (connect timeout); the read
-    timeout only has to outlast the longest blocking wait for a reply."""
+    A connection the pool kept across a Redis restart is dead: its command is tried again on
+    a fresh one (ConnectionError). A timeout is not tried again: a Redis that does not answer
+    would only make the user wait three times as long for the same 503."""
     return redis.Redis.from_url(
-        settings.REDIS_URL, socket_connect_timeout=2, socket_timeout=3 * MAX_SERVICE_TIMEOUT + 15,
-        retry_on_error=[redis.ConnectionError, redis.TimeoutError],
-        retry=Retry(ExponentialBackoff(cap=0.5, base=0.05), 2),
+        settings.REDIS_URL, socket_connect_timeout=2, socket_timeout=SOCKET_TIMEOUT_S, client_name=presence.SITE_CLIENT,
+        retry_on_error=[redis.ConnectionError],
+        retry=Retry(ExponentialBackoff(cap=0.5, base=0.05), 2, supported_errors=(redis.ConnectionError,)),
         health_check_interval=30,
     )
 
@@ -78,6 +86,7 @@ def forget(**_: Any) -> None:
     """Read heartbeats (and the Redis address) afresh: settings changed, or a test wrote one."""
     with _beats_lock:
         _beats.clear()
+    presence.forget()
     redis_client.cache_clear()
 
 
@@ -106,7 +115,8 @@ def read_beats(names: Iterable[str]) -> dict[str, tuple[dict | None, str]]:
         prefix = channel_prefix()
         try:
             raws = redis_client().mget([protocol.beat_key(prefix, n) for n in stale])
-            fresh = {n: (now, _parse_beat(raw), "") for n, raw in zip(stale, raws, strict=True)}
+            read = time.monotonic()  # each beat was written before this
+            fresh = {n: (read, _parse_beat(raw), "") for n, raw in zip(stale, raws, strict=True)}
         except redis.RedisError as exc:
             fresh = {n: (now, None, str(exc) or type(exc).__name__) for n in stale}
         with _beats_lock:
@@ -140,6 +150,7 @@ def _when(moment: datetime) -> str:
 
 
 ONLINE, OFFLINE, STOPPED, NEVER, UNREACHABLE = "online", "offline", "stopped", "never", "unreachable"
+ENDED = "ended"  # a reason, not a status: OFFLINE because its process ended
 
 
 @dataclass(frozen=True)
@@ -151,6 +162,7 @@ class GatewayStatus:
     last_beat: datetime | None = None
     beat: dict = field(default_factory=dict)
     redis_error: str = ""
+    ended: bool = False  # OFFLINE because its process has ended (its Redis connections closed)
 
     @property
     def online(self) -> bool:
@@ -164,6 +176,8 @@ class GatewayStatus:
             return "it has never reported"
         if self.state == STOPPED:
             return f"it stopped at {_when(self.last_beat)}"
+        if self.ended:
+            return f"its process has ended: its connection to Redis closed (last heartbeat {_when(self.last_beat)})"
         return f"no heartbeat since {_when(self.last_beat)}"
 
     def refusal(self, robot: str | None = None) -> str:
@@ -183,7 +197,8 @@ class GatewayStatus:
         }
 
 
-def _status(name: str, beat: dict | None, error: str, known_last_beat: datetime | None) -> GatewayStatus:
+def _status(name: str, beat: dict | None, error: str, known_last_beat: datetime | None,
+            read_at: float = 0.0) -> GatewayStatus:
     if error:
         return GatewayStatus(name, UNREACHABLE, known_last_beat, redis_error=error)
     if beat is None:
@@ -192,6 +207,8 @@ def _status(name: str, beat: dict | None, error: str, known_last_beat: datetime 
     if beat.get("stopped"):
         return GatewayStatus(name, STOPPED, at, beat)
     fresh = at is not None and time.time() - at.timestamp() <= settings.LIFECYCLE["GATEWAY_OFFLINE_AFTER"]
+    if fresh and presence.process_gone(redis_client(), str(beat.get("client") or ""), read_at):
+        return GatewayStatus(name, OFFLINE, at, beat, ended=True)
     return GatewayStatus(name, ONLINE if fresh else OFFLINE, at, beat)
 
 
@@ -206,8 +223,10 @@ def statuses(gateways: Iterable[Gateway | str]) -> list[GatewayStatus]:
     gateways = list(gateways)
     names = [g.name if isinstance(g, Gateway) else g for g in gateways]
     beats = read_beats(names)
+    with _beats_lock:
+        read_at = {n: _beats[n][0] if n in _beats else time.monotonic() for n in names}
     return [
-        _status(name, *beats[name], gateway.last_beat if isinstance(gateway, Gateway) else None)
+        _status(name, *beats[name], gateway.last_beat if isinstance(gateway, Gateway) else None, read_at[name])
         for name, gateway in zip(names, gateways, strict=True)
     ]
 

@@ -15,6 +15,10 @@ Every gateway has a name (``local`` on one machine) and its own Redis keys, all 
 ``beat``      string  the gateway's heartbeat (JSON, see ``beat``), rewritten every few seconds
 ``config``    string  written by the site: the robots this gateway watches (JSON, ``config``)
 ``lease``     string  held by the running instance, so two processes never act as one gateway
+``claim:ID``  string  who decides a command's fate: the gateway SET NXes its instance before it
+                      carries the command out; a site that stopped waiting SET NXes ABANDONED.
+                      Whoever is first decides, so the site can tell the user plainly whether
+                      the command was carried out (see ``not_carried_out``)
 
 Live updates to browsers go straight from the gateway to Channels groups (the site's
 consumers turn ``node.state`` into ``node_state``): ``node.state``, ``node.parameters`` and
@@ -23,6 +27,7 @@ they are stored, so that they carry their database ids.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import re
 import uuid
@@ -37,6 +42,9 @@ INGEST_GROUP = "ingest"
 # Bounds. Commands queued per gateway, and how long an unread reply lives.
 COMMAND_QUEUE_LIMIT = 1000
 REPLY_TTL_S = 60
+# A command's claim outlives the site's longest wait for it (3 x 25 s + grace) with room to spare.
+CLAIM_TTL_S = 180
+ABANDONED = "abandoned"  # the claim a site that stopped waiting leaves: the command is never carried out
 # Facts kept in Redis for the ingest process (approximate trimming, ``XADD MAXLEN ~``): at a
 # few hundred bytes each, tens of MB at most; hours of state changes of a large cell.
 FACTS_MAXLEN = 100_000
@@ -107,6 +115,16 @@ def lease_key(prefix: str, gateway: str) -> str:
     return gateway_key(prefix, gateway, "lease")
 
 
+def claim_key(prefix: str, gateway: str, request_id: str) -> str:
+    return gateway_key(prefix, gateway, f"claim:{request_id}")
+
+
+def client_name(gateway: str, instance: str) -> str:
+    """The name a gateway instance gives its Redis connections (CLIENT SETNAME), so that the
+    site sees at once when its process has ended: its connections close with it."""
+    return f"lcm-gw:{gateway}:{instance}"
+
+
 def channel_layer_key_patterns(prefix: str) -> list[str]:
     """Keys channels-redis touches when a gateway sends to a group (group sets, and the
     browsers' channel queues they list)."""
@@ -167,3 +185,46 @@ def node_payload(
         "gone_reason": "" if alive else gone_reason,  # "unreachable": its process stopped answering
         "last_seen": last_seen,
     }
+
+
+def not_carried_out(gateway: str, command: dict, reason: str, instance: str, outcome: str = "rejected") -> list[dict]:
+    """The audit facts of a command that was not (or not knowingly) carried out: a transition
+    record for ``change_state``, one parameter record per name for ``set_parameters``, none for
+    what is not audited. Their ids come from the request id, so the site and the gateway may
+    both report the same command and it is recorded once. The record carries the time the user
+    asked (the command's ``requested_at``) and no completion time, hence no duration: nothing
+    ran, or what ran is not known."""
+    request_id = str(command.get("request_id") or "")
+    kind = command.get("command")
+    asked = str(command.get("requested_at") or "")
+    if not request_id or not asked or kind not in (CHANGE_STATE, SET_PARAMETERS):
+        return []
+    common = {"gateway": gateway, "instance": instance, "seq": 0, "at": asked, "robot": command.get("robot"),
+              "node": command.get("node"), "source": str(command.get("source") or "api"),
+              "user_id": command.get("user_id")}
+    if kind == CHANGE_STATE:
+        requested = command.get("transition")
+        return [{**common, "id": request_id, "type": TRANSITION, "transition_id": _transition_id(requested),
+                 "transition_label": _transition_label(requested), "start_state": None, "result_state": None,
+                 "outcome": outcome, "requested_at": asked, "completed_at": None, "error": reason,
+                 "run_id": str(command.get("run_id") or "")}]
+    values = command.get("values") if isinstance(command.get("values"), dict) else {}
+    return [{**common, "id": hashlib.sha256(f"{request_id}\0{name}".encode()).hexdigest()[:32], "type": PARAMETER,
+             "name": str(name), "old": None, "new": finite(value), "outcome": "rejected", "reason": reason}
+            for name, value in values.items()]
+
+
+def _transition_id(requested: Any) -> int | None:
+    from ros_gateway.shared import state_machine as sm
+
+    text = str(requested).strip()
+    if text.isdigit() and int(text) in sm.TRANSITIONS_BY_ID:
+        return int(text)
+    return None
+
+
+def _transition_label(requested: Any) -> str:
+    from ros_gateway.shared import state_machine as sm
+
+    transition_id = _transition_id(requested)
+    return sm.TRANSITIONS_BY_ID[transition_id].label if transition_id is not None else str(requested)
