@@ -14,7 +14,7 @@ from channels.layers import get_channel_layer
 from django.test import Client
 
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.fleet import gateways
+from lifecycle_site.fleet import gateways, redis_users
 from lifecycle_site.fleet.management.commands.ingest import Ingest
 from lifecycle_site.fleet.models import Gateway, LogRecord, ManagedNode, Robot
 from ros_gateway.shared import protocol
@@ -147,7 +147,7 @@ def test_heartbeats_configs_and_redis_users_are_kept(cell):
               outbox={"facts": 0, "log_batches": 0, "facts_dropped": 5, "logs_dropped": 0})
     ManagedNode.objects.create(robot=robot, name="/lidar", order=1, desired_state="active")
     row = Gateway.objects.get(name="cell-i")
-    row.redis_password_sha256 = gateways.password_sha256("s3cret-for-the-test")
+    row.redis_password_sha256 = redis_users.password_sha256("s3cret-for-the-test")
     row.save()
     part.redis.execute_command("ACL", "DELUSER", "gw-cell-i")
     part.emit(*[part.fact(protocol.NODE_SEEN, robot=robot.name, node="/camera") for _ in range(2)])
@@ -161,7 +161,7 @@ def test_heartbeats_configs_and_redis_users_are_kept(cell):
     assert config["gateway"] == "cell-i" and config["version"]
     assert config["robots"][0]["name"] == "ingest-agv"
     assert config["robots"][0]["nodes"]["/lidar"] == {"order": 1, "desired_state": "active"}
-    assert gateways.user_is_current(row, part.redis)
+    assert redis_users.user_is_current(row, part.redis)
     part.redis.execute_command("ACL", "DELUSER", "gw-cell-i")
 
 

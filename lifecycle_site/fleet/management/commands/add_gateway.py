@@ -16,7 +16,7 @@ import redis
 from django.conf import settings
 from django.core.management.base import BaseCommand, CommandError
 
-from lifecycle_site.fleet import gateways
+from lifecycle_site.fleet import gateways, redis_users
 from lifecycle_site.fleet.cli_output import clean_or_fail
 from lifecycle_site.fleet.models import Gateway
 
@@ -60,7 +60,7 @@ class Command(BaseCommand):
             gateway.description = description
         clean_or_fail(gateway)
         password = secrets.token_urlsafe(32)
-        gateway.redis_password_sha256 = gateways.password_sha256(password)
+        gateway.redis_password_sha256 = redis_users.password_sha256(password)
         url = gateway_url(redis_url or settings.REDIS_URL, gateway.redis_user, password)
         lines = [
             f"LIFECYCLE_GATEWAY_NAME={gateway.name}",
@@ -74,8 +74,8 @@ class Command(BaseCommand):
                 raise CommandError(f"Cannot write {env_file}: {exc.strerror}; nothing was changed.") from None
         gateway.save()
         try:
-            gateways.apply_user(gateway)
-            gateways.disconnect_user(gateway.name)  # connections made with an old password
+            redis_users.apply_user(gateway)
+            redis_users.disconnect_user(gateway.name)  # connections made with an old password
         except redis.RedisError as exc:
             self.stderr.write(self.style.WARNING(
                 f"Redis at {gateways.safe_url(settings.REDIS_URL)} did not take the user {gateway.redis_user} "

@@ -28,6 +28,7 @@ from django.core.management.base import BaseCommand
 from django.db import DatabaseError, InterfaceError, OperationalError, connection, transaction
 
 from lifecycle_site.fleet import gateways as gw
+from lifecycle_site.fleet import redis_users
 from lifecycle_site.fleet.fact_context import FactRejected, parse_time
 from lifecycle_site.fleet.facts import apply_facts
 from lifecycle_site.fleet.live_updates import push, record_messages
@@ -381,8 +382,8 @@ class Ingest:
     def keep_users(self) -> None:
         """Re-create gateways' Redis users that Redis lost (a restart without persistence)."""
         for row in Gateway.objects.exclude(redis_password_sha256=""):
-            if not gw.user_is_current(row, self.redis):
-                gw.apply_user(row, self.redis)
+            if not redis_users.user_is_current(row, self.redis):
+                redis_users.apply_user(row, self.redis)
                 log.info("re-created the Redis user %s of gateway %s", row.redis_user, row.name)
 
 
