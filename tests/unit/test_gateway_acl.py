@@ -146,3 +146,16 @@ def test_a_gateway_user_can_send_to_channels_groups(site, debian_redis, tmp_path
             await site_layer.close_pools()
 
     assert asyncio.run(scenario()) == {"type": "node.state", "node": {"id": "agv-1.lidar"}}
+
+
+def test_deleting_a_gateway_drops_its_redis_user_and_closes_its_connections(
+    site, tmp_path, django_capture_on_commit_callbacks
+):
+    env = add_gateway("cell-gone", tmp_path / "cell-gone.env")
+    connected = redis.Redis.from_url(env["REDIS_URL"])
+    assert connected.ping()
+    with django_capture_on_commit_callbacks(execute=True):
+        Gateway.objects.get(name="cell-gone").delete()
+    assert not site.acl_getuser("gw-cell-gone")
+    with pytest.raises(redis.ConnectionError):
+        connected.ping()
