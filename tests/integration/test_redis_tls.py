@@ -13,7 +13,7 @@ import pytest
 from django.core.management import call_command
 
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.fleet.models import ManagedNode
+from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
 from tests import stack
 from tests.conftest import make_user
 from tests.integration.conftest import register, wait_node
@@ -104,6 +104,9 @@ def test_a_transition_through_a_tls_only_redis(tls_redis, live_db, tmp_path):
     finally:
         for process in reversed(processes):
             process.stop()
+        with stack.settings_redis(tls_redis):  # later tests' pages must not show this gateway offline
+            Robot.objects.filter(name="tls-agv").delete()
+            Gateway.objects.filter(name="cell-tls").delete()
 
 
 def _answers(port: int) -> bool:
