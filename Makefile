@@ -37,7 +37,7 @@ test-integration: setup
 # Real Docker engine: builds the images offline, runs the Industrial Edge compose file behind
 # an nginx that serves it under a sub-path, as the device does (see docker/README.md).
 test-deploy: system-packages setup
-	$(BIN)/python -m pytest tests/deploy $(PYTEST_ARGS)
+	$(BIN)/python -m pytest tests/deploy --timeout=2700 $(PYTEST_ARGS)  # building the images may take long on a fresh machine
 
 # Container images (offline, from a wheelhouse) and the Industrial Edge app package.
 images:
