@@ -32,6 +32,13 @@ PASSWORD = "a-test-password-123"
 ROBOT = "br-agv"
 
 
+def submit_login(page, username: str, password: str = PASSWORD) -> None:
+    """Fill in and send the site's login form, open on ``page``."""
+    page.fill("#id_username", username)
+    page.fill("#id_password", password)
+    page.click("button[type=submit]")
+
+
 def pytest_collection_modifyitems(items):
     for item in items:
         if "/browser/" in str(item.fspath):

@@ -10,7 +10,7 @@ from django.contrib.auth import get_user_model
 from playwright.sync_api import Page, expect
 
 from lifecycle_site.fleet.models import Robot
-from tests.browser.conftest import ARTIFACTS, PASSWORD, ROBOT
+from tests.browser.conftest import ARTIFACTS, PASSWORD, ROBOT, submit_login
 
 WAIT_MS = 20_000
 # Reports every violation to the test, whatever page the browser is on (init scripts and
@@ -57,9 +57,7 @@ def assert_clean(page: Page) -> None:
 def test_the_dashboard_works_under_the_policy(page: Page, site, robot, operator):
     key = f"{ROBOT}.lidar_driver"
     visit(page, site + "login/")
-    page.fill("#id_username", "bruno-operator")
-    page.fill("#id_password", PASSWORD)
-    page.click("button[type=submit]")
+    submit_login(page, "bruno-operator")
     expect(page.locator("h2", has_text=ROBOT)).to_be_visible(timeout=WAIT_MS)
 
     visit(page, site)

@@ -17,7 +17,7 @@ from lifecycle_site.dashboard.consumers import TRY_AGAIN_LATER
 from lifecycle_site.fleet import gateways
 from tests import stack
 from tests.benchmarks.web import Http, ws_connect
-from tests.browser.conftest import PASSWORD, ROBOT
+from tests.browser.conftest import PASSWORD, ROBOT, submit_login
 from tests.integration.conftest import node_state, transition
 
 SOCKETS = 50
@@ -70,9 +70,7 @@ def test_an_open_page_says_it_lost_redis_and_is_live_again_by_itself(browser, si
     page = browser.new_page(viewport={"width": 1024, "height": 768})
     try:
         page.goto(site + "login/")
-        page.fill("#id_username", operator.username)
-        page.fill("#id_password", PASSWORD)
-        page.click("button[type=submit]")
+        submit_login(page, operator.username)
         expect(page.locator("h2", has_text=ROBOT)).to_be_visible(timeout=20_000)
         page.wait_for_timeout(1000)  # the live socket is open
         banner = page.locator("#ws-banner")

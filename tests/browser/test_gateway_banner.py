@@ -4,15 +4,13 @@ from __future__ import annotations
 from playwright.sync_api import expect
 
 from tests import stack
-from tests.browser.conftest import ARTIFACTS, PASSWORD, ROBOT
+from tests.browser.conftest import ARTIFACTS, ROBOT, submit_login
 
 
 def test_gateway_offline_banner_comes_and_goes(browser, site, robot, operator, gateway):
     page = browser.new_page(viewport={"width": 1024, "height": 768})
     page.goto(site + "login/")
-    page.fill("#id_username", "bruno-operator")
-    page.fill("#id_password", PASSWORD)
-    page.click("button[type=submit]")
+    submit_login(page, "bruno-operator")
     banner = page.locator("#gateway-banner")
     expect(page.locator("h2", has_text=ROBOT)).to_be_visible(timeout=20_000)
     expect(banner).to_be_hidden()

@@ -6,7 +6,7 @@ import re
 from playwright.sync_api import expect
 
 from lifecycle_site.audit.models import ParameterRecord
-from tests.browser.conftest import ARTIFACTS, PASSWORD, ROBOT
+from tests.browser.conftest import ARTIFACTS, ROBOT, submit_login
 
 WAIT_MS = 30_000
 
@@ -16,9 +16,7 @@ def test_edit_a_parameter_and_bring_up_the_robot(browser, site, robot, operator)
     errors: list[str] = []
     page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
     page.goto(site + "login/")
-    page.fill("#id_username", "bruno-operator")
-    page.fill("#id_password", PASSWORD)
-    page.click("button[type=submit]")
+    submit_login(page, "bruno-operator")
     expect(page.locator("h2", has_text=ROBOT)).to_be_visible(timeout=WAIT_MS)
 
     # Parameters: the node's values with their constraints; a change is checked, sent and shown.

@@ -7,7 +7,7 @@ import pytest
 from playwright.sync_api import Page, expect
 
 from lifecycle_site.audit.models import TransitionRecord
-from tests.browser.conftest import ARTIFACTS, PASSWORD, ROBOT
+from tests.browser.conftest import ARTIFACTS, ROBOT, submit_login
 
 WAIT_MS = 20_000
 
@@ -35,9 +35,7 @@ def page(browser):
 def log_in(page: Page, base: str) -> None:
     page.goto(base)
     expect(page).to_have_url(re.compile(r"/login/"))
-    page.fill("#id_username", "bruno-operator")
-    page.fill("#id_password", PASSWORD)
-    page.click("button[type=submit]")
+    submit_login(page, "bruno-operator")
     expect(page.locator("h2", has_text=ROBOT)).to_be_visible(timeout=WAIT_MS)
 
 

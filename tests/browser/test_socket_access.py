@@ -18,7 +18,7 @@ from websockets.exceptions import ConnectionClosed
 
 from lifecycle_site.audit.models import AccessDenial
 from tests.benchmarks.web import Http, ws_connect
-from tests.browser.conftest import PASSWORD, ROBOT
+from tests.browser.conftest import PASSWORD, ROBOT, submit_login
 from tests.conftest import make_user
 
 BOUND_S = 5.0  # consumers re-check access every 3 s
@@ -93,9 +93,7 @@ def test_an_open_page_follows_when_its_users_access_ends(browser, site, robot):
     page = browser.new_page()
     try:
         page.goto(site + "login/")
-        page.fill("#id_username", "sock-page")
-        page.fill("#id_password", PASSWORD)
-        page.click("button[type=submit]")
+        submit_login(page, "sock-page")
         expect(page.locator("h2", has_text=ROBOT)).to_be_visible(timeout=20_000)
         page.wait_for_timeout(1000)  # the live socket is open
         user.groups.clear()
@@ -156,9 +154,7 @@ def test_a_page_of_another_origin_cannot_open_the_socket_with_the_users_cookie(b
     page = context.new_page()
     try:
         page.goto(site + "login/")
-        page.fill("#id_username", "sock-victim")
-        page.fill("#id_password", PASSWORD)
-        page.click("button[type=submit]")
+        submit_login(page, "sock-victim")
         expect(page.locator("h2", has_text=ROBOT)).to_be_visible(timeout=20_000)
         before = AccessDenial.objects.filter(code="socket_origin").count()
         with page_server(ATTACK_PAGE % {"port": urlparse(site).port}) as attacker:
