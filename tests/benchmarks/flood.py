@@ -19,7 +19,7 @@ from tests.benchmarks.probe import LineProcess
 from tests.benchmarks.profiling import profiled
 from tests.benchmarks.report import ScenarioResult, Series
 from tests.benchmarks.system import loadavg, rss_mb
-from tests.benchmarks.web import Http, ws_connect
+from tests.benchmarks.web import Http, received, ws_connect
 
 NAME = "flood"
 TITLE = "4. Log flood: one node logging as fast as it can"
@@ -44,15 +44,11 @@ class Relayed:
 async def count_records(web: Http, key: str, relayed: Relayed, ready: asyncio.Event, stop: asyncio.Event) -> None:
     async with ws_connect(web, f"/ws/logs/node/{key}/") as ws:
         ready.set()
-        while not stop.is_set():
-            try:
-                message = await asyncio.wait_for(ws.recv(), 0.25)
-            except asyncio.TimeoutError:
-                continue
+        async for arrived, message in received(ws, stop):
             records = json.loads(message).get("records", [])
             if records:
                 relayed.records += len(records)
-                relayed.last = time.monotonic()
+                relayed.last = arrived
 
 
 # (monotonic time, gateway RSS MB, site RSS MB, ingest RSS MB, dropped so far, Redis backlog in batches)

@@ -12,16 +12,16 @@ gateway and the ingest process before and after.
 from __future__ import annotations
 
 import asyncio
-import re
 import threading
 import time
 from dataclasses import dataclass, field
 
 from tests.benchmarks.harness import BenchContext, Stack
 from tests.benchmarks.profiling import profiled
+from tests.benchmarks.push import NODE_BADGE
 from tests.benchmarks.report import ScenarioResult, Series, percentile
 from tests.benchmarks.system import loadavg, tree_cpu_seconds, tree_rss_mb
-from tests.benchmarks.web import Http, ws_connect
+from tests.benchmarks.web import Http, received, ws_connect
 
 NAME = "load"
 TITLE = "7. Load: 50 WebSocket clients + 100 API requests/s (10 transitions/s) for 60 s"
@@ -36,7 +36,6 @@ TRANSITIONS_PER_S = 10
 # Threads sharing the read load, each its own keep-alive connection, so the offered rate holds
 # while answers take up to READERS / read rate (~0.2 s); beyond, the lag figure says so.
 READERS = 18
-NODE_BADGE = re.compile(r'class="badge big state-([a-z]+)"')
 API_P99_TARGET_MS = 100.0
 
 
@@ -135,12 +134,7 @@ async def watch(stack: Stack, path: str, key: str | None, sockets: Sockets, read
             sockets.opened += 1
             if sockets.opened == total:
                 ready.set()
-            while not stop.is_set():
-                try:
-                    message = await asyncio.wait_for(ws.recv(), 0.25)
-                except asyncio.TimeoutError:
-                    continue
-                arrived = time.monotonic()
+            async for arrived, message in received(ws, stop):
                 sockets.messages += 1
                 if key is not None and isinstance(message, str) and 'id="node-state"' in message:
                     match = NODE_BADGE.search(message)

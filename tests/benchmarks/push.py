@@ -22,7 +22,7 @@ from tests.benchmarks.probe import RosProbe
 from tests.benchmarks.profiling import profiled
 from tests.benchmarks.report import ScenarioResult, Series
 from tests.benchmarks.system import loadavg
-from tests.benchmarks.web import Http, ws_connect
+from tests.benchmarks.web import Http, received, ws_connect
 
 NAME = "push"
 TITLE = "2. Push latency: transition_event published -> WebSocket message at the browser"
@@ -44,12 +44,7 @@ async def listen(web: Http, path: str, badge: re.Pattern, must_contain: str, sin
     """Stamp each state update (and, with ``audit``, each new audit row: its result state)."""
     async with ws_connect(web, path) as ws:
         ready.set()
-        while not stop.is_set():
-            try:
-                message = await asyncio.wait_for(ws.recv(), 0.25)
-            except asyncio.TimeoutError:
-                continue
-            arrived = time.monotonic()
+        async for arrived, message in received(ws, stop):
             if not isinstance(message, str):
                 continue
             if must_contain in message:

@@ -2,16 +2,18 @@
 from the login form) and WebSocket connections carrying that session."""
 from __future__ import annotations
 
+import asyncio
 import http.client
 import json
 import re
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, AsyncIterator
 from urllib.parse import urlencode
 
 from websockets.asyncio.client import ClientConnection, connect
 
+RECEIVE_POLL_S = 0.25
 CSRF_FIELD = re.compile(r'name="csrfmiddlewaretoken" value="([^"]+)"')
 
 
@@ -110,3 +112,14 @@ def ws_connect(web: Http, path: str) -> connect:
 
 
 __all__ = ["ClientConnection", "Http", "Response", "ws_connect"]
+
+
+async def received(ws: ClientConnection, stop: asyncio.Event) -> AsyncIterator[tuple[float, str | bytes]]:
+    """Each message of ``ws`` with its arrival (monotonic clock) until ``stop`` is set, which is
+    looked at every RECEIVE_POLL_S while the socket is quiet."""
+    while not stop.is_set():
+        try:
+            message = await asyncio.wait_for(ws.recv(), RECEIVE_POLL_S)
+        except asyncio.TimeoutError:
+            continue
+        yield time.monotonic(), message
