@@ -22,6 +22,7 @@ from lifecycle_site.api.auth import api_view
 from lifecycle_site.fleet import gateways
 from lifecycle_site.fleet.models import Gateway
 from lifecycle_site.monitoring.metrics import FleetCollector
+from ros_gateway.shared import protocol
 
 READY_TIMEOUT_S = 2.0  # each dependency's answer, so a probe never hangs on a frozen Redis
 
@@ -47,7 +48,7 @@ def _redis() -> tuple[str | None, bool]:
                                   socket_timeout=READY_TIMEOUT_S)
     try:
         client.ping()
-        return None, bool(client.exists(f"{gateways.channel_prefix()}:site:ingest:lease"))
+        return None, bool(client.exists(protocol.ingest_lease_key(gateways.channel_prefix())))
     except redis.RedisError as exc:
         return f"{type(exc).__name__}: {exc}", False
     finally:

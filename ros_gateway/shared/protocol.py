@@ -115,6 +115,11 @@ def lease_key(prefix: str, gateway: str) -> str:
     return gateway_key(prefix, gateway, "lease")
 
 
+def ingest_lease_key(prefix: str) -> str:
+    """Held by the one ingest process that reads the gateways' streams (the site's side)."""
+    return f"{prefix}:site:ingest:lease"
+
+
 def claim_key(prefix: str, gateway: str, request_id: str) -> str:
     return gateway_key(prefix, gateway, f"claim:{request_id}")
 

@@ -115,7 +115,7 @@ def test_a_gateway_user_can_do_its_job_and_nothing_else(site, tmp_path):
         lambda: mine.xadd(protocol.facts_stream(prefix, "cell-y"), {"f": "{}"}),
         lambda: mine.xreadgroup(protocol.INGEST_GROUP, "site", {protocol.facts_stream(prefix, "cell-y"): ">"}),
         lambda: mine.xrange(protocol.facts_stream(prefix, "cell-x")),
-        lambda: mine.set(f"{prefix}:site:ingest:lease", "me"),
+        lambda: mine.set(protocol.ingest_lease_key(prefix), "me"),
         lambda: mine.eval("return redis.call('lpush', KEYS[1], 'x')", 1, other_queue),
         lambda: mine.flushall(),
         lambda: mine.config_get("*"),

@@ -26,7 +26,7 @@ from tests.gateway_part import GatewayPart, clear_streams, iso
 
 @pytest.fixture
 def cell(transactional_db, redis_server) -> tuple[GatewayPart, Robot]:
-    stack.redis_client().delete(f"{gateways.channel_prefix()}:site:ingest:lease")
+    stack.redis_client().delete(protocol.ingest_lease_key(gateways.channel_prefix()))
     clear_streams("cell-i")
     robot = Robot.objects.create(name="ingest-agv", domain_id=42, gateway=Gateway.objects.create(name="cell-i"))
     return GatewayPart("cell-i"), robot

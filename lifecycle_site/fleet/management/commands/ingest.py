@@ -107,7 +107,7 @@ class Ingest:
         self.redis = client or gw.redis_client()
         self.prefix = gw.channel_prefix()
         self.me = f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:8]}"
-        self.lease_key = f"{self.prefix}:site:ingest:lease"
+        self.lease_key = protocol.ingest_lease_key(self.prefix)
         self.stopping = False
         self.streams: dict[str, tuple[str, str]] = {}  # stream key -> (gateway, "facts" | "logs")
         self.ready: set[str] = set()  # streams whose consumer group exists
