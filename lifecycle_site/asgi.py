@@ -1,10 +1,11 @@
 """ASGI entry point: Django views over HTTP, Channels consumers over WebSocket."""
 import os
 
-from django.core.asgi import get_asgi_application
-
 os.environ.setdefault("DJANGO_SETTINGS_MODULE", "lifecycle_site.settings")
-django_asgi_app = get_asgi_application()
+
+from lifecycle_site.http_handler import http_application  # noqa: E402  (sets Django up)
+
+django_asgi_app = http_application()
 
 from channels.auth import AuthMiddlewareStack  # noqa: E402  (needs Django set up first)
 from channels.routing import ProtocolTypeRouter, URLRouter  # noqa: E402
