@@ -64,6 +64,7 @@ class Result:
     job: Job
     outcome: str  # delivered | retrying | failed
     at: datetime
+    attempt: int  # the job's own count goes on with its retries
     status_code: int | None = None
     error: str = ""
     duration_ms: float | None = None
@@ -181,13 +182,13 @@ class Dispatcher:
         took = round((time.monotonic() - began) * 1000, 1)
         at = datetime.now(timezone.utc)
         if not error:
-            return Result(job, "delivered", at, code, "", took)
+            return Result(job, "delivered", at, job.attempt, code, "", took)
         if retry and job.attempt < cfg["ATTEMPTS"]:
             delay = backoff(job.attempt)
             with self._cond:
                 heapq.heappush(self._heap, (time.monotonic() + delay, next(self._order), job))
                 self._cond.notify()
-            return Result(job, "retrying", at, code, f"{error}; retry in {delay:g} s", took)
+            return Result(job, "retrying", at, job.attempt, code, f"{error}; retry in {delay:g} s", took)
         log.warning("alert %s (%s) to %s: gave up after %d attempts: %s", job.alert_id, job.event,
                     job.receiver_name, job.attempt, error)
-        return Result(job, "failed", at, code, error, took)
+        return Result(job, "failed", at, job.attempt, code, error, took)

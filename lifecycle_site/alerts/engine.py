@@ -153,7 +153,7 @@ class Evaluator:
             rows.append(Delivery(
                 alert_id=job.alert_id if job.alert_id in known else None,
                 receiver_id=job.receiver_id if job.receiver_id in receivers else None,
-                receiver_name=job.receiver_name, event=job.event, attempt=job.attempt, outcome=result.outcome,
+                receiver_name=job.receiver_name, event=job.event, attempt=result.attempt, outcome=result.outcome,
                 status_code=result.status_code, error=result.error, duration_ms=result.duration_ms, at=result.at,
             ))
             counter = {"delivered": "delivered", "failed": "failed"}.get(result.outcome)
