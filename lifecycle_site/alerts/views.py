@@ -30,8 +30,7 @@ def alert_list(request: HttpRequest) -> HttpResponse:
         status = "active"
     alerts = list(lifecycle.listed(status)[:PAGE_LIMIT])
     context = {"alerts": alerts, "status": status, "statuses": STATUSES, "limit": PAGE_LIMIT,
-               "can_acknowledge": request.user.has_perm(lifecycle.ACKNOWLEDGE_PERMISSION),
-               "counts": lifecycle.counts()}
+               "can_acknowledge": request.user.has_perm(lifecycle.ACKNOWLEDGE_PERMISSION)}
     template = "alerts/_rows.html" if request.htmx and request.htmx.target == "alert-rows" else "alerts/list.html"
     return render(request, template, context)
 
@@ -55,7 +54,9 @@ def acknowledge(request: HttpRequest, alert_id: int) -> HttpResponse:
     if not request.htmx:
         return redirect("alerts:list")
     context = {"alert": alert, "can_acknowledge": True, "error": error}
-    return render(request, "alerts/_row.html", context)
+    response = render(request, "alerts/_row.html", context)
+    response["HX-Trigger"] = "alerts-changed"  # the header's count follows at once
+    return response
 
 
 def count(request: HttpRequest) -> HttpResponse:
