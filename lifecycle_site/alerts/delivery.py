@@ -157,6 +157,8 @@ class Dispatcher:
         deadline = time.monotonic() + timeout
         for thread in self._threads:
             thread.join(max(deadline - time.monotonic(), 0.0))
+        if left:
+            log.warning("stopping with %d alert deliveries not sent (queued or waiting for a retry)", left)
         return left
 
     def _next(self) -> Job | None:
