@@ -118,7 +118,7 @@ class Evaluator:
         if not Alert.objects.filter(pk=alert.pk, status__in=Alert.ACTIVE).update(status=Alert.Status.RESOLVED,
                                                                                    resolved_at=now):
             return
-        alert.status, alert.resolved_at = Alert.Status.RESOLVED, now
+        alert.refresh_from_db()  # who acknowledged it meanwhile goes with the notification
         log.info("alert %s resolved: %s: %s%s", alert.id, alert.rule_name, alert.subject, f" ({why})" if why else "")
         if rule is not None:
             self.notify(alert, rule, "resolved")

@@ -87,7 +87,8 @@ class Rule(models.Model):
     )
     for_seconds = models.FloatField(
         "for (seconds)", default=0.0, validators=[MinValueValidator(0.0)],
-        help_text="Fire once the condition has held this long; 0: at once.",
+        help_text="Fire once the condition has held this long; 0: at once. For 'not in its desired state' "
+        "allow for a bring-up (e.g. 30): a node is not there while it is being configured and activated.",
     )
     keep_firing_seconds = models.FloatField(
         "keep firing for (seconds)", default=0.0, validators=[MinValueValidator(0.0)],

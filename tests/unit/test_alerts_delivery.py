@@ -14,11 +14,13 @@ import pytest
 from django.core import mail
 from django.utils import timezone
 
+from lifecycle_site.alerts import lifecycle
 from lifecycle_site.alerts.delivery import SIGNATURE_HEADER, Dispatcher
 from lifecycle_site.alerts.engine import Evaluator, make_job, prune
 from lifecycle_site.alerts.models import Alert, Delivery, Receiver, Rule
 from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
 from tests import stack
+from tests.conftest import make_user
 
 SECRET = "s3cret-for-tests-only"
 
@@ -118,10 +120,13 @@ def test_firing_and_resolved_reach_a_real_webhook_signed_and_logged(finalized_no
         assert first["headers"]["X-Lifecycle-Event"] == "firing"
         assert first["headers"]["X-Lifecycle-Delivery"] == body["delivery"]
         assert signature_valid(first) and not signature_valid(first, "another-secret")
+        lifecycle.acknowledge(body["alert"]["id"], make_user("olga-operator", "operator"))
         ManagedNode.objects.filter(pk=finalized_node.pk).update(state_label="unconfigured")
         evaluator.evaluate()
         receiver.wait(2)
         assert receiver.events() == [("firing", "dl-agv.planner"), ("resolved", "dl-agv.planner")]
+        resolved = json.loads(receiver.requests[1]["body"])["alert"]
+        assert (resolved["status"], resolved["acknowledged_by"]) == ("resolved", "olga-operator")
         assert all(signature_valid(r) for r in receiver.requests)
         drain(evaluator, lambda: Delivery.objects.count() == 2)
     finally:
