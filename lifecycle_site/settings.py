@@ -107,6 +107,7 @@ INSTALLED_APPS = [
     "lifecycle_site.audit",
     "lifecycle_site.api",
     "lifecycle_site.dashboard",
+    "lifecycle_site.alerts",
     "ros_gateway",
 ]
 
@@ -296,3 +297,27 @@ def _networks(variable: str) -> list[ipaddress.IPv4Network | ipaddress.IPv6Netwo
 
 
 LIFECYCLE_METRICS_ALLOW = _networks("LIFECYCLE_METRICS_ALLOW")
+
+# Alerts (docs/alerts.md): evaluated by the ingest process, sent by its delivery threads.
+ALERTS = {
+    # Link to the site in notifications (e.g. https://edge.plant/lifecycle); empty: no link.
+    "SITE_URL": os.environ.get("LIFECYCLE_SITE_URL", "").rstrip("/"),
+    "QUEUE_SIZE": int(os.environ.get("LIFECYCLE_ALERT_QUEUE", 200)),  # deliveries waiting; more are dropped
+    "WORKERS": int(os.environ.get("LIFECYCLE_ALERT_WORKERS", 2)),
+    "TIMEOUT_S": env_float("LIFECYCLE_ALERT_TIMEOUT", 5.0),  # per webhook request or SMTP session
+    "ATTEMPTS": int(os.environ.get("LIFECYCLE_ALERT_ATTEMPTS", 5)),
+    "RETRY_BASE_S": env_float("LIFECYCLE_ALERT_RETRY_BASE", 2.0),  # then 2x, 4x ... up to the cap
+    "RETRY_CAP_S": env_float("LIFECYCLE_ALERT_RETRY_CAP", 60.0),
+    "DELIVERY_LOG_KEEP": int(os.environ.get("LIFECYCLE_ALERT_DELIVERY_LOG", 2000)),
+    "RESOLVED_KEEP_DAYS": env_float("LIFECYCLE_ALERT_KEEP_DAYS", 90.0),
+}
+# E-mail for alerts (Django's mail): an SMTP server of the plant; nothing is sent without receivers.
+EMAIL_BACKEND = os.environ.get("LIFECYCLE_EMAIL_BACKEND", "django.core.mail.backends.smtp.EmailBackend")
+EMAIL_HOST = os.environ.get("LIFECYCLE_EMAIL_HOST", "localhost")
+EMAIL_PORT = int(os.environ.get("LIFECYCLE_EMAIL_PORT", 25))
+EMAIL_HOST_USER = os.environ.get("LIFECYCLE_EMAIL_USER", "")
+EMAIL_HOST_PASSWORD = os.environ.get("LIFECYCLE_EMAIL_PASSWORD", "")
+EMAIL_USE_TLS = env_bool("LIFECYCLE_EMAIL_STARTTLS", False)
+EMAIL_USE_SSL = env_bool("LIFECYCLE_EMAIL_TLS", False)
+EMAIL_TIMEOUT = ALERTS["TIMEOUT_S"]
+DEFAULT_FROM_EMAIL = os.environ.get("LIFECYCLE_EMAIL_FROM", "lifecycle-manager@localhost")

@@ -15,6 +15,7 @@ urlpatterns = [
     path("readyz", monitoring.readyz, name="readyz"),
     path("metrics", monitoring.metrics, name="metrics"),
     path("api/v1/", include("lifecycle_site.api.urls")),
+    path("alerts/", include("lifecycle_site.alerts.urls")),
     path("", include("lifecycle_site.dashboard.urls")),
 ]
 

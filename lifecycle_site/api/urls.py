@@ -1,5 +1,6 @@
 from django.urls import path, re_path
 
+from lifecycle_site.alerts import api as alerts
 from lifecycle_site.api import operations, parameters, views
 from lifecycle_site.api.auth import not_found
 
@@ -19,5 +20,6 @@ urlpatterns = [
     path("nodes/<str:key>/desired-state", operations.desired_state, name="node-desired-state"),
     path("nodes/<str:key>/parameters", parameters.node_parameters, name="node-parameters"),
     path("nodes/<str:key>/parameters.yaml", parameters.parameters_yaml, name="node-parameters-yaml"),
+    *alerts.urlpatterns,
     re_path(r"^(?P<path>.*)$", not_found),
 ]

@@ -13,8 +13,9 @@ VIEW = [
     "fleet.view_logrecord",
     "audit.view_transitionrecord",
     "audit.view_parameterrecord",
+    "alerts.view_alert",
 ]
-OPERATE = VIEW + ["fleet.operate_node"]
+OPERATE = VIEW + ["fleet.operate_node", "alerts.acknowledge_alert"]
 ADMINISTER = OPERATE + [
     "fleet.add_robot",
     "fleet.change_robot",
@@ -28,6 +29,15 @@ ADMINISTER = OPERATE + [
     "api.view_apitoken",
     "api.delete_apitoken",
     "audit.view_accessdenial",
+    "alerts.view_rule",
+    "alerts.add_rule",
+    "alerts.change_rule",
+    "alerts.delete_rule",
+    "alerts.view_receiver",
+    "alerts.add_receiver",
+    "alerts.change_receiver",
+    "alerts.delete_receiver",
+    "alerts.view_delivery",
 ]
 ROLES: dict[str, list[str]] = {"viewer": VIEW, "operator": OPERATE, "admin": ADMINISTER}
 ADMIN_ROLE = "admin"

@@ -14,6 +14,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Histo
 from prometheus_client.registry import Collector
 from prometheus_client.utils import floatToGoString
 
+from lifecycle_site.alerts import metrics as alert_metrics
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.fleet import gateways
 from lifecycle_site.fleet.models import Gateway, GroupRun, ManagedNode
@@ -29,6 +30,7 @@ class FleetCollector(Collector):
         yield from self.gateways()
         yield from self.transitions()
         yield from self.runs()
+        yield from alert_metrics.families()
 
     @staticmethod
     def nodes() -> Iterator[Metric]:

@@ -27,6 +27,7 @@ from django.conf import settings
 from django.core.management.base import BaseCommand
 from django.db import DatabaseError, InterfaceError, OperationalError, connection, transaction
 
+from lifecycle_site.alerts.engine import Evaluator
 from lifecycle_site.fleet import gateways as gw
 from lifecycle_site.fleet import redis_users
 from lifecycle_site.fleet.fact_context import FactRejected, parse_time
@@ -116,6 +117,7 @@ class Ingest:
         self.due: dict[str, float] = {}
         self.last_complaint = 0.0
         self.applied = 0
+        self.alerts = Evaluator()  # alert rules, evaluated here: once per site (docs/alerts.md)
 
     # --- the loop --------------------------------------------------------------------------
 
@@ -143,12 +145,14 @@ class Ingest:
                 connection.close()
                 time.sleep(1.0)
         self.release_lease()
+        self.alerts.dispatcher.stop()
 
     def step(self, block_ms: int = BLOCK_MS) -> int:
         """Read and apply what is there (waiting up to ``block_ms``), then the periodic work."""
         if self.is_due("refresh", REFRESH_S):
             self.refresh()
         applied = self.read(block_ms)
+        self.alerts.tick()
         if self.is_due("beats", BEATS_S):
             self.copy_beats()
             self.publish_configs()
@@ -302,6 +306,7 @@ class Ingest:
                             "(the ingest process was behind or stopped)", row.name, lost)
             facts.append(fact)
         applied = apply_facts(row.name, facts)
+        self.alerts.observe(row.name, facts)
         row.facts_rejected += applied.rejected
         return record_messages(applied.created)
 

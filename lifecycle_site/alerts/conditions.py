@@ -1,0 +1,150 @@
+"""What each rule sees now: the nodes or gateways for which its condition holds, and since when.
+
+The database is the source of truth (what the ingest process stored: a node's state, whether
+it is alive, its desired state) plus each gateway's heartbeat. States a node passes through in
+milliseconds (errorprocessing) are caught from the facts themselves: ``from_facts``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from datetime import datetime
+
+from django.db.models import F
+
+from lifecycle_site.alerts.models import Rule
+from lifecycle_site.fleet import gateways
+from lifecycle_site.fleet.models import Gateway, ManagedNode
+from ros_gateway.shared import protocol
+from ros_gateway.shared import state_machine as sm
+
+GONE = "gone"  # an observation's state when a node.gone fact reported it
+
+
+@dataclass(frozen=True)
+class Condition:
+    """A rule's condition holding for one subject (a node's key or a gateway's name)."""
+
+    subject: str
+    since: datetime
+    summary: str
+    gateway: str = ""
+    robot: str = ""
+    node: str = ""
+
+
+@dataclass(frozen=True)
+class Observation:
+    """A node's state as one fact reported it, at the gateway's time."""
+
+    gateway: str
+    robot: str
+    node: str
+    state: str  # a state label, or GONE
+    at: datetime
+    reason: str = ""
+
+
+def _node_text(node: str, robot: str) -> str:
+    return f"Node {node} on robot {robot}"
+
+
+def _gone_text(node: str, robot: str, reason: str) -> str:
+    if reason == "unreachable":
+        return (f"{_node_text(node, robot)} stopped answering the gateway's probes: its process may hang, "
+                "or its host or network link may be down.")
+    return f"{_node_text(node, robot)} left the ROS graph: its process ended or was stopped."
+
+
+def node_conditions(rule: Rule, now: datetime) -> dict[str, Condition]:
+    nodes = ManagedNode.objects.filter(robot__enabled=True)
+    if rule.robot_id:
+        nodes = nodes.filter(robot_id=rule.robot_id)
+    if rule.gateway_id:
+        nodes = nodes.filter(robot__gateway_id=rule.gateway_id)
+    if rule.kind == Rule.Kind.STATE:
+        nodes = nodes.filter(alive=True, state_label=rule.state)
+    elif rule.kind == Rule.Kind.GONE:
+        nodes = nodes.filter(alive=False, first_seen__isnull=False)  # seen once, gone now
+    else:
+        nodes = nodes.filter(alive=True).exclude(desired_state="").exclude(state_label=F("desired_state"))
+    found = {}
+    for row in nodes.values("key", "name", "robot__name", "robot__gateway__name", "state_label", "desired_state",
+                            "state_changed", "last_seen", "gone_reason"):
+        if not rule.matches_node(row["name"]):
+            continue
+        node, robot = row["name"], row["robot__name"]
+        if rule.kind == Rule.Kind.STATE:
+            since, summary = row["state_changed"], f"{_node_text(node, robot)} is {rule.state}."
+        elif rule.kind == Rule.Kind.GONE:
+            since, summary = row["last_seen"], _gone_text(node, robot, row["gone_reason"])
+        else:
+            since = row["state_changed"]
+            summary = (f"{_node_text(node, robot)} is {row['state_label']}; its desired state is "
+                       f"{row['desired_state']}.")
+        found[row["key"]] = Condition(row["key"], since or now, summary, row["robot__gateway__name"], robot, node)
+    return found
+
+
+def gateway_conditions(rule: Rule, now: datetime) -> dict[str, Condition]:
+    rows = Gateway.objects.all()
+    if rule.gateway_id:
+        rows = rows.filter(pk=rule.gateway_id)
+    if rule.robot_id:
+        rows = rows.filter(robots=rule.robot_id)
+    rows = list(rows)
+    found = {}
+    for row, status in zip(rows, gateways.statuses(rows), strict=True):
+        if status.online or status.state == gateways.NEVER:  # one that never ran is not alerted
+            continue
+        summary = f"Gateway {row.name} is offline ({status.reason()}): its robots cannot be reached or operated."
+        found[row.name] = Condition(row.name, status.last_beat or now, summary, row.name)
+    return found
+
+
+def current(rule: Rule, now: datetime) -> dict[str, Condition]:
+    return node_conditions(rule, now) if rule.watches_nodes else gateway_conditions(rule, now)
+
+
+def from_facts(rule: Rule, observations: list[Observation]) -> dict[str, Condition]:
+    """Conditions that held, however briefly, in the facts just stored: only for rules that fire
+    at once (a rule with ``for_seconds`` needs the condition to last, which the database shows)."""
+    if rule.for_seconds or rule.kind not in (Rule.Kind.STATE, Rule.Kind.GONE):
+        return {}
+    wanted = rule.state if rule.kind == Rule.Kind.STATE else GONE
+    found = {}
+    for seen in observations:
+        if seen.state != wanted or not rule.matches_node(seen.node):
+            continue
+        if rule.robot_id and rule.robot.name != seen.robot:
+            continue
+        if rule.gateway_id and rule.gateway.name != seen.gateway:
+            continue
+        if wanted == GONE:
+            summary = _gone_text(seen.node, seen.robot, seen.reason)
+        else:
+            summary = f"{_node_text(seen.node, seen.robot)} entered {wanted}."
+        key = protocol.node_key(seen.robot, seen.node)
+        found.setdefault(key, Condition(key, seen.at, summary, seen.gateway, seen.robot, seen.node))
+    return found
+
+
+def observations(gateway: str, facts: list[dict]) -> list[Observation]:
+    """The node states and departures among a batch of facts (malformed ones are skipped:
+    fleet.facts has rejected and counted them)."""
+    from lifecycle_site.fleet.fact_context import FactRejected, parse_time
+
+    seen = []
+    for fact in facts:
+        if not isinstance(fact, dict) or fact.get("type") not in (protocol.NODE_STATE, protocol.NODE_GONE):
+            continue
+        try:
+            at = parse_time(fact.get("at"), "at")
+            if fact["type"] == protocol.NODE_STATE:
+                state = sm.state_label(int(fact["state_id"]))
+            else:
+                state = GONE
+            seen.append(Observation(gateway, str(fact["robot"]), str(fact["node"]), state, at,
+                                    str(fact.get("reason") or "")))
+        except (KeyError, TypeError, ValueError, FactRejected):
+            continue
+    return seen

@@ -1,0 +1,54 @@
+"""What people do to an alert: acknowledge it (the pages and the API share this)."""
+from __future__ import annotations
+
+from django.db.models import Count, QuerySet
+from django.utils import timezone
+
+from lifecycle_site.alerts.models import Alert
+
+ACKNOWLEDGE_PERMISSION = "alerts.acknowledge_alert"
+VIEW_PERMISSION = "alerts.view_alert"
+
+
+class AlertRefused(Exception):
+    """Why an alert could not be acknowledged: a code, a message for a person, an HTTP status."""
+
+    def __init__(self, code: str, message: str, status: int) -> None:
+        super().__init__(message)
+        self.code, self.message, self.status = code, message, status
+
+
+def acknowledge(alert_id: int, user) -> Alert:
+    """Mark a firing alert acknowledged by ``user`` (no further action: its receivers are told
+    when it resolves). Acknowledging it again is refused, naming who did it first."""
+    updated = Alert.objects.filter(pk=alert_id, status=Alert.Status.FIRING).update(
+        status=Alert.Status.ACKNOWLEDGED, acknowledged_at=timezone.now(), acknowledged_by=user,
+        acknowledged_by_name=user.get_username(),
+    )
+    alert = Alert.objects.select_related("rule").filter(pk=alert_id).first()
+    if alert is None:
+        raise AlertRefused("not_found", f"There is no alert {alert_id}.", 404)
+    if not updated:
+        if alert.status == Alert.Status.ACKNOWLEDGED:
+            raise AlertRefused("already_acknowledged", f"Alert {alert_id} was acknowledged already by "
+                               f"{alert.acknowledged_by_name or 'a deleted user'}.", 409)
+        raise AlertRefused("already_resolved", f"Alert {alert_id} is resolved already: its condition is over; "
+                           "nothing to acknowledge.", 409)
+    return alert
+
+
+def counts() -> dict[str, int]:
+    """Active alerts: firing (nobody acknowledged them yet) and acknowledged."""
+    found = dict(Alert.objects.filter(status__in=Alert.ACTIVE).values_list("status").annotate(n=Count("id"))
+                 .order_by())
+    return {"firing": found.get(Alert.Status.FIRING, 0), "acknowledged": found.get(Alert.Status.ACKNOWLEDGED, 0)}
+
+
+def listed(status: str) -> QuerySet[Alert]:
+    """Alerts by status: 'active' (firing or acknowledged), one status, or 'all'."""
+    alerts = Alert.objects.select_related("rule")
+    if status == "active":
+        return alerts.filter(status__in=Alert.ACTIVE)
+    if status in Alert.Status.values:
+        return alerts.filter(status=status)
+    return alerts

@@ -1,0 +1,245 @@
+"""Alert rules, the alerts they raise (firing, acknowledged, resolved), where alerts are sent
+(webhooks, e-mail) and a bounded log of each delivery attempt. How rules are evaluated:
+engine.py; how alerts are sent: delivery.py; the design: docs/alerts.md."""
+from __future__ import annotations
+
+import fnmatch
+
+from django.conf import settings
+from django.core.exceptions import ValidationError
+from django.core.validators import MinValueValidator, URLValidator
+from django.db import models
+from django.db.models import Q
+
+from ros_gateway.shared import state_machine as sm
+
+NODE_KINDS = ("state", "gone", "not_desired")
+
+
+def validate_emails(value: str) -> None:
+    from django.core.validators import validate_email
+
+    for address in split_emails(value):
+        validate_email(address)
+
+
+def split_emails(value: str) -> list[str]:
+    return [a.strip() for a in value.replace(";", ",").replace("\n", ",").split(",") if a.strip()]
+
+
+class Receiver(models.Model):
+    """Where alerts go: a webhook (JSON POST, signed) or e-mail addresses (Django's mail)."""
+
+    class Kind(models.TextChoices):
+        WEBHOOK = "webhook", "webhook"
+        EMAIL = "email", "e-mail"
+
+    name = models.CharField(max_length=80, unique=True)
+    kind = models.CharField(max_length=8, choices=Kind.choices, default=Kind.WEBHOOK)
+    url = models.CharField(
+        "webhook URL", max_length=500, blank=True, validators=[URLValidator(schemes=["http", "https"])],
+        help_text="http:// or https:// address that takes a JSON POST (redirects are not followed).",
+    )
+    # Kept in the database (as a Django SECRET_KEY would be in the environment); shown nowhere, never logged.
+    secret = models.CharField(
+        max_length=200, blank=True,
+        help_text="Key of the HMAC-SHA256 signature sent in X-Lifecycle-Signature; empty: unsigned.",
+    )
+    emails = models.TextField(
+        "e-mail addresses", blank=True, validators=[validate_emails], help_text="Comma-separated.",
+    )
+    enabled = models.BooleanField(default=True)
+    # Counted by the ingest process (monotonic: the delivery log is pruned, these are not).
+    delivered = models.PositiveBigIntegerField(default=0, editable=False)
+    failed = models.PositiveBigIntegerField(default=0, editable=False, help_text="Gave up after every retry.")
+    dropped = models.PositiveBigIntegerField(default=0, editable=False, help_text="Not sent: the queue was full.")
+
+    class Meta:
+        ordering = ["name"]
+
+    def __str__(self) -> str:
+        return f"{self.name} ({self.get_kind_display()})"
+
+    def clean(self) -> None:
+        if self.kind == self.Kind.WEBHOOK and not self.url:
+            raise ValidationError({"url": "A webhook needs its URL."})
+        if self.kind == self.Kind.EMAIL and not split_emails(self.emails):
+            raise ValidationError({"emails": "Give at least one e-mail address."})
+
+
+class Rule(models.Model):
+    """When an alert fires, for which nodes or gateways, and where it is sent."""
+
+    class Kind(models.TextChoices):
+        STATE = "state", "node is in a state"
+        GONE = "gone", "node vanished from the ROS graph"
+        NOT_DESIRED = "not_desired", "node is not in its desired state"
+        GATEWAY_OFFLINE = "gateway_offline", "gateway is offline"
+
+    STATE_CHOICES = [(label, label) for state_id, label in sorted(sm.STATE_LABELS.items()) if state_id]
+
+    name = models.CharField(max_length=80, unique=True)
+    kind = models.CharField(max_length=16, choices=Kind.choices)
+    state = models.CharField(
+        max_length=16, blank=True, choices=STATE_CHOICES,
+        help_text="For 'node is in a state': e.g. errorprocessing (fires on entering it, however briefly) "
+        "or finalized.",
+    )
+    for_seconds = models.FloatField(
+        "for (seconds)", default=0.0, validators=[MinValueValidator(0.0)],
+        help_text="Fire once the condition has held this long; 0: at once. For 'not in its desired state' "
+        "allow for a bring-up (e.g. 30): a node is not there while it is being configured and activated.",
+    )
+    keep_firing_seconds = models.FloatField(
+        "keep firing for (seconds)", default=0.0, validators=[MinValueValidator(0.0)],
+        help_text="Resolve only once the condition has been over this long (a brief state such as "
+        "errorprocessing is over within milliseconds).",
+    )
+    # Scope: all of these that are set must match; none set: the whole fleet.
+    gateway = models.ForeignKey("fleet.Gateway", null=True, blank=True, on_delete=models.CASCADE, related_name="+",
+                                help_text="Only this gateway (or its robots' nodes).")
+    robot = models.ForeignKey("fleet.Robot", null=True, blank=True, on_delete=models.CASCADE, related_name="+",
+                              help_text="Only this robot's nodes (or its gateway).")
+    node_pattern = models.CharField(
+        max_length=255, blank=True,
+        help_text="Only nodes whose fully qualified name matches this pattern (* and ?, e.g. /agv1/*_driver).",
+    )
+    receivers = models.ManyToManyField(Receiver, blank=True, related_name="rules")
+    enabled = models.BooleanField(default=True)
+    created = models.DateTimeField(auto_now_add=True)
+
+    class Meta:
+        ordering = ["name"]
+
+    def __str__(self) -> str:
+        return self.name
+
+    def clean(self) -> None:
+        if self.kind == self.Kind.STATE and not self.state:
+            raise ValidationError({"state": "Choose the state this rule watches for."})
+        if self.kind != self.Kind.STATE and self.state:
+            raise ValidationError({"state": "Only 'node is in a state' rules take a state."})
+        if self.kind == self.Kind.GATEWAY_OFFLINE and self.node_pattern:
+            raise ValidationError({"node_pattern": "A gateway rule has no node pattern."})
+
+    @property
+    def watches_nodes(self) -> bool:
+        return self.kind in NODE_KINDS
+
+    def matches_node(self, name: str) -> bool:
+        return not self.node_pattern or fnmatch.fnmatchcase(name, self.node_pattern)
+
+    def describe(self) -> str:
+        """'node is in a state errorprocessing, for 5 s'"""
+        text = self.get_kind_display() + (f" {self.state}" if self.state else "")
+        return text + (f", for {self.for_seconds:g} s" if self.for_seconds else "")
+
+    def as_dict(self) -> dict:
+        return {
+            "id": self.id,
+            "name": self.name,
+            "kind": self.kind,
+            "state": self.state or None,
+            "for_seconds": self.for_seconds,
+            "keep_firing_seconds": self.keep_firing_seconds,
+            "gateway": self.gateway.name if self.gateway_id else None,
+            "robot": self.robot.name if self.robot_id else None,
+            "node_pattern": self.node_pattern,
+            "receivers": sorted(r.name for r in self.receivers.all()),
+            "enabled": self.enabled,
+        }
+
+
+class Alert(models.Model):
+    """One firing of a rule for one node or gateway, from firing to resolved."""
+
+    class Status(models.TextChoices):
+        FIRING = "firing", "firing"
+        ACKNOWLEDGED = "acknowledged", "acknowledged"
+        RESOLVED = "resolved", "resolved"
+
+    ACTIVE = (Status.FIRING, Status.ACKNOWLEDGED)
+
+    # Kept (by name) when its rule is deleted; an active one is then resolved.
+    rule = models.ForeignKey(Rule, null=True, blank=True, on_delete=models.SET_NULL, related_name="alerts")
+    rule_name = models.CharField(max_length=80)
+    # A node's key (robot.node) or a gateway's name: what the alert is about.
+    subject = models.CharField(max_length=320)
+    gateway_name = models.CharField(max_length=63, blank=True)
+    robot_name = models.CharField(max_length=63, blank=True)
+    node_name = models.CharField(max_length=255, blank=True)
+    status = models.CharField(max_length=16, choices=Status.choices, default=Status.FIRING)
+    summary = models.TextField()
+    since = models.DateTimeField(help_text="When the condition began.")
+    fired_at = models.DateTimeField()
+    resolved_at = models.DateTimeField(null=True, blank=True)
+    acknowledged_at = models.DateTimeField(null=True, blank=True)
+    acknowledged_by = models.ForeignKey(settings.AUTH_USER_MODEL, null=True, blank=True,
+                                        on_delete=models.SET_NULL, related_name="+")
+    acknowledged_by_name = models.CharField(max_length=150, blank=True)
+
+    class Meta:
+        ordering = ["-fired_at", "-id"]
+        permissions = [("acknowledge_alert", "Can acknowledge alerts")]
+        constraints = [
+            # At most one unresolved alert per rule and subject.
+            models.UniqueConstraint(fields=["rule", "subject"], condition=~Q(status="resolved"),
+                                    name="one_active_alert_per_rule_subject"),
+        ]
+        indexes = [models.Index(fields=["status", "-fired_at"], name="alert_status_recent")]
+
+    def __str__(self) -> str:
+        return f"{self.rule_name}: {self.subject} ({self.status})"
+
+    @property
+    def active(self) -> bool:
+        return self.status in self.ACTIVE
+
+    def as_dict(self) -> dict:
+        def moment(value):
+            return value.isoformat() if value else None
+
+        return {
+            "id": self.id,
+            "rule": self.rule_name,
+            "kind": self.rule.kind if self.rule_id else None,
+            "status": self.status,
+            "subject": self.subject,
+            "gateway": self.gateway_name or None,
+            "robot": self.robot_name or None,
+            "node": self.node_name or None,
+            "summary": self.summary,
+            "since": moment(self.since),
+            "fired_at": moment(self.fired_at),
+            "resolved_at": moment(self.resolved_at),
+            "acknowledged_at": moment(self.acknowledged_at),
+            "acknowledged_by": self.acknowledged_by_name or None,
+        }
+
+
+class Delivery(models.Model):
+    """One attempt to send one alert event to one receiver (pruned to ALERTS['DELIVERY_LOG_KEEP'])."""
+
+    class Outcome(models.TextChoices):
+        DELIVERED = "delivered", "delivered"
+        RETRYING = "retrying", "failed, will retry"
+        FAILED = "failed", "failed, gave up"
+        DROPPED = "dropped", "dropped (queue full)"
+
+    alert = models.ForeignKey(Alert, null=True, on_delete=models.SET_NULL, related_name="deliveries")
+    receiver = models.ForeignKey(Receiver, null=True, on_delete=models.SET_NULL, related_name="deliveries")
+    receiver_name = models.CharField(max_length=80)
+    event = models.CharField(max_length=16)  # firing | resolved
+    attempt = models.PositiveSmallIntegerField(default=1)
+    outcome = models.CharField(max_length=16, choices=Outcome.choices)
+    status_code = models.PositiveSmallIntegerField(null=True, blank=True)
+    error = models.TextField(blank=True)
+    duration_ms = models.FloatField(null=True, blank=True)
+    at = models.DateTimeField()
+
+    class Meta:
+        ordering = ["-at", "-id"]
+        verbose_name_plural = "deliveries"
+
+    def __str__(self) -> str:
+        return f"{self.event} to {self.receiver_name}: {self.outcome}"
