@@ -135,6 +135,14 @@ class Timeline:
         return self.time_in_state.get(self.desired, 0.0) / self.seconds
 
     @property
+    def availability_of_known(self) -> float | None:
+        """The same share of the time whose state is known (not "unknown" nor "not read")."""
+        known = self.seconds - self.unknown_seconds
+        if not self.desired or known <= 0:
+            return None
+        return self.time_in_state.get(self.desired, 0.0) / known
+
+    @property
     def unknown_seconds(self) -> float:
         spent = self.time_in_state
         return sum(spent.get(s, 0.0) for s in (UNKNOWN, NOT_READ))
@@ -156,6 +164,7 @@ class Timeline:
             "window": {"name": self.window, "start": self.start.isoformat(), "end": self.end.isoformat()},
             "desired_state": self.desired or None,
             "availability_percent": None if availability is None else round(100 * availability, 3),
+            "availability_of_known_percent": _percent(self.availability_of_known),
             "unknown_percent": round(100 * self.unknown_seconds / self.seconds, 3),
             "time_in_state": [{"state": s, "seconds": round(v, 3), "percent": round(100 * v / self.seconds, 3)}
                               for s, v in sorted(self.time_in_state.items(), key=lambda kv: -kv[1])],
@@ -167,6 +176,10 @@ class Timeline:
             "notes": self.notes,
             "segments": [s.as_dict() for s in self.segments],
         }
+
+
+def _percent(share: float | None) -> float | None:
+    return None if share is None else round(100 * share, 3)
 
 
 def window_bounds(window: str, now: datetime | None = None) -> tuple[datetime, datetime]:

@@ -96,6 +96,7 @@ def test_failures_and_restarts_are_counted_and_unknown_outcomes_tolerated(robot)
     # lost from 40 to 30 min ago; unconfigured since the new process.
     assert spent == {"active": 5.0 + 10.0, "unknown": 5.0, "process lost": 10.0, "unconfigured": 30.0}
     assert timeline.availability == pytest.approx(15 / 60)
+    assert timeline.availability_of_known == pytest.approx(15 / 55)  # 5 minutes unknown
 
 
 def test_node_found_inside_the_window(robot):
