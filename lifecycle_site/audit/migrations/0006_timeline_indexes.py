@@ -19,6 +19,6 @@ class Migration(migrations.Migration):
         ),
         migrations.AddIndex(
             model_name='transitionrecord',
-            index=models.Index(fields=['robot_name', 'requested_at', 'node', 'outcome'], name='audit_robot_outcomes'),
+            index=models.Index(fields=['robot_name', 'outcome', 'requested_at', 'node'], name='audit_robot_outcomes'),
         ),
     ]
