@@ -94,8 +94,11 @@ class Segment:
     def seconds(self) -> float:
         return (self.end - self.start).total_seconds()
 
-    def as_dict(self) -> dict:
-        return {"state": self.state, "start": self.start.isoformat(), "end": self.end.isoformat()}
+    def as_dict(self, origin: datetime) -> dict:
+        """Its bounds in seconds after ``origin`` (the window's start): thousands of ISO dates
+        would cost a page's worth of time."""
+        return {"state": self.state, "from_s": round((self.start - origin).total_seconds(), 3),
+                "to_s": round((self.end - origin).total_seconds(), 3)}
 
 
 @dataclass
@@ -174,7 +177,7 @@ class Timeline:
             "records_read": self.rows_read,
             "not_read_before": self.cut_before.isoformat() if self.cut_before else None,
             "notes": self.notes,
-            "segments": [s.as_dict() for s in self.segments],
+            "segments": [s.as_dict(self.start) for s in self.segments],
         }
 
 

@@ -100,6 +100,8 @@ def test_api_node_timeline(viewer_client, nodes):
     assert body["desired_state"] == "active" and body["availability_percent"] == pytest.approx(50, abs=0.1)
     assert body["failures"] == 1 and body["restarts"] == 0 and body["outcomes"] == {"succeeded": 1, "failed": 1}
     assert [s["state"] for s in body["segments"]] == ["inactive", "active"]
+    assert body["segments"][0]["from_s"] == 0 and body["segments"][-1]["to_s"] == 3600
+    assert body["segments"][0]["to_s"] == body["segments"][1]["from_s"] == pytest.approx(1800, abs=5)
     assert {row["state"] for row in body["time_in_state"]} == {"inactive", "active"}
     assert body["not_read_before"] is None and body["records_read"] == 2
     other = viewer_client.get(f"/api/v1/nodes/{camera.key}/timeline").json()
