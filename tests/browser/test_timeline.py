@@ -1,5 +1,6 @@
 """The state timeline on a phone: a node's and its robot's timeline, after a real transition on
-the real stack, fit a 390 px wide screen (nothing overflows sideways) and name the states."""
+the real stack, fit a 390 px wide screen (nothing overflows sideways), name the states and
+break no rule of the Content-Security-Policy."""
 from __future__ import annotations
 
 from playwright.sync_api import expect
@@ -8,6 +9,10 @@ from tests.browser.conftest import ARTIFACTS, ROBOT, submit_login
 
 PHONE = {"width": 390, "height": 844}
 WAIT_MS = 20_000
+# Tells the test of every Content-Security-Policy violation (as in test_csp.py).
+REPORT_VIOLATIONS = """document.addEventListener("securitypolicyviolation", function (e) {
+  window.cspViolation(e.violatedDirective + " blocked " + (e.blockedURI || "?"));
+});"""
 
 
 def overflow(page) -> list[str]:
@@ -30,6 +35,9 @@ def test_node_and_robot_timelines_fit_a_phone(browser, site, robot, operator, ap
     answer = api.post(f"/api/v1/nodes/{key}/transition", {"transition": "configure"}, content_type="application/json")
     assert answer.status_code == 200, answer.content
     context = browser.new_context(viewport=PHONE, device_scale_factor=2, is_mobile=True, has_touch=True)
+    violations: list[str] = []
+    context.expose_binding("cspViolation", lambda _source, text: violations.append(text))
+    context.add_init_script(REPORT_VIOLATIONS)
     page = context.new_page()
     try:
         page.goto(site + "login/")
@@ -55,5 +63,6 @@ def test_node_and_robot_timelines_fit_a_phone(browser, site, robot, operator, ap
         expect(page.locator(".tl-name", has_text="/lidar_driver")).to_be_visible()
         assert overflow(page) == []
         page.screenshot(path=ARTIFACTS / "timeline-robot-phone.png", full_page=True)
+        assert violations == []  # no inline style or script: the drawing works under the policy
     finally:
         context.close()
