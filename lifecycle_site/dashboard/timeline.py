@@ -245,7 +245,7 @@ def build(node: ManagedNode, window: str, start: datetime, end: datetime, before
           rows: list[Row], cut_before: datetime | None, outcomes: dict[str, int]) -> Timeline:
     """The timeline of ``node`` from its facts: ``before`` (the last record before ``start``),
     ``rows`` (the records of the window that were read, any order) and the node's own row."""
-    rows = sorted(rows, key=lambda r: r.requested_at)
+    rows, read = sorted(rows, key=lambda r: r.requested_at), len(rows)
     initial, known_at = None, None
     if before is not None and before.ended_at > start:  # under way when the window began
         rows.insert(0, before)
@@ -281,10 +281,10 @@ def build(node: ManagedNode, window: str, start: datetime, end: datetime, before
                          f"{' (its process stopped answering)' if node.gone_reason == 'unreachable' else ''}.")
     builder.close(end)
     if cut_before is not None:
-        notes.append(f"Only the newest {len(rows):,} records of the window were read; before "
+        notes.append(f"Only the newest {read:,} records of the window were read; before "
                      f"{cut_before:%Y-%m-%d %H:%M:%S} UTC the timeline shows \"{NOT_READ}\". "
                      "The counts of failures and restarts cover the whole window.")
-    return Timeline(node, window, start, end, builder.segments, outcomes, len(rows), cut_before, notes)
+    return Timeline(node, window, start, end, builder.segments, outcomes, read, cut_before, notes)
 
 
 def _rows(values: Iterable[tuple]) -> list[Row]:

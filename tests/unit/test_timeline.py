@@ -76,7 +76,7 @@ def test_a_transition_under_way_at_the_windows_start_ends_inside_it(robot):
     record(node, 61, IN, A, took_s=120)  # requested before the window, done 1 min into it
     timeline = tl.node_timeline(node, "hour", now=NOW)
     assert minutes(timeline) == {"inactive": 1.0, "active": 59.0}
-    assert timeline.outcomes == {}  # requested before the window
+    assert timeline.outcomes == {} and timeline.rows_read == 0  # requested before the window
 
 
 def test_failures_and_restarts_are_counted_and_unknown_outcomes_tolerated(robot):
