@@ -22,9 +22,9 @@ from ros_gateway.shared import state_machine as sm
 
 WIDTH = 480
 BAR_H = 26
-NAME_H = 16  # a robot's lanes: the node's name above its bar
+NAME_H = 19  # a robot's lanes: the node's name above its bar
 LANE_GAP = 8
-AXIS_H = 36
+AXIS_H = 40
 MIN_BAR = 1.0  # narrower stretches are drawn together as "many changes"
 CHAR_W = 6.4  # of the bar labels (12 px), to know whether a name fits in its bar
 BUSY = "many changes"
@@ -173,7 +173,7 @@ def drawing(window: str, start: datetime, end: datetime, timelines: list[tl.Time
     axis_y = y - LANE_GAP + 4
     return {"width": WIDTH, "height": axis_y + AXIS_H, "bar_h": BAR_H,
             "lanes": lanes, "axis_y": axis_y, "ticks": ticks(window, start, end), "tick_y": axis_y + 17,
-            "date_y": axis_y + 31}
+            "date_y": axis_y + 35}
 
 
 def legend(timeline_list: list[tl.Timeline]) -> list[dict]:
