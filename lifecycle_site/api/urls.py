@@ -1,7 +1,7 @@
 from django.urls import path, re_path
 
 from lifecycle_site.alerts import api as alerts
-from lifecycle_site.api import operations, parameters, views
+from lifecycle_site.api import operations, parameters, timeline, views
 from lifecycle_site.api.auth import not_found
 
 app_name = "api"
@@ -20,6 +20,8 @@ urlpatterns = [
     path("nodes/<str:key>/desired-state", operations.desired_state, name="node-desired-state"),
     path("nodes/<str:key>/parameters", parameters.node_parameters, name="node-parameters"),
     path("nodes/<str:key>/parameters.yaml", parameters.parameters_yaml, name="node-parameters-yaml"),
+    path("nodes/<str:key>/timeline", timeline.node_timeline, name="node-timeline"),
+    path("robots/<str:name>/timeline", timeline.robot_timeline, name="robot-timeline"),
     *alerts.urlpatterns,
     re_path(r"^(?P<path>.*)$", not_found),
 ]

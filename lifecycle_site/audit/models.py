@@ -88,6 +88,11 @@ class TransitionRecord(AppendOnlyRecord):
         indexes = [
             models.Index(fields=["robot_name", "-requested_at"], name="audit_robot_recent"),
             models.Index(fields=["node", "-requested_at"], name="audit_node_recent"),
+            # Covering indexes of the state timeline's counts over a window (dashboard/timeline.py),
+            # read without a visit to the table's rows: a node's records by outcome, and a robot's
+            # failures and restarts only (a few among a week's records).
+            models.Index(fields=["node", "requested_at", "outcome"], name="audit_node_outcomes"),
+            models.Index(fields=["robot_name", "outcome", "requested_at", "node"], name="audit_robot_outcomes"),
         ]
 
     def __str__(self) -> str:

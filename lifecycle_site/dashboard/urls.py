@@ -1,6 +1,6 @@
 from django.urls import path
 
-from lifecycle_site.dashboard import audit_views, log_views, operation_views, parameter_views, views
+from lifecycle_site.dashboard import audit_views, log_views, operation_views, parameter_views, timeline_views, views
 
 app_name = "dashboard"
 urlpatterns = [
@@ -17,6 +17,8 @@ urlpatterns = [
     path("logs/<str:scope>/<str:name>/", log_views.log_console, name="logs"),
     path("logs/<str:scope>/<str:name>/download", log_views.log_download, name="logs-download"),
     path("logs/<str:scope>/<str:name>/since", log_views.log_since, name="logs-since"),
+    path("nodes/<str:key>/timeline/", timeline_views.node_timeline, name="node-timeline"),
+    path("robots/<str:robot>/timeline/", timeline_views.robot_timeline, name="robot-timeline"),
     path("audit/", audit_views.audit_list, name="audit"),
     path("audit.csv", audit_views.audit_csv, name="audit-csv"),
 ]

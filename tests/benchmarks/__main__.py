@@ -16,12 +16,14 @@ import traceback
 from pathlib import Path
 from types import ModuleType
 
-from tests.benchmarks import flood, load, networks, push, quiet, scale, transition
+from tests.benchmarks import flood, load, networks, push, quiet, scale, timeline, transition
 from tests.benchmarks.harness import ROOT, BenchContext, Template
 from tests.benchmarks.report import ScenarioResult, machine, render_table, write_json
 from tests.benchmarks.system import loadavg
 
-SCENARIOS: dict[str, ModuleType] = {m.NAME: m for m in (transition, push, scale, flood, networks, load, quiet)}
+SCENARIOS: dict[str, ModuleType] = {
+    m.NAME: m for m in (transition, push, scale, flood, networks, load, quiet, timeline)
+}
 ON_REQUEST = {quiet.NAME}  # long: run only with --only
 
 

@@ -75,6 +75,8 @@ def test_the_dashboard_works_under_the_policy(page: Page, site, robot, operator)
     assert_clean(page)
 
     visit(page, f"{site}nodes/{key}/")
+    visit(page, f"{site}nodes/{key}/timeline/?window=week")
+    visit(page, f"{site}robots/{ROBOT}/timeline/")
     expect(page.locator("#parameters table")).to_be_visible(timeout=WAIT_MS)  # hx-trigger="load"
     page.get_by_role("button", name="activate", exact=True).click()
     expect(page.locator("#transition-result")).to_contain_text("activate succeeded", timeout=WAIT_MS)

@@ -1,0 +1,38 @@
+"""GET /api/v1/nodes/{id}/timeline and /api/v1/robots/{name}/timeline (docs/api.md, "Timeline"):
+a node's states over the last hour, day or week, time in each, availability, failures and
+restarts, rebuilt from the audit log (lifecycle_site/dashboard/timeline.py)."""
+from __future__ import annotations
+
+from django.http import HttpRequest, JsonResponse
+
+from lifecycle_site.api.auth import api_view, error
+from lifecycle_site.api.limits import shown
+from lifecycle_site.api.views import get_node
+from lifecycle_site.dashboard import timeline as tl
+from lifecycle_site.fleet.models import Robot
+
+
+def _window(request: HttpRequest) -> str | JsonResponse:
+    window = request.GET.get("window", tl.DEFAULT_WINDOW)
+    if window not in tl.WINDOWS:
+        return error("invalid_field", f"window must be one of {', '.join(tl.WINDOWS)}, not {shown(window)}.", 400)
+    return window
+
+
+@api_view()
+def node_timeline(request: HttpRequest, key: str) -> JsonResponse:
+    window = _window(request)
+    if isinstance(window, JsonResponse):
+        return window
+    return JsonResponse(tl.node_timeline(get_node(key), window).as_dict())
+
+
+@api_view()
+def robot_timeline(request: HttpRequest, name: str) -> JsonResponse:
+    window = _window(request)
+    if isinstance(window, JsonResponse):
+        return window
+    robot = Robot.objects.filter(name=name).first()
+    if robot is None:
+        return error("not_found", f"There is no robot named {shown(name)}; GET /api/v1/robots lists them.", 404)
+    return JsonResponse(tl.robot_timeline(robot, window).as_dict())

@@ -1,0 +1,381 @@
+"""A node's (or a robot's nodes') states over a window, rebuilt from the audit log.
+
+What the records tell, and what they cannot:
+- every transition attempt and every change made by another tool ("observed") is a
+  TransitionRecord: its ``from`` state held just before ``requested_at``, its ``to`` state from
+  ``completed_at`` on;
+- ManagedNode.state_changed is when the node's last state fact arrived: from then on it was in
+  ManagedNode.state_label (state facts are sent on change only);
+- a node's appearing and vanishing (node.seen / node.gone) leave no history record: only the
+  current absence is known (since ManagedNode.last_seen), earlier absences are not;
+- where two neighbouring facts disagree (a record ends in ``active``, the next starts from
+  ``unconfigured``: its process was restarted, or an event was lost), when the change happened
+  is not known: that stretch is drawn as "unknown" instead of guessed.
+
+Reads are bounded: one indexed query for the state before the window, at most MAX_ROWS
+records of the window (newest first; what is older is drawn as "not read"), and one count
+per outcome.
+"""
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+from datetime import datetime, timedelta
+from functools import cached_property
+from typing import Iterable, NamedTuple
+
+from django.db.models import Count, OuterRef, Subquery
+from django.utils import timezone
+
+from lifecycle_site.audit.models import TransitionRecord
+from lifecycle_site.fleet.models import ManagedNode, Robot
+from ros_gateway.shared import state_machine as sm
+
+WINDOWS: dict[str, timedelta] = {"hour": timedelta(hours=1), "day": timedelta(days=1), "week": timedelta(weeks=1)}
+DEFAULT_WINDOW = "day"
+# Records read per timeline at most (a node's page; a robot's page shares them among its nodes).
+MAX_ROWS = 3000
+MAX_ROWS_ROBOT = 5000
+
+# Outcomes that count as failures and as restarts. process_lost / process_restarted come from
+# crash detection; any other outcome the audit log may learn later is shown, not counted.
+FAILURE_OUTCOMES = ("failed", "timed_out", "process_lost")
+RESTART_OUTCOMES = ("process_restarted",)
+LOST_OUTCOME = "process_lost"
+
+# Pseudo-states: what the timeline shows where no lifecycle state is known.
+NOT_SEEN = "not seen yet"
+UNKNOWN = "unknown"
+GONE = "gone"
+UNREACHABLE = "unreachable"
+LOST = "process lost"
+NOT_READ = "not read"
+PSEUDO_STATES = (NOT_SEEN, UNKNOWN, GONE, UNREACHABLE, LOST, NOT_READ)
+
+# duration_ms rather than completed_at: one date less to parse per row (a third of the read time).
+ROW_FIELDS = ("requested_at", "duration_ms", "start_state_id", "result_state_id", "outcome")
+
+
+class Row(NamedTuple):
+    """The part of a TransitionRecord a timeline needs (a tuple: thousands are made per page)."""
+
+    requested_at: datetime
+    duration_ms: float | None  # None: not completed
+    start_state_id: int | None
+    result_state_id: int | None
+    outcome: str
+
+    @property
+    def ended_at(self) -> datetime:
+        if not self.duration_ms:
+            return self.requested_at
+        return self.requested_at + timedelta(milliseconds=self.duration_ms)
+
+    def state_after(self, before: str | None) -> str | None:
+        """The state from ``ended_at`` on; ``before`` when the record changed nothing."""
+        if self.result_state_id is not None:
+            return sm.state_label(self.result_state_id)
+        if self.outcome == LOST_OUTCOME:
+            return LOST
+        if self.outcome in ("failed", "timed_out", *RESTART_OUTCOMES):
+            return UNKNOWN  # sent, and the state not read back; or a new process not yet read
+        if self.outcome == "rejected" and self.start_state_id is not None:
+            return sm.state_label(self.start_state_id)
+        return before
+
+
+@dataclass
+class Segment:
+    state: str
+    start: datetime
+    end: datetime
+
+    @property
+    def seconds(self) -> float:
+        return (self.end - self.start).total_seconds()
+
+    def as_dict(self, origin: datetime) -> dict:
+        """Its bounds in seconds after ``origin`` (the window's start): thousands of ISO dates
+        would cost a page's worth of time."""
+        return {"state": self.state, "from_s": round((self.start - origin).total_seconds(), 3),
+                "to_s": round((self.end - origin).total_seconds(), 3)}
+
+
+@dataclass
+class Timeline:
+    """One node over one window."""
+
+    node: ManagedNode
+    window: str
+    start: datetime
+    end: datetime
+    segments: list[Segment]
+    outcomes: dict[str, int]  # records of the window by outcome (a robot's timeline: failures and restarts only)
+    rows_read: int
+    cut_before: datetime | None  # records older than this were not read
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def seconds(self) -> float:
+        return (self.end - self.start).total_seconds()
+
+    @cached_property
+    def time_in_state(self) -> dict[str, float]:
+        totals: Counter[str] = Counter()
+        for segment in self.segments:
+            totals[segment.state] += segment.seconds
+        return dict(totals)
+
+    @property
+    def desired(self) -> str:
+        return self.node.desired_state
+
+    @property
+    def availability(self) -> float | None:
+        """Share of the window spent in the desired state, 0-1; None without a desired state."""
+        if not self.desired:
+            return None
+        return self.time_in_state.get(self.desired, 0.0) / self.seconds
+
+    @property
+    def availability_of_known(self) -> float | None:
+        """The same share of the time whose state is known (not "unknown" nor "not read")."""
+        known = self.seconds - self.unknown_seconds
+        if not self.desired or known <= 0:
+            return None
+        return self.time_in_state.get(self.desired, 0.0) / known
+
+    @property
+    def unknown_seconds(self) -> float:
+        spent = self.time_in_state
+        return sum(spent.get(s, 0.0) for s in (UNKNOWN, NOT_READ))
+
+    @property
+    def failures(self) -> int:
+        return sum(self.outcomes.get(o, 0) for o in FAILURE_OUTCOMES)
+
+    @property
+    def restarts(self) -> int:
+        return sum(self.outcomes.get(o, 0) for o in RESTART_OUTCOMES)
+
+    def as_dict(self) -> dict:
+        availability = self.availability
+        return {
+            "node": self.node.key,
+            "robot": self.node.robot.name,
+            "name": self.node.name,
+            "window": {"name": self.window, "start": self.start.isoformat(), "end": self.end.isoformat()},
+            "desired_state": self.desired or None,
+            "availability_percent": None if availability is None else round(100 * availability, 3),
+            "availability_of_known_percent": _percent(self.availability_of_known),
+            "unknown_percent": round(100 * self.unknown_seconds / self.seconds, 3),
+            "time_in_state": [{"state": s, "seconds": round(v, 3), "percent": round(100 * v / self.seconds, 3)}
+                              for s, v in sorted(self.time_in_state.items(), key=lambda kv: -kv[1])],
+            "failures": self.failures,
+            "restarts": self.restarts,
+            "outcomes": self.outcomes,
+            "records_read": self.rows_read,
+            "not_read_before": self.cut_before.isoformat() if self.cut_before else None,
+            "notes": self.notes,
+            "segments": [s.as_dict(self.start) for s in self.segments],
+        }
+
+
+def _percent(share: float | None) -> float | None:
+    return None if share is None else round(100 * share, 3)
+
+
+def window_bounds(window: str, now: datetime | None = None) -> tuple[datetime, datetime]:
+    end = now or timezone.now()
+    return end - WINDOWS[window], end
+
+
+class _Builder:
+    """Walks a node's facts in time order and cuts the window into segments."""
+
+    def __init__(self, start: datetime, end: datetime, state: str) -> None:
+        self.end = end
+        self.at = start
+        self.state = state
+        # True from the node's discovery (its state read, not recorded) to its next fact: the
+        # next record's "from" state is the one it was found in (any change between would be
+        # on record, as "observed").
+        self.discovered = False
+        self.segments: list[Segment] = []
+
+    def close(self, until: datetime, state: str | None = None) -> None:
+        """The current state lasted until ``until`` (``state`` instead, if given)."""
+        until = min(until, self.end)
+        if until <= self.at:
+            return
+        label = state or self.state
+        if self.segments and self.segments[-1].state == label:
+            self.segments[-1].end = until
+        else:
+            self.segments.append(Segment(label, self.at, until))
+        self.at = until
+
+    def held(self, at: datetime, state: str) -> None:
+        """The node was in ``state`` just before ``at``: if that is not what we had, the change
+        to it happened at an unknown time since the last fact."""
+        if self.discovered:
+            self.state, self.discovered = state, False
+        if state != self.state and self.state not in (NOT_READ, NOT_SEEN) and not _enters(self.state, state):
+            self.close(at, UNKNOWN)
+            self.state = state
+        else:
+            self.close(at)
+            self.state = state
+
+    def became(self, at: datetime, state: str | None) -> None:
+        self.close(at)
+        self.discovered = False
+        if state is not None:
+            self.state = state
+
+
+def _enters(state: str, transition_state: str) -> bool:
+    """Whether ``transition_state`` is where a transition from primary ``state`` goes first
+    (a node seen "activating" was "inactive" until then)."""
+    return any(sm.state_label(t.start) == state and sm.state_label(t.goal) == transition_state
+               for t in sm.TRANSITIONS)
+
+
+def build(node: ManagedNode, window: str, start: datetime, end: datetime, before: Row | None,
+          rows: list[Row], cut_before: datetime | None, outcomes: dict[str, int]) -> Timeline:
+    """The timeline of ``node`` from its facts: ``before`` (the last record before ``start``),
+    ``rows`` (the records of the window that were read, any order) and the node's own row."""
+    rows, read = sorted(rows, key=lambda r: r.requested_at), len(rows)
+    initial, known_at = None, None
+    if before is not None and before.ended_at > start:  # under way when the window began
+        rows.insert(0, before)
+        if before.start_state_id is not None:
+            initial, known_at = sm.state_label(before.start_state_id), before.requested_at
+    elif before is not None:
+        initial, known_at = before.state_after(UNKNOWN), before.ended_at
+    changed, first_seen = node.state_changed, node.first_seen
+    if changed is not None and changed <= start and (known_at is None or changed >= known_at):
+        initial = node.state_label  # its last state fact is older than the window: still so
+    if cut_before is not None:
+        initial = NOT_READ
+    elif initial is None and (first_seen is None or first_seen > start):
+        initial = NOT_SEEN
+    builder = _Builder(start, end, initial or UNKNOWN)
+    if initial == NOT_SEEN and first_seen is not None:
+        builder.became(first_seen, UNKNOWN)
+        builder.discovered = True
+    for row in rows:
+        if row.outcome in RESTART_OUTCOMES:
+            builder.became(max(row.requested_at, start), None)  # a new process: no "from" to check
+        elif row.start_state_id is not None:
+            builder.held(max(row.requested_at, start), sm.state_label(row.start_state_id))
+        builder.became(max(row.ended_at, start), row.state_after(builder.state))
+    if changed is not None and start < changed <= end and changed >= builder.at:
+        builder.held(changed, node.state_label)  # the node's last state fact
+    notes: list[str] = []
+    if not node.alive and first_seen is not None:
+        builder.close(max(node.last_seen or start, start))
+        builder.state = UNREACHABLE if node.gone_reason == "unreachable" else GONE
+        if node.last_seen:
+            notes.append(f"Not seen since {node.last_seen:%Y-%m-%d %H:%M:%S} UTC"
+                         f"{' (its process stopped answering)' if node.gone_reason == 'unreachable' else ''}.")
+    builder.close(end)
+    if cut_before is not None:
+        notes.append(f"Only the newest {read:,} records of the window were read; before "
+                     f"{cut_before:%Y-%m-%d %H:%M:%S} UTC the timeline shows \"{NOT_READ}\". "
+                     "The counts of failures and restarts cover the whole window.")
+    return Timeline(node, window, start, end, builder.segments, outcomes, read, cut_before, notes)
+
+
+def _rows(values: Iterable[tuple]) -> list[Row]:
+    return [Row(*v) for v in values]
+
+
+def _read_window(records, cap: int) -> tuple[list[tuple], datetime | None]:
+    """At most ``cap`` records, newest first; the time before which older ones were left out."""
+    found = list(records.order_by("-requested_at")[: cap + 1])
+    if len(found) <= cap:
+        return found, None
+    found = found[:cap]
+    return found, found[-1][-len(ROW_FIELDS)]  # requested_at of the oldest one read
+
+
+def node_timeline(node: ManagedNode, window: str = DEFAULT_WINDOW, now: datetime | None = None,
+                  cap: int = MAX_ROWS) -> Timeline:
+    start, end = window_bounds(window, now)
+    records = TransitionRecord.objects.filter(node=node)
+    inside = records.filter(requested_at__gte=start, requested_at__lte=end)
+    values, cut_before = _read_window(inside.values_list(*ROW_FIELDS), cap)
+    before = None
+    if cut_before is None:
+        found = records.filter(requested_at__lt=start).order_by("-requested_at").values_list(*ROW_FIELDS).first()
+        before = Row(*found) if found else None
+    outcomes = dict(inside.order_by().values_list("outcome").annotate(n=Count("id")))
+    return build(node, window, start, end, before, _rows(values), cut_before, outcomes)
+
+
+@dataclass
+class RobotTimeline:
+    robot: Robot
+    window: str
+    start: datetime
+    end: datetime
+    nodes: list[Timeline]
+    cut_before: datetime | None
+
+    @property
+    def availability(self) -> float | None:
+        """Time in the desired state over all nodes that have one, 0-1."""
+        wanted = [t for t in self.nodes if t.desired]
+        if not wanted:
+            return None
+        return sum(t.availability or 0.0 for t in wanted) / len(wanted)
+
+    @property
+    def failures(self) -> int:
+        return sum(t.failures for t in self.nodes)
+
+    @property
+    def restarts(self) -> int:
+        return sum(t.restarts for t in self.nodes)
+
+    def as_dict(self) -> dict:
+        availability = self.availability
+        return {
+            "robot": self.robot.name,
+            "window": {"name": self.window, "start": self.start.isoformat(), "end": self.end.isoformat()},
+            "availability_percent": None if availability is None else round(100 * availability, 3),
+            "failures": self.failures,
+            "restarts": self.restarts,
+            "not_read_before": self.cut_before.isoformat() if self.cut_before else None,
+            "nodes": [t.as_dict() for t in self.nodes],
+        }
+
+
+def robot_timeline(robot: Robot, window: str = DEFAULT_WINDOW, now: datetime | None = None,
+                   cap: int = MAX_ROWS_ROBOT) -> RobotTimeline:
+    start, end = window_bounds(window, now)
+    last_before = TransitionRecord.objects.filter(node=OuterRef("pk"), requested_at__lt=start).order_by(
+        "-requested_at")
+    nodes = list(ManagedNode.objects.filter(robot=robot).select_related("robot").annotate(
+        before_id=Subquery(last_before.values("id")[:1])))
+    inside = TransitionRecord.objects.filter(robot_name=robot.name, requested_at__gte=start, requested_at__lte=end)
+    values, cut_before = _read_window(inside.values_list("node_id", *ROW_FIELDS), cap)
+    by_node: dict[int, list[Row]] = {}
+    for node_id, *rest in values:
+        by_node.setdefault(node_id, []).append(Row(*rest))
+    before: dict[int, Row] = {}
+    if cut_before is None:
+        ids = [n.before_id for n in nodes if n.before_id is not None]
+        for node_id, *rest in TransitionRecord.objects.filter(id__in=ids).values_list("node_id", *ROW_FIELDS):
+            before[node_id] = Row(*rest)
+    outcomes: dict[int, dict[str, int]] = {}
+    counted = inside.filter(outcome__in=(*FAILURE_OUTCOMES, *RESTART_OUTCOMES)).order_by()
+    for node_id, outcome, n in counted.values_list("node_id", "outcome").annotate(n=Count("id")):
+        outcomes.setdefault(node_id, {})[outcome] = n
+    timelines = [
+        build(node, window, start, end, before.get(node.pk), by_node.get(node.pk, []), cut_before,
+              outcomes.get(node.pk, {}))
+        for node in nodes
+    ]
+    return RobotTimeline(robot, window, start, end, timelines, cut_before)

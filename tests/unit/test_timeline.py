@@ -1,0 +1,207 @@
+"""The state timeline rebuilt from hand-made audit records with known answers: time in each
+state, availability, failures and restarts, the window's edges, a node found inside the
+window, stretches the records cannot tell, a gone node, the read cap, and that every query
+runs on an index."""
+from __future__ import annotations
+
+from datetime import datetime, timedelta, timezone
+
+import pytest
+from django.db import connection
+from django.test.utils import CaptureQueriesContext
+
+from lifecycle_site.audit.models import TransitionRecord
+from lifecycle_site.dashboard import timeline as tl
+from lifecycle_site.fleet.models import ManagedNode, Robot
+from ros_gateway.shared import state_machine as sm
+
+NOW = datetime(2026, 11, 23, 12, 0, tzinfo=timezone.utc)
+U, IN, A = sm.UNCONFIGURED, sm.INACTIVE, sm.ACTIVE
+
+
+def ago(minutes: float) -> datetime:
+    return NOW - timedelta(minutes=minutes)
+
+
+@pytest.fixture
+def robot(db) -> Robot:
+    return Robot.objects.create(name="tl-agv", domain_id=61)
+
+
+def make_node(robot: Robot, name: str = "/lidar", state: int = IN, changed: float | None = None,
+              first_seen: float = 60 * 24 * 30, desired: str = "active", alive: bool = True,
+              last_seen: float | None = 0.5, gone_reason: str = "") -> ManagedNode:
+    return ManagedNode.objects.create(
+        robot=robot, name=name, state_id=state, state_label=sm.state_label(state), alive=alive,
+        state_changed=ago(changed) if changed is not None else None, desired_state=desired,
+        first_seen=ago(first_seen) if first_seen is not None else None,
+        last_seen=ago(last_seen) if last_seen is not None else None, gone_reason=gone_reason,
+    )
+
+
+def record(node: ManagedNode, minutes_ago: float, start: int | None, result: int | None,
+           outcome: str = "succeeded", took_s: float = 0.0) -> TransitionRecord:
+    requested = ago(minutes_ago)
+    return TransitionRecord.objects.create(
+        node=node, robot=node.robot, robot_name=node.robot.name, node_name=node.name,
+        start_state_id=start, start_state_label=sm.state_label(start) if start is not None else "",
+        result_state_id=result, result_state_label=sm.state_label(result) if result is not None else "",
+        outcome=outcome, source="api", requested_at=requested,
+        completed_at=requested + timedelta(seconds=took_s) if outcome != "rejected" else None,
+        duration_ms=took_s * 1000 if outcome != "rejected" else None,
+    )
+
+
+def minutes(timeline: tl.Timeline) -> dict[str, float]:
+    return {state: round(seconds / 60, 3) for state, seconds in timeline.time_in_state.items()}
+
+
+def test_time_in_state_and_availability_from_the_records(robot):
+    node = make_node(robot, state=IN, changed=20)
+    record(node, 120, U, IN)  # before the window: the state it starts in
+    record(node, 50, IN, A)
+    record(node, 20, A, IN)
+    timeline = tl.node_timeline(node, "hour", now=NOW)
+    assert minutes(timeline) == {"inactive": 30.0, "active": 30.0}
+    assert timeline.availability == pytest.approx(0.5)
+    assert timeline.outcomes == {"succeeded": 2}  # the record before the window is not counted
+    assert (timeline.failures, timeline.restarts, timeline.unknown_seconds) == (0, 0, 0.0)
+    assert [s.state for s in timeline.segments] == ["inactive", "active", "inactive"]
+    assert timeline.segments[0].start == ago(60) and timeline.segments[-1].end == NOW
+
+
+def test_a_transition_under_way_at_the_windows_start_ends_inside_it(robot):
+    node = make_node(robot, state=A, changed=59)
+    record(node, 200, U, IN)
+    record(node, 61, IN, A, took_s=120)  # requested before the window, done 1 min into it
+    timeline = tl.node_timeline(node, "hour", now=NOW)
+    assert minutes(timeline) == {"inactive": 1.0, "active": 59.0}
+    assert timeline.outcomes == {} and timeline.rows_read == 0  # requested before the window
+
+
+def test_failures_and_restarts_are_counted_and_unknown_outcomes_tolerated(robot):
+    node = make_node(robot, state=U, changed=5)
+    record(node, 300, U, A)
+    record(node, 55, A, A, "failed")
+    record(node, 50, A, None, "timed_out")
+    record(node, 45, A, None, "rejected")
+    record(node, 40, A, None, "process_lost")
+    record(node, 30, None, U, "process_restarted")
+    record(node, 25, U, U, "something_new")  # an outcome the audit log may learn later
+    timeline = tl.node_timeline(node, "hour", now=NOW)
+    assert timeline.failures == 3 and timeline.restarts == 1
+    assert timeline.outcomes["something_new"] == 1 and timeline.outcomes["rejected"] == 1
+    spent = minutes(timeline)
+    # timed out: state unknown until a record says where it is (the rejected one: active);
+    # lost from 40 to 30 min ago; unconfigured since the new process.
+    assert spent == {"active": 5.0 + 10.0, "unknown": 5.0, "process lost": 10.0, "unconfigured": 30.0}
+    assert timeline.availability == pytest.approx(15 / 60)
+    assert timeline.availability_of_known == pytest.approx(15 / 55)  # 5 minutes unknown
+
+
+def test_node_found_inside_the_window(robot):
+    node = make_node(robot, state=IN, changed=10, first_seen=30)
+    record(node, 10, U, IN)
+    timeline = tl.node_timeline(node, "hour", now=NOW)
+    # Its state read on discovery is not recorded; the first record's "from" state tells it.
+    assert minutes(timeline) == {tl.NOT_SEEN: 30.0, "unconfigured": 20.0, "inactive": 10.0}
+    assert timeline.availability == 0.0
+
+
+def test_node_found_inside_the_window_without_records_is_in_its_current_state(robot):
+    node = make_node(robot, state=U, changed=30, first_seen=30)
+    timeline = tl.node_timeline(node, "hour", now=NOW)
+    assert minutes(timeline) == {tl.NOT_SEEN: 30.0, "unconfigured": 30.0}
+
+
+def test_a_change_the_records_do_not_explain_is_unknown_not_guessed(robot):
+    node = make_node(robot, state=IN, changed=10)
+    record(node, 70, IN, A)
+    record(node, 10, U, IN)  # from unconfigured: its process was restarted at some unknown time
+    timeline = tl.node_timeline(node, "hour", now=NOW)
+    assert minutes(timeline) == {"unknown": 50.0, "inactive": 10.0}
+    assert timeline.unknown_seconds == 50 * 60 and timeline.availability == 0.0
+
+
+def test_the_last_state_fact_without_record_ends_the_timeline(robot):
+    node = make_node(robot, state=U, changed=15)  # read after a restart, not recorded
+    record(node, 90, IN, A)
+    timeline = tl.node_timeline(node, "hour", now=NOW)
+    assert minutes(timeline) == {"unknown": 45.0, "unconfigured": 15.0}
+    # A transition state follows from the state before it: no unknown stretch.
+    busy = make_node(robot, name="/camera", state=sm.ACTIVATING, changed=15)
+    record(busy, 90, U, IN)
+    assert minutes(tl.node_timeline(busy, "hour", now=NOW)) == {"inactive": 45.0, "activating": 15.0}
+
+
+def test_a_gone_node_is_gone_since_it_was_last_seen(robot):
+    node = make_node(robot, state=A, changed=120, alive=False, last_seen=15)
+    record(node, 120, IN, A)
+    timeline = tl.node_timeline(node, "hour", now=NOW)
+    assert minutes(timeline) == {"active": 45.0, tl.GONE: 15.0}
+    assert "Not seen since 2026-11-23 11:45:00 UTC." in timeline.notes
+    lost = make_node(robot, name="/camera", state=A, changed=120, alive=False, last_seen=90, gone_reason="unreachable")
+    assert minutes(tl.node_timeline(lost, "hour", now=NOW)) == {tl.UNREACHABLE: 60.0}
+
+
+def test_no_records_and_state_older_than_the_window(robot):
+    node = make_node(robot, state=A, changed=60 * 24 * 3, desired="")
+    timeline = tl.node_timeline(node, "day", now=NOW)
+    assert minutes(timeline) == {"active": 24 * 60.0}
+    assert timeline.availability is None and timeline.as_dict()["availability_percent"] is None
+    never = make_node(robot, name="/pinned", state=sm.UNKNOWN, first_seen=None, last_seen=None, alive=False)
+    assert minutes(tl.node_timeline(never, "hour", now=NOW)) == {tl.NOT_SEEN: 60.0}
+
+
+def test_reads_at_most_the_cap_and_says_what_was_cut(robot):
+    node = make_node(robot, state=A, changed=1)
+    record(node, 300, U, IN)
+    for i in range(30):  # every 2 minutes: activate, deactivate, ...
+        record(node, 59 - 2 * i, IN if i % 2 == 0 else A, A if i % 2 == 0 else IN)
+    timeline = tl.node_timeline(node, "hour", now=NOW, cap=10)
+    assert timeline.rows_read == 10 and timeline.cut_before == ago(59 - 2 * 20)
+    assert timeline.outcomes == {"succeeded": 30}  # counted over the whole window
+    assert timeline.segments[0].state == tl.NOT_READ and timeline.segments[0].end == ago(19)
+    assert minutes(timeline)[tl.NOT_READ] == 41.0
+    assert any("Only the newest 10 records" in note for note in timeline.notes)
+
+
+def test_robot_timeline_sums_its_nodes(robot):
+    lidar = make_node(robot, "/lidar", state=A, changed=30)
+    camera = make_node(robot, "/camera", state=IN, changed=60 * 5, desired="")
+    record(lidar, 120, U, IN)
+    record(lidar, 30, IN, A)
+    record(lidar, 20, A, A, "failed")
+    record(camera, 300, U, IN)
+    other = Robot.objects.create(name="tl-other", domain_id=62)
+    record(make_node(other, "/lidar"), 10, IN, A, "failed")  # another robot's: not counted
+    timelines = tl.robot_timeline(robot, "hour", now=NOW)
+    by_name = {t.node.name: t for t in timelines.nodes}
+    assert minutes(by_name["/lidar"]) == {"inactive": 30.0, "active": 30.0}
+    assert minutes(by_name["/camera"]) == {"inactive": 60.0}
+    assert timelines.availability == pytest.approx(0.5)  # only /lidar has a desired state
+    assert timelines.failures == 1 and timelines.restarts == 0
+    body = timelines.as_dict()
+    assert body["availability_percent"] == 50.0 and len(body["nodes"]) == 2
+
+
+def test_every_query_of_a_timeline_runs_on_an_index(robot):
+    node = make_node(robot, state=A, changed=30)
+    for i in range(40):
+        record(node, 600 - 10 * i, IN, A)
+    plans = []
+    with CaptureQueriesContext(connection) as captured:
+        tl.node_timeline(node, "hour", now=NOW)
+        tl.robot_timeline(robot, "day", now=NOW)
+    with connection.cursor() as cursor:
+        for query in captured.captured_queries:
+            if "audit_transitionrecord" in query["sql"]:
+                cursor.execute("EXPLAIN QUERY PLAN " + query["sql"])
+                plans.append((query["sql"], " | ".join(str(row[-1]) for row in cursor.fetchall())))
+    # node: window, before, counts; robot: its nodes (with their last record before), window, counts
+    assert len(plans) == 6, plans
+    for sql, plan in plans:
+        assert "SCAN audit_transitionrecord" not in plan and "SCAN U0" not in plan, (sql, plan)
+        assert "INDEX audit_" in plan, (sql, plan)
+    counts = [plan for sql, plan in plans if "COUNT(" in sql]
+    assert len(counts) == 2 and all("COVERING INDEX audit_" in plan for plan in counts), counts
