@@ -85,3 +85,26 @@ def test_state_graph_labels_are_at_least_10_px_on_a_phone(phone, site):
     assert small == []
     assert page.evaluate("document.documentElement.scrollWidth") <= PHONE["width"]
     page.locator("figure.graph").screenshot(path=ARTIFACTS / "phone-graph.png")
+
+
+def test_the_audit_page_shows_new_records_without_a_reload(browser, site, robot, operator, api):
+    from tests.integration.conftest import transition
+
+    context = browser.new_context(viewport={"width": 1280, "height": 900})
+    page = context.new_page()
+    errors: list[str] = []
+    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    page.goto(site + "login/")
+    submit_login(page, "bruno-operator")
+    with page.expect_websocket(lambda ws: "/ws/audit/" in ws.url):
+        page.goto(f"{site}audit/?robot={ROBOT}&node=camera_driver")
+    page.evaluate("window.__sameDocument = true")
+    response = transition(api, f"{ROBOT}.camera_driver", "configure")
+    assert response.status_code == 200, response.content
+    row = page.locator("#audit-rows tr", has_text="configure").first
+    expect(row).to_contain_text("succeeded", timeout=WAIT_MS)
+    expect(row).to_contain_text("unconfigured → inactive")
+    expect(page.locator("#audit-count")).to_contain_text("1 record")
+    assert page.evaluate("window.__sameDocument") is True
+    assert errors == []
+    context.close()
