@@ -1,6 +1,6 @@
 from django.urls import path
 
-from lifecycle_site.dashboard import audit_views, log_views, operation_views, parameter_views, views
+from lifecycle_site.dashboard import audit_views, log_views, operation_views, parameter_views, token_views, views
 
 app_name = "dashboard"
 urlpatterns = [
@@ -19,4 +19,6 @@ urlpatterns = [
     path("logs/<str:scope>/<str:name>/since", log_views.log_since, name="logs-since"),
     path("audit/", audit_views.audit_list, name="audit"),
     path("audit.csv", audit_views.audit_csv, name="audit-csv"),
+    path("tokens/", token_views.my_tokens, name="tokens"),
+    path("tokens/<int:token_id>/revoke", token_views.revoke_token, name="token-revoke"),
 ]
