@@ -43,6 +43,7 @@ WIDE = Plan(
         S.ERRORPROCESSING: (80, 330), S.FINALIZED: (640, 330),
     },
     waypoints={5: ((200, 192),), 32: ((208, 160),), 42: ((432, 272),), 52: ((296, 272),)},
+    label_at={4: (604, 214)},  # "deactivate" right of its line, clear of the "shutdown" beside it
 )
 
 # Phones: three columns. Edges that would cross a box run down the gaps between the columns:
@@ -93,7 +94,7 @@ class Edge:
 
     @property
     def points_text(self) -> str:
-        return " ".join(f"{x:.1f},{y:.1f}" for x, y in self.points)
+        return " ".join(f"{x:.0f},{y:.0f}" for x, y in self.points)  # a unit is < 1 px on screen
 
     # The first and last points, as the one-segment drawing had them.
     @property
