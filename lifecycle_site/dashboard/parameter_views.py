@@ -45,7 +45,9 @@ def choices(entry: dict) -> list[str] | None:
         return None
     items = [i.strip().strip("'\"`") for i in re.split(r"[,|]", found["words"] or found["list"])]
     items = [i for i in items if i]
-    if not 2 <= len(items) <= MAX_CHOICES:
+    # Values are single words ("fail_configure", "1.5"): "one of the camera modes, see the
+    # manual" is prose, not a list.
+    if not 2 <= len(items) <= MAX_CHOICES or any(re.search(r"\s", i) for i in items):
         return None
     try:
         return [_shown(convert(i)) for i in items]
