@@ -1,17 +1,33 @@
-"""Bearer tokens for automation. Only a hash is stored; the token is shown once."""
+"""Bearer tokens for automation. Only a hash is stored; the token is shown once.
+
+Like a personal access token: it acts as its user, so it never grants more than the user
+has (a role taken away is taken from the token too). Any logged-in user may make and revoke
+their own (the "API tokens" page); admins may revoke anyone's. Each creation and revocation
+is on record (TokenEvent: who, for whom, when, where), for admins to review.
+"""
 from __future__ import annotations
 
 import hashlib
 import secrets
 
 from django.conf import settings
-from django.db import models
+from django.db import models, transaction
 
 TOKEN_PREFIX = "lcm_"
+MAX_TOKENS_PER_USER = 20
 
 
 def hash_token(token: str) -> str:
     return hashlib.sha256(token.encode()).hexdigest()
+
+
+class TooManyTokens(Exception):
+    """The user has MAX_TOKENS_PER_USER tokens already."""
+
+    @classmethod
+    def of(cls, user) -> "TooManyTokens":
+        return cls(f"{user.get_username()} has {MAX_TOKENS_PER_USER} tokens already, the most one account may "
+                   "have: revoke one that is no longer used first.")
 
 
 class ApiToken(models.Model):
@@ -29,8 +45,57 @@ class ApiToken(models.Model):
         return f"{self.hint}… ({self.user})"
 
     @classmethod
-    def issue(cls, user, name: str = "") -> tuple["ApiToken", str]:
-        """Create a token for ``user``; returns the record and the clear-text token."""
+    def issue(cls, user, name: str = "", *, by=None, via: str = "") -> tuple["ApiToken", str]:
+        """Create a token for ``user``, made by ``by`` (None: no account, e.g. on the command
+        line) through ``via``; returns the record and the clear-text token, kept nowhere."""
+        if cls.objects.filter(user=user).count() >= MAX_TOKENS_PER_USER:
+            raise TooManyTokens.of(user)
         token = TOKEN_PREFIX + secrets.token_urlsafe(32)
-        record = cls.objects.create(user=user, name=name, digest=hash_token(token), hint=token[:10])
+        with transaction.atomic():
+            record = cls.objects.create(user=user, name=name, digest=hash_token(token), hint=token[:10])
+            TokenEvent.note(TokenEvent.CREATED, record, by, via)
         return record, token
+
+    def revoke(self, *, by, via: str = "") -> None:
+        """Delete the token (it stops working at once in this process, within seconds in the
+        others: api/grants.py) and put that on record."""
+        with transaction.atomic():
+            TokenEvent.note(TokenEvent.REVOKED, self, by, via)
+            self.delete()
+
+
+class TokenEvent(models.Model):
+    """A token made or revoked. Append-only, like the audit records."""
+
+    CREATED, REVOKED = "created", "revoked"
+
+    at = models.DateTimeField(auto_now_add=True, db_index=True)
+    action = models.CharField(max_length=8, choices=[(CREATED, "created"), (REVOKED, "revoked")])
+    hint = models.CharField("token", max_length=12, help_text="The token's first characters.")
+    token_name = models.CharField(max_length=100, blank=True)
+    owner = models.ForeignKey(settings.AUTH_USER_MODEL, null=True, blank=True, on_delete=models.SET_NULL,
+                              related_name="+")
+    owner_name = models.CharField("token of", max_length=150)
+    actor = models.ForeignKey(settings.AUTH_USER_MODEL, null=True, blank=True, on_delete=models.SET_NULL,
+                              related_name="+")
+    actor_name = models.CharField("by", max_length=150, blank=True)
+    via = models.CharField(max_length=32, blank=True, help_text="admin, the API tokens page, the command line")
+
+    class Meta:
+        ordering = ["-at", "-id"]
+
+    def __str__(self) -> str:
+        return f"{self.hint}… {self.action} by {self.actor_name or '?'}"
+
+    def save(self, *args, **kwargs) -> None:
+        if self.pk is not None:
+            raise ValueError("Token events cannot be changed.")
+        super().save(*args, **kwargs)
+
+    @classmethod
+    def note(cls, action: str, token: ApiToken, actor, via: str) -> "TokenEvent":
+        return cls.objects.create(
+            action=action, hint=token.hint, token_name=token.name, owner=token.user,
+            owner_name=token.user.get_username(), actor=actor if getattr(actor, "pk", None) else None,
+            actor_name=actor.get_username() if getattr(actor, "pk", None) else "", via=via,
+        )

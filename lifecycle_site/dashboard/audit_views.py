@@ -6,6 +6,7 @@ import json
 import re
 
 from django import forms
+from django.core.exceptions import NON_FIELD_ERRORS
 from django.core.paginator import Paginator
 from django.db.models import QuerySet
 from django.http import HttpRequest, HttpResponse
@@ -39,6 +40,9 @@ class _SafeWriter:
         self._writer.writerow([_cell(value) for value in row])
 
 
+WHEN_INVALID = "Not a date and time: write it like 2026-11-23 14:05 (UTC), or pick it in the calendar."
+
+
 class AuditFilter(forms.Form):
     kind = forms.ChoiceField(required=False, label="Changes of",
                              choices=[("", "lifecycle state"), ("parameters", "parameters")])
@@ -47,14 +51,25 @@ class AuditFilter(forms.Form):
     user = forms.CharField(required=False)
     outcome = forms.ChoiceField(required=False, choices=[("", "any")] + TransitionRecord.Outcome.choices)
     source = forms.ChoiceField(required=False, choices=[("", "any")] + TransitionRecord.Source.choices)
-    since = forms.DateTimeField(required=False, widget=forms.DateTimeInput(attrs={"type": "datetime-local"}))
-    until = forms.DateTimeField(required=False, widget=forms.DateTimeInput(attrs={"type": "datetime-local"}))
+    since = forms.DateTimeField(required=False, label="From (UTC)", error_messages={"invalid": WHEN_INVALID},
+                                widget=forms.DateTimeInput(attrs={"type": "datetime-local"}))
+    until = forms.DateTimeField(required=False, label="To (UTC)", error_messages={"invalid": WHEN_INVALID},
+                                widget=forms.DateTimeInput(attrs={"type": "datetime-local"}))
 
     def clean(self):
         data = super().clean()
         if data.get("since") and data.get("until") and data["since"] > data["until"]:
             raise forms.ValidationError("'From' must be before 'to'.")
         return data
+
+    @property
+    def problems(self) -> list[str]:
+        """Why the filter cannot be applied, one line per field, in the field's own words."""
+        if not self.is_bound or self.is_valid():
+            return []
+        lines = [f"{self[name].label}: {' '.join(errors)}" for name, errors in self.errors.items()
+                 if name != NON_FIELD_ERRORS]
+        return lines + list(self.non_field_errors())
 
     @property
     def parameters(self) -> bool:
@@ -80,8 +95,10 @@ class AuditFilter(forms.Form):
         return records
 
 
-def _records(request: HttpRequest) -> tuple[AuditFilter, QuerySet]:
-    form = AuditFilter(request.GET or None)
+def filtered(query) -> tuple[AuditFilter, QuerySet]:
+    """The filter form of a query string and the records it selects (none while it is invalid:
+    the page then says why instead of showing an empty history as if it were the answer)."""
+    form = AuditFilter(query or None)
     model = ParameterRecord if form.parameters else TransitionRecord
     records = model.objects.select_related("node")
     if form.is_bound and form.is_valid():
@@ -89,6 +106,21 @@ def _records(request: HttpRequest) -> tuple[AuditFilter, QuerySet]:
     elif form.is_bound:
         records = records.none()
     return form, records
+
+
+def _records(request: HttpRequest) -> tuple[AuditFilter, QuerySet]:
+    return filtered(request.GET)
+
+
+def live_query(request: HttpRequest, form: AuditFilter, records: QuerySet, page) -> str | None:
+    """The query string of the page's live socket: its filter and the newest record shown.
+    None where new records would not show (a later page, an invalid filter)."""
+    if page.number != 1 or (form.is_bound and not form.is_valid()):
+        return None
+    query = request.GET.copy()
+    query.pop("page", None)
+    query["shown"] = str(records.order_by("-id").values_list("id", flat=True).first() or 0)
+    return query.urlencode()
 
 
 @viewer_required
@@ -101,7 +133,8 @@ def audit_list(request: HttpRequest) -> HttpResponse:
         request,
         "dashboard/audit.html",
         {"form": form, "page": page, "records": [r.as_dict() for r in page], "query": query.urlencode(),
-         "parameters": form.parameters},
+         "parameters": form.parameters, "total": page.paginator.count, "problems": form.problems,
+         "live_query": live_query(request, form, records, page)},
     )
 
 

@@ -13,6 +13,24 @@ from lifecycle_site.fleet.models import LogRecord, ManagedNode, Robot
 HISTORY_LINES = 500
 LEVELS = [name for _, name in LogRecord.LEVELS]
 LEVEL_VALUES = {name: value for value, name in LogRecord.LEVELS}
+# The console's filters, as the page's address carries them (static/js/logs.js keeps it up to
+# date): level at least; text the line must contain / must not contain; node (logger) names to
+# keep / to leave out, comma-separated; re=1: the four text fields are regular expressions.
+TEXT_FILTERS = ("q", "not", "node", "xnode")
+MAX_FILTER_CHARS = 200  # also the longest regular expression the page accepts (logs.js)
+
+
+def filters_of(request: HttpRequest) -> dict:
+    """The filters named in the query string, cut to their bounds."""
+    level = request.GET.get("level", "").upper()
+    found = {"level": level if level in LEVEL_VALUES else "DEBUG", "re": request.GET.get("re") == "1"}
+    for name in TEXT_FILTERS:
+        found[name] = request.GET.get(name, "").strip()[:MAX_FILTER_CHARS]
+    return found
+
+
+def _names(text: str) -> list[str]:
+    return [name.strip() for name in text.split(",") if name.strip()]
 
 
 def _target(scope: str, name: str) -> tuple[str, QuerySet, dict]:
@@ -29,12 +47,23 @@ def _target(scope: str, name: str) -> tuple[str, QuerySet, dict]:
 
 
 def _filtered(records: QuerySet, request: HttpRequest) -> QuerySet:
-    level = request.GET.get("level", "").upper()
-    if level in LEVEL_VALUES:
-        records = records.filter(level__gte=LEVEL_VALUES[level])
-    text = request.GET.get("q", "").strip()
-    if text:
-        records = records.filter(Q(message__icontains=text) | Q(logger__icontains=text))
+    """The level, and the text filters when they are plain text. Regular expressions are never
+    run here: a user's pattern could backtrack for minutes in this shared process. With re=1
+    the page applies them, in the user's own browser, to what this returns (logs.js)."""
+    found = filters_of(request)
+    records = records.filter(level__gte=LEVEL_VALUES[found["level"]])
+    if found["re"]:
+        return records
+    if found["q"]:
+        records = records.filter(Q(message__icontains=found["q"]) | Q(logger__icontains=found["q"]))
+    if found["not"]:
+        records = records.exclude(message__icontains=found["not"]).exclude(logger__icontains=found["not"])
+    keep = Q()
+    for name in _names(found["node"]):
+        keep |= Q(logger__icontains=name)
+    records = records.filter(keep)
+    for name in _names(found["xnode"]):
+        records = records.exclude(logger__icontains=name)
     return records
 
 
@@ -55,6 +84,11 @@ def log_console(request: HttpRequest, scope: str, name: str) -> HttpResponse:
             "levels": LEVELS,
             "gateway": gateway,
             "offline_gateways": [] if gateway["online"] else [gateway],
+            "filters": filters_of(request),
+            # Loggers are named like the node, dots for slashes: /agv1/lidar logs as agv1.lidar.
+            "loggers": [] if "node" in context else sorted(
+                n.lstrip("/").replace("/", ".") for n in context["robot"].nodes.values_list("name", flat=True)),
+            "max_filter_chars": MAX_FILTER_CHARS,
         },
     )
 
@@ -64,9 +98,11 @@ def log_download(request: HttpRequest, scope: str, name: str) -> HttpResponse:
     """Everything kept server-side (bounded by the retention settings), oldest first."""
     title, records, _ = _target(scope, name)
     records = _filtered(records, request).order_by("id")
+    if request.GET.get("format") == "json":  # for the page, which applies regular expressions itself
+        return JsonResponse({"title": title, "records": [r.as_dict() for r in records.iterator(chunk_size=2000)]})
     lines = [f"# /rosout of {title}, downloaded {timezone.now():%Y-%m-%d %H:%M:%S %Z}\n"]
     lines += [
-        f"{r.stamp:%Y-%m-%d %H:%M:%S.%f} [{r.level_name}] [{r.logger}] {r.message}\n"
+        f"{r.stamp:%Y-%m-%d %H:%M:%S.%f} UTC [{r.level_name}] [{r.logger}] {r.message}\n"
         for r in records.iterator(chunk_size=2000)
     ]
     response = HttpResponse("".join(lines), content_type="text/plain; charset=utf-8")

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from typing import Any
 
 from django.http import HttpRequest, HttpResponse
@@ -20,6 +21,48 @@ from lifecycle_site.fleet.param_files import ParameterFileError, diff, load
 from ros_gateway.shared import param_types as pt
 
 MAX_FILE_BYTES = 256 * 1024
+# ROS descriptors have no field for a list of allowed values; nodes write it into the free-text
+# additional_constraints, e.g. "one of: none, fail_configure" or "[low, high]". Bounded, so a
+# long text stays text.
+CHOICES = re.compile(r"(?:(?:one of|allowed(?: values)?|choices|values)\s*:?\s*(?P<words>.+))|\[(?P<list>.+)\]",
+                     re.IGNORECASE)
+MAX_CHOICES, MAX_CONSTRAINT_TEXT = 50, 500
+CHOICE_TYPES = {"string": str, "integer": int, "double": float}
+
+
+def choices(entry: dict) -> list[str] | None:
+    """The values a parameter may take, as form values, when they form a fixed list: true and
+    false for a bool; the list its additional_constraints names for a string or a number
+    (every item must be of the parameter's type). None: a free field."""
+    if entry["type"] == "bool":
+        return ["true", "false"]
+    convert = CHOICE_TYPES.get(entry["type"])
+    text = (entry.get("additional_constraints") or "").strip().rstrip(".")
+    if convert is None or not text or len(text) > MAX_CONSTRAINT_TEXT:
+        return None
+    found = CHOICES.fullmatch(text)
+    if found is None:
+        return None
+    items = [i.strip().strip("'\"`") for i in re.split(r"[,|]", found["words"] or found["list"])]
+    items = [i for i in items if i]
+    # Values are single words ("fail_configure", "1.5"): "one of the camera modes, see the
+    # manual" is prose, not a list.
+    if not 2 <= len(items) <= MAX_CHOICES or any(re.search(r"\s", i) for i in items):
+        return None
+    try:
+        return [_shown(convert(i)) for i in items]
+    except ValueError:
+        return None
+
+
+def _with_choices(listing: list[dict]) -> list[dict]:
+    for entry in listing:
+        entry["choices"] = choices(entry)
+        shown = _shown(entry["value"]) if entry["type"] != "bool" else str(bool(entry["value"])).lower()
+        # A value outside the list (set by another tool) stays selectable, so saving keeps it.
+        entry["off_list"] = shown if entry["choices"] and shown not in entry["choices"] else None
+        entry["shown"] = shown
+    return listing
 
 
 def _section(request: HttpRequest, node: ManagedNode, **extra) -> HttpResponse:
@@ -31,6 +74,8 @@ def _section(request: HttpRequest, node: ManagedNode, **extra) -> HttpResponse:
             context["error"] = exc.message
     if not node.alive and "error" not in context:
         context["error"] = "The node is not running: its parameters cannot be read."
+    if context.get("parameters"):
+        context["parameters"] = _with_choices(context["parameters"])
     return render(request, "dashboard/_parameters.html", context)
 
 
@@ -76,7 +121,13 @@ def _edit(request: HttpRequest, node: ManagedNode) -> HttpResponse:
         if f"seen:{name}" not in request.POST or entry["read_only"]:
             continue
         if entry["type"] == "bool":
-            value = f"value:{name}" in request.POST
+            raw = request.POST.get(f"value:{name}")
+            if raw is None:
+                continue
+            if raw not in ("true", "false"):
+                problems[name] = {"name": name, "successful": False, "reason": f"{raw!r} is not true or false"}
+                continue
+            value = raw == "true"
         else:
             raw = request.POST.get(f"value:{name}", "")
             if raw == _shown(entry["value"]):

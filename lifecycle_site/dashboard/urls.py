@@ -1,6 +1,16 @@
+from django.http import HttpResponseRedirect
+from django.templatetags.static import static
 from django.urls import path
 
-from lifecycle_site.dashboard import audit_views, log_views, operation_views, parameter_views, timeline_views, views
+from lifecycle_site.dashboard import (
+    audit_views,
+    log_views,
+    operation_views,
+    parameter_views,
+    timeline_views,
+    token_views,
+    views,
+)
 
 app_name = "dashboard"
 urlpatterns = [
@@ -21,4 +31,8 @@ urlpatterns = [
     path("robots/<str:robot>/timeline/", timeline_views.robot_timeline, name="robot-timeline"),
     path("audit/", audit_views.audit_list, name="audit"),
     path("audit.csv", audit_views.audit_csv, name="audit-csv"),
+    # Browsers ask for /favicon.ico where a page names no icon (JSON, text, the 404 page).
+    path("favicon.ico", lambda request: HttpResponseRedirect(static("img/favicon.svg")), name="favicon"),
+    path("tokens/", token_views.my_tokens, name="tokens"),
+    path("tokens/<int:token_id>/revoke", token_views.revoke_token, name="token-revoke"),
 ]

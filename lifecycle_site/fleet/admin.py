@@ -1,5 +1,8 @@
+from django import forms
 from django.contrib import admin
 from django.db.models import Count
+from django.urls import reverse
+from django.utils.html import format_html
 
 from lifecycle_site.fleet import (
     accounts_admin,  # noqa: F401  (users and groups, limited by role)
@@ -8,14 +11,38 @@ from lifecycle_site.fleet import (
 from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
 
 
+def dashboard_url(node: ManagedNode) -> str:
+    return reverse("dashboard:node", args=[node.key])
+
+
+class ManagedNodeInlineForm(forms.ModelForm):
+    """A node found on the robot keeps its ROS name (its key, audit records and logs are by
+    name); only a node added here, to be watched for, gets one typed in."""
+
+    class Meta:
+        model = ManagedNode
+        fields = ("order", "name", "desired_state")
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        if self.instance.pk is not None:
+            self.fields["name"].disabled = True
+            self.fields["name"].help_text = ""
+
+
 class ManagedNodeInline(admin.TabularInline):
     """The robot's nodes in bring-up order; 'order' and 'desired state' are edited here."""
 
     model = ManagedNode
-    fields = ("order", "name", "desired_state", "state_label", "alive", "last_seen")
-    readonly_fields = ("state_label", "alive", "last_seen")
+    form = ManagedNodeInlineForm
+    fields = ("order", "name", "desired_state", "state_label", "alive", "last_seen", "dashboard")
+    readonly_fields = ("state_label", "alive", "last_seen", "dashboard")
     ordering = ("order", "name")
     extra = 0
+
+    @admin.display(description="dashboard")
+    def dashboard(self, obj: ManagedNode) -> str:
+        return format_html('<a href="{}">node page</a>', dashboard_url(obj)) if obj.pk and obj.key else ""
 
 
 @admin.register(Robot)
@@ -26,13 +53,29 @@ class RobotAdmin(admin.ModelAdmin):
     search_fields = ("name", "description")
     inlines = [ManagedNodeInline]
 
+    def view_on_site(self, obj: Robot) -> str:
+        """The admin's "View on site" button opens the fleet page filtered to this robot."""
+        return f"{reverse('dashboard:fleet')}?robot={obj.name}"
+
 
 @admin.register(ManagedNode)
 class ManagedNodeAdmin(admin.ModelAdmin):
-    list_display = ("name", "robot", "order", "state_label", "desired_state", "alive", "last_seen")
+    list_display = ("name", "robot", "order", "state_label", "desired_state", "alive", "last_seen", "dashboard")
     list_filter = ("robot", "alive", "state_label")
     search_fields = ("name",)
     readonly_fields = ("key", "state_id", "state_label", "alive", "first_seen", "last_seen", "state_changed")
+
+    def get_readonly_fields(self, request, obj=None):
+        # A node's robot and ROS name are what it is: changing them would make it another node.
+        return ("robot", "name", *self.readonly_fields) if obj is not None else self.readonly_fields
+
+    def view_on_site(self, obj: ManagedNode) -> str:
+        """The admin's "View on site" button opens the node's dashboard page."""
+        return dashboard_url(obj)
+
+    @admin.display(description="dashboard")
+    def dashboard(self, obj: ManagedNode) -> str:
+        return format_html('<a href="{}">node page</a>', dashboard_url(obj))
 
 
 class RobotInline(admin.TabularInline):

@@ -1,32 +1,101 @@
 // Log console: live /rosout lines over a WebSocket (JSON), with a bounded number of lines
-// in the page, level and text filters, pause/resume, clear, follow-tail and download.
+// in the page, filters (level, text, not, nodes to keep or hide, optionally as regular
+// expressions), pause/resume, clear, follow-tail and download. The filters live in the page's
+// address, so a reload or a shared link shows the same lines.
+//
+// Regular expressions run here, in the user's own browser, on at most MAX_LINES lines (and on
+// a download the user asked for): never on the server, where one pattern that backtracks
+// badly would hold up everyone. They are limited to MAX_PATTERN characters and one that does
+// not compile is named, with the browser's reason, and ignored until it is fixed.
 (function () {
   "use strict";
   var MAX_LINES = 1000;       // lines kept in the page; older ones drop off
   var MAX_PAUSED = 5000;      // lines held back while paused
+  var MAX_PATTERN = 200;      // characters of a filter (log_views.MAX_FILTER_CHARS)
   var LEVELS = { DEBUG: 10, INFO: 20, WARN: 30, ERROR: 40, FATAL: 50 };
+  var TEXT_FIELDS = [["q", "text", "Text"], ["not", "not", "Not"], ["node", "node", "Nodes"], ["xnode", "xnode", "Hide nodes"]];
 
   var root = document.getElementById("log-console");
   if (!root) return;
   var q = function (name) { return root.querySelector('[data-log="' + name + '"]'); };
-  var lines = q("lines"), levelEl = q("level"), textEl = q("text"), pauseEl = q("pause"),
-      followEl = q("follow"), statusEl = q("status"), downloadEl = q("download");
+  var lines = q("lines"), levelEl = q("level"), pauseEl = q("pause"), regexEl = q("regex"),
+      followEl = q("follow"), statusEl = q("status"), downloadEl = q("download"), errorEl = q("error");
   var downloadBase = downloadEl.getAttribute("href");
-  var paused = false, held = [], heldDropped = 0, lastId = 0, received = 0;
+  var paused = false, held = [], heldDropped = 0, lastId = 0;
+  var match = compile();
 
+  // -- filters ------------------------------------------------------------------------
+  function fieldValue(param) {
+    var field = TEXT_FIELDS.filter(function (f) { return f[0] === param; })[0];
+    var el = field && q(field[1]);
+    return el ? el.value.trim() : "";
+  }
+
+  function plainTest(param, value) {
+    var needles = value.toLowerCase();
+    if (param === "node" || param === "xnode") {
+      var names = needles.split(",").map(function (n) { return n.trim(); }).filter(Boolean);
+      return function (text) { return names.some(function (n) { return text.indexOf(n) !== -1; }); };
+    }
+    return function (text) { return text.indexOf(needles) !== -1; };
+  }
+
+  // One test per filled-in field; the problems of those that cannot be used, in words.
+  function compile() {
+    var tests = {}, problems = [];
+    TEXT_FIELDS.forEach(function (field) {
+      var value = fieldValue(field[0]);
+      if (!value) return;
+      if (!regexEl.checked) { tests[field[0]] = plainTest(field[0], value); return; }
+      if (value.length > MAX_PATTERN) {
+        problems.push(field[2] + ": the expression is longer than " + MAX_PATTERN + " characters; it is ignored.");
+        return;
+      }
+      try {
+        var pattern = new RegExp(value, "i");
+        tests[field[0]] = function (text) { return pattern.test(text); };
+      } catch (error) {
+        problems.push(field[2] + ": not a valid regular expression (" + error.message + "); it is ignored until it is fixed.");
+      }
+    });
+    errorEl.textContent = problems.join(" ");
+    errorEl.hidden = !problems.length;
+    return tests;
+  }
+
+  // Text and Not look at the message and at the logger (node) name, each on its own, so that
+  // ^ and $ mean the start and end of either.
   function visible(record) {
-    var text = textEl.value.trim().toLowerCase();
-    return LEVELS[record.level] >= LEVELS[levelEl.value] &&
-      (!text || (record.message + " " + record.logger).toLowerCase().indexOf(text) !== -1);
+    if (LEVELS[record.level] < LEVELS[levelEl.value]) return false;
+    var message = regexEl.checked ? record.message : record.message.toLowerCase();
+    var logger = regexEl.checked ? record.logger : record.logger.toLowerCase();
+    var either = function (test) { return test(message) || test(logger); };
+    if (match.q && !either(match.q)) return false;
+    if (match.not && either(match.not)) return false;
+    if (match.node && !match.node(logger)) return false;
+    if (match.xnode && match.xnode(logger)) return false;
+    return true;
+  }
+
+  function params() {
+    var found = new URLSearchParams();
+    if (levelEl.value !== "DEBUG") found.set("level", levelEl.value);
+    TEXT_FIELDS.forEach(function (field) { if (fieldValue(field[0])) found.set(field[0], fieldValue(field[0])); });
+    if (regexEl.checked) found.set("re", "1");
+    return found;
+  }
+
+  // -- lines --------------------------------------------------------------------------
+  function when(stamp) {
+    var moment = new Date(stamp);
+    return isNaN(moment.getTime()) ? stamp : moment.toISOString().replace("T", " ").replace("Z", " UTC");
   }
 
   function lineFor(record) {
     var div = document.createElement("div");
     div.className = "log-line level-" + record.level.toLowerCase();
-    div.dataset.level = record.level;
-    div.dataset.text = (record.message + " " + record.logger).toLowerCase();
-    var time = record.stamp.slice(11, 23);
-    [[time, "t"], [record.level, "lvl"], [record.logger, "logger"], [record.message, "msg"]].forEach(function (part) {
+    div.record = record;
+    [[when(record.stamp), "t"], [record.level, "lvl"], [record.logger, "logger"], [record.message, "msg"]].forEach(function (part) {
       var span = document.createElement("span");
       span.className = part[1];
       span.textContent = part[0];
@@ -42,7 +111,6 @@
     records.forEach(function (r) {
       if (r.id <= lastId) return;   // already shown (history and live overlap)
       lastId = r.id;
-      received += 1;
       fragment.appendChild(lineFor(r));
     });
     lines.appendChild(fragment);
@@ -62,25 +130,57 @@
   }
 
   function status(extra) {
-    var parts = [lines.childElementCount + " lines shown (max " + MAX_LINES + ")"];
+    var total = lines.childElementCount, shown = 0;
+    for (var line = lines.firstElementChild; line; line = line.nextElementSibling) if (!line.hidden) shown += 1;
+    var parts = [shown === total ? total + " lines shown" : shown + " of " + total + " lines shown"];
+    parts[0] += " (the newest " + MAX_LINES + " are kept)";
     if (paused) parts.push("paused, " + held.length + " waiting" + (heldDropped ? ", " + heldDropped + " dropped" : ""));
     if (extra) parts.push(extra);
     statusEl.textContent = parts.join(" · ");
   }
 
   function refilter() {
-    Array.prototype.forEach.call(lines.children, function (div) {
-      var text = textEl.value.trim().toLowerCase();
-      div.hidden = LEVELS[div.dataset.level] < LEVELS[levelEl.value] || (!!text && div.dataset.text.indexOf(text) === -1);
-    });
-    var params = new URLSearchParams({ level: levelEl.value });
-    if (textEl.value.trim()) params.set("q", textEl.value.trim());
-    downloadEl.setAttribute("href", downloadBase + "?" + params.toString());
+    match = compile();
+    Array.prototype.forEach.call(lines.children, function (div) { div.hidden = !visible(div.record); });
+    var query = params().toString();
+    history.replaceState(history.state, "", location.pathname + (query ? "?" + query : "") + location.hash);
+    var server = params();
+    downloadEl.setAttribute("href", downloadBase + (server.toString() ? "?" + server.toString() : ""));
+    status();
+  }
+
+  // With regular expressions the server sends the records for the level and the page keeps
+  // those that match, as in the console, then saves them as the server's text file would be.
+  function downloadFiltered(event) {
+    if (!regexEl.checked) return;
+    event.preventDefault();
+    var query = params();
+    query.set("format", "json");
+    status("preparing the download…");
+    fetch(downloadBase + "?" + query.toString(), { credentials: "same-origin" })
+      .then(function (r) { if (!r.ok) throw new Error("the server answered " + r.status); return r.json(); })
+      .then(function (body) {
+        var text = ["# /rosout of " + body.title + ", downloaded " + when(new Date().toISOString()) + ", filtered in the browser: " + params().toString()];
+        body.records.filter(visible).forEach(function (r) {
+          text.push(when(r.stamp) + " [" + r.level + "] [" + r.logger + "] " + r.message);
+        });
+        var link = document.createElement("a");
+        link.href = URL.createObjectURL(new Blob([text.join("\n") + "\n"], { type: "text/plain" }));
+        link.download = root.dataset.scope + "-rosout-filtered.log";
+        document.body.appendChild(link);
+        link.click();
+        link.remove();
+        setTimeout(function () { URL.revokeObjectURL(link.href); }, 10000);
+        status();
+      })
+      .catch(function (error) { status("download failed: " + error.message + "; try again"); });
   }
 
   levelEl.addEventListener("change", refilter);
-  textEl.addEventListener("input", refilter);
-  // The filters apply in the page: Enter in the text field must not reload it.
+  regexEl.addEventListener("change", refilter);
+  TEXT_FIELDS.forEach(function (field) { var el = q(field[1]); if (el) el.addEventListener("input", refilter); });
+  downloadEl.addEventListener("click", downloadFiltered);
+  // The filters apply in the page: Enter in a text field must not reload it.
   root.querySelector("form[data-local]").addEventListener("submit", function (event) { event.preventDefault(); });
   pauseEl.addEventListener("click", function () {
     paused = !paused;

@@ -65,7 +65,7 @@ def test_operator_flow(page: Page, base_url):
     page.get_by_role("button", name="activate", exact=True).click()
     expect(page.locator("#transition-result")).to_contain_text("activate succeeded", timeout=WAIT_MS)
     expect(page.locator("#node-state .badge.big")).to_have_text("active")
-    expect(page.locator(".graph .state-box.current")).to_contain_text("active")
+    expect(page.locator(".graph svg:visible .state-box.current")).to_contain_text("active")
     expect(page.locator("#audit-rows tr").first).to_contain_text("bruno-operator")
     page.screenshot(path=ARTIFACTS / f"{mode}-node.png", full_page=True)
 

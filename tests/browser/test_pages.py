@@ -1,0 +1,110 @@
+"""The node page on a phone (390 x 844): parameters as cards that fit the screen, a select for
+parameters with a fixed list of values, and a state graph whose labels stay readable."""
+from __future__ import annotations
+
+import pytest
+from playwright.sync_api import Page, expect
+
+from lifecycle_site.audit.models import ParameterRecord
+from tests.browser.conftest import ARTIFACTS, ROBOT, submit_login
+
+WAIT_MS = 30_000
+PHONE = {"width": 390, "height": 844}
+
+
+@pytest.fixture
+def phone(browser, site, robot, operator):
+    context = browser.new_context(viewport=PHONE, device_scale_factor=1, is_mobile=True, has_touch=True)
+    page = context.new_page()
+    page.console_errors = []
+    page.on("console", lambda m: page.console_errors.append(m.text) if m.type == "error" else None)
+    page.goto(site + "login/")
+    submit_login(page, "bruno-operator")
+    expect(page.locator("h2", has_text=ROBOT)).to_be_visible(timeout=WAIT_MS)
+    yield page
+    context.close()
+
+
+def overflow(page: Page, selector: str) -> list[str]:
+    """Elements matching ``selector`` that reach past the right edge of the screen."""
+    return page.evaluate(
+        """(selector) => Array.from(document.querySelectorAll(selector))
+             .filter((el) => el.getClientRects().length && el.getBoundingClientRect().right > window.innerWidth + 0.5)
+             .map((el) => (el.id || el.name || el.tagName) + ' ' + Math.round(el.getBoundingClientRect().right))""",
+        selector,
+    )
+
+
+def test_parameters_are_cards_that_fit_a_phone_with_selects_for_fixed_lists(phone, site):
+    page = phone
+    page.goto(f"{site}nodes/{ROBOT}.flaky_node/")
+    mode = page.locator('select[name="value:failure_mode"]')
+    expect(mode).to_be_visible(timeout=WAIT_MS)
+    # The list comes from the descriptor's additional_constraints ("one of: none, fail_configure, ...").
+    assert mode.locator("option").all_inner_texts() == [
+        "none", "fail_configure", "raise_activate", "error_in_error", "crash", "slow_configure"]
+    expect(mode).to_have_value("fail_configure")
+    # A bool parameter is a true/false select, not a checkbox one cannot tell is a field.
+    sim_time = page.locator('select[name="value:use_sim_time"]')
+    assert sim_time.locator("option").all_inner_texts() == ["true", "false"]
+    expect(sim_time).to_have_value("false")
+    # Ranges go onto the number field.
+    seconds = page.locator('input[name="value:slow_seconds"]')
+    assert (seconds.get_attribute("min"), seconds.get_attribute("max")) == ("0.0", "120.0")
+
+    assert page.evaluate("document.documentElement.scrollWidth") <= PHONE["width"]
+    assert overflow(page, "#parameters tr, #parameters input, #parameters select, #parameters button") == []
+    page.screenshot(path=ARTIFACTS / "phone-parameters.png", full_page=True)
+
+    mode.select_option("none")
+    page.get_by_role("button", name="Save changes").click()
+    expect(page.locator("#parameters")).to_contain_text("All changes accepted", timeout=WAIT_MS)
+    expect(page.locator("#param-value-failure_mode")).to_have_text("none")
+    record = ParameterRecord.objects.filter(node__key=f"{ROBOT}.flaky_node", name="failure_mode").first()
+    assert (record.old_value, record.new_value) == ("fail_configure", "none")
+    assert ParameterRecord.objects.filter(node__key=f"{ROBOT}.flaky_node", name="use_sim_time").count() == 0
+    assert page.console_errors == []
+
+
+def test_state_graph_labels_are_at_least_10_px_on_a_phone(phone, site):
+    page = phone
+    page.goto(f"{site}nodes/{ROBOT}.lidar_driver/")
+    graph = page.locator("figure.graph svg:visible")
+    expect(graph).to_have_count(1, timeout=WAIT_MS)
+    sizes = page.evaluate(
+        """() => {
+             const svg = Array.from(document.querySelectorAll('figure.graph svg'))
+               .find((s) => s.getClientRects().length);
+             const scale = svg.getBoundingClientRect().width / svg.viewBox.baseVal.width;
+             return Array.from(svg.querySelectorAll('text')).map((t) =>
+               [t.textContent.trim(), parseFloat(getComputedStyle(t).fontSize) * scale]);
+           }"""
+    )
+    assert len(sizes) == 17  # 10 states and 7 labelled transitions
+    small = [(text, round(px, 1)) for text, px in sizes if px < 10]
+    assert small == []
+    assert page.evaluate("document.documentElement.scrollWidth") <= PHONE["width"]
+    page.screenshot(path=ARTIFACTS / "phone-graph.png", full_page=True)  # the panel is redrawn live
+
+
+def test_the_audit_page_shows_new_records_without_a_reload(browser, site, robot, operator, api):
+    from tests.integration.conftest import transition
+
+    context = browser.new_context(viewport={"width": 1280, "height": 900})
+    page = context.new_page()
+    errors: list[str] = []
+    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    page.goto(site + "login/")
+    submit_login(page, "bruno-operator")
+    with page.expect_websocket(lambda ws: "/ws/audit/" in ws.url):
+        page.goto(f"{site}audit/?robot={ROBOT}&node=camera_driver")
+    page.evaluate("window.__sameDocument = true")
+    response = transition(api, f"{ROBOT}.camera_driver", "configure")
+    assert response.status_code == 200, response.content
+    row = page.locator("#audit-rows tr", has_text="configure").first
+    expect(row).to_contain_text("succeeded", timeout=WAIT_MS)
+    expect(row).to_contain_text("unconfigured → inactive")
+    expect(page.locator("#audit-count")).to_contain_text("1 record")
+    assert page.evaluate("window.__sameDocument") is True
+    assert errors == []
+    context.close()
