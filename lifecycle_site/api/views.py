@@ -2,6 +2,7 @@
 calls go through each robot's gateway and every transition attempt lands in the audit log."""
 from __future__ import annotations
 
+from django.core.cache import cache
 from django.db.models import Count, Q
 from django.http import Http404, HttpRequest, JsonResponse
 
@@ -93,14 +94,28 @@ def node_detail(request: HttpRequest, key: str) -> JsonResponse:
     body["described_by"] = "state machine"
     if node.alive:
         try:  # the node's own answer, when it can give one
-            gateway = node.robot.gateway.name
-            states = call_gateway(gateway, protocol.GET_AVAILABLE_STATES, robot=node.robot.name, node=node.name)
-            graph = call_gateway(gateway, protocol.GET_TRANSITION_GRAPH, robot=node.robot.name, node=node.name)
-            body["available_states"], body["transition_graph"] = states["states"], graph["graph"]
+            body["available_states"], body["transition_graph"] = _described_by_node(node)
             body["described_by"] = "node"
         except GatewayError as exc:
             body["described_by_error"] = exc.message
     return JsonResponse(body)
+
+
+# A node's states and transition graph are fixed in its code: asked once a minute, not on every
+# read (two gateway round trips, the slowest part of this answer under load).
+DESCRIPTION_TTL_S = 60.0
+
+
+def _described_by_node(node: ManagedNode) -> tuple[list, list]:
+    key = f"api:described:{node.key}:{node.first_seen.timestamp() if node.first_seen else ''}"
+    described = cache.get(key)
+    if described is None:
+        gateway, where = node.robot.gateway.name, {"robot": node.robot.name, "node": node.name}
+        states = call_gateway(gateway, protocol.GET_AVAILABLE_STATES, **where)["states"]
+        graph = call_gateway(gateway, protocol.GET_TRANSITION_GRAPH, **where)["graph"]
+        described = (states, graph)
+        cache.set(key, described, DESCRIPTION_TTL_S)
+    return described
 
 
 def get_node(key: str) -> ManagedNode:

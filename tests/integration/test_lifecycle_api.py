@@ -5,9 +5,13 @@ import subprocess
 import sys
 
 import pytest
+from django.core.cache import cache
 
 from lifecycle_site.audit.models import TransitionRecord
+from lifecycle_site.fleet import gateways
+from lifecycle_site.fleet.gateways import channel_prefix
 from lifecycle_site.fleet.models import LogRecord
+from ros_gateway.shared import protocol
 from tests import stack
 from tests.integration.conftest import register, transition, wait_node
 
@@ -165,3 +169,25 @@ def test_state_changes_are_pushed_to_the_channels_groups(api, robots):
 
     wait_node(api, key, alive=True, state="unconfigured")
     async_to_sync(scenario)()
+
+
+def test_node_description_is_asked_of_the_node_once_a_minute_not_on_every_read(api, robots):
+    """GET /api/v1/nodes/{id} answers with the node's own states and graph; the site keeps them
+    (they are fixed in the node's code) rather than making two gateway round trips per read."""
+    key = f"{AGV_B}.joy_to_vel"
+    wait_node(api, key, alive=True)
+    client = gateways.redis_client()
+    pattern = protocol.gateway_key(channel_prefix(), "local", "claim:*")
+
+    def commands_taken() -> int:
+        return sum(1 for _ in client.scan_iter(pattern, count=1000))
+
+    cache.clear()  # what an earlier test's read left
+    before = commands_taken()
+    first = api.get(f"/api/v1/nodes/{key}").json()
+    after_first = commands_taken()
+    second = api.get(f"/api/v1/nodes/{key}").json()
+    assert first["described_by"] == second["described_by"] == "node"
+    assert after_first - before == 2, "states and graph, asked of the node the first time"
+    assert commands_taken() == after_first, "the second read asked the gateway nothing"
+    assert second["transition_graph"] == first["transition_graph"]
