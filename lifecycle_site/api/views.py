@@ -107,7 +107,7 @@ DESCRIPTION_TTL_S = 60.0
 
 
 def _described_by_node(node: ManagedNode) -> tuple[list, list]:
-    key = f"api:described:{node.key}:{node.first_seen.timestamp() if node.first_seen else ''}"
+    key = f"api:described:{node.key}"
     described = cache.get(key)
     if described is None:
         gateway, where = node.robot.gateway.name, {"robot": node.robot.name, "node": node.name}
