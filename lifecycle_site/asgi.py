@@ -1,11 +1,15 @@
 """ASGI entry point: Django views over HTTP, Channels consumers over WebSocket."""
 import os
 
+import django
+
 os.environ.setdefault("DJANGO_SETTINGS_MODULE", "lifecycle_site.settings")
 
-from lifecycle_site.http_handler import http_application  # noqa: E402  (sets Django up)
+django.setup(set_prefix=False)
 
-django_asgi_app = http_application()
+from lifecycle_site.http_handler import SyncChainHandler  # noqa: E402  (needs Django set up first)
+
+django_asgi_app = SyncChainHandler()
 
 from channels.auth import AuthMiddlewareStack  # noqa: E402  (needs Django set up first)
 from channels.routing import ProtocolTypeRouter, URLRouter  # noqa: E402

@@ -14,15 +14,17 @@ has been open for CONNECTION_LIFETIME_S. docs/performance.md has the figures.
 """
 from __future__ import annotations
 
+import asyncio
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 
-import django
 from asgiref.sync import sync_to_async
 from django.core.handlers.asgi import ASGIHandler
 from django.db import connections
 from django.http import HttpRequest, HttpResponseBase
+
+from lifecycle_site.fleet import live_updates
 
 # Requests served at once. A transition waits for its gateway (seconds, if a node hangs), so
 # the pool is wide; threads (and their connections) are only made when all others are busy.
@@ -60,9 +62,5 @@ class SyncChainHandler(ASGIHandler):
         return self.get_response(request)
 
     async def get_response_async(self, request: HttpRequest) -> HttpResponseBase:
+        live_updates.server_loop.set(asyncio.get_running_loop())  # copied into the worker's context
         return await sync_to_async(self.respond, thread_sensitive=False, executor=self.workers)(request)
-
-
-def http_application() -> SyncChainHandler:
-    django.setup(set_prefix=False)
-    return SyncChainHandler()

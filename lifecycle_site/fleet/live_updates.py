@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from typing import Iterable
+import threading
+from concurrent.futures import Future
+from contextvars import ContextVar
+from typing import Any, Iterable
 
 from asgiref.sync import async_to_sync
 from channels.layers import get_channel_layer
@@ -25,29 +28,80 @@ def record_messages(records: Iterable[TransitionRecord]) -> list[tuple[str, dict
 
 # Live updates sent side by side (fewer than the channel layer's Redis pool of 100 connections).
 PUSH_CONCURRENCY = 50
+# The server's event loop, set by lifecycle_site/http_handler.py for the requests it runs: their
+# pushes are handed to it and go out while the answer goes back, instead of before it (under
+# load a push waited ~100 ms for the loop, which serves every page's socket too).
+server_loop: ContextVar[asyncio.AbstractEventLoop | None] = ContextVar("server_loop", default=None)
+# Handed-over pushes not sent yet; beyond this many (Redis hanging), new ones are dropped and
+# logged: what was stored is on every page the next time it loads.
+MAX_PENDING = 500
+_pending = 0
+_pending_lock = threading.Lock()
 
 
 def push(messages: list[tuple[str, dict]]) -> None:
     """Send (group, message) pairs to the Channels layer; a failure is logged, never raised
-    (what was stored is there for the next page load)."""
+    (what was stored is there for the next page load). In a request of the server, returns at
+    once and the server's event loop sends them; elsewhere (the ingest process) waits for them."""
     if not messages:
         return
     layer = get_channel_layer()
     if layer is None:
         return
+    loop = server_loop.get()
+    if loop is not None:
+        _hand_over(loop, layer, messages)
+        return
+    try:
+        results = async_to_sync(_send_all)(layer, messages)
+    except Exception as exc:  # noqa: BLE001 - the channel layer's errors are many; none must stop us
+        results = [exc]
+    _report(results, len(messages))
 
-    async def send_all() -> list:
-        # A few at a time: the channel layer's Redis pool holds at most 100 connections, and a
-        # group_send beyond them fails ("Too many connections"), losing its message.
-        results: list = []
-        for start in range(0, len(messages), PUSH_CONCURRENCY):
-            chunk = messages[start : start + PUSH_CONCURRENCY]
-            results += await asyncio.gather(*(layer.group_send(g, m) for g, m in chunk), return_exceptions=True)
-        return results
+
+async def _send_all(layer: Any, messages: list[tuple[str, dict]]) -> list:
+    # A few at a time: the channel layer's Redis pool holds at most 100 connections, and a
+    # group_send beyond them fails ("Too many connections"), losing its message.
+    results: list = []
+    for start in range(0, len(messages), PUSH_CONCURRENCY):
+        chunk = messages[start : start + PUSH_CONCURRENCY]
+        results += await asyncio.gather(*(layer.group_send(g, m) for g, m in chunk), return_exceptions=True)
+    return results
+
+
+def _hand_over(loop: asyncio.AbstractEventLoop, layer: Any, messages: list[tuple[str, dict]]) -> None:
+    global _pending
+    with _pending_lock:
+        if _pending >= MAX_PENDING:
+            log.warning("dropped %d live updates: %d are still waiting to be sent (is Redis answering?)",
+                        len(messages), _pending)
+            return
+        _pending += 1
+
+    def sent(future: Future) -> None:
+        global _pending
+        with _pending_lock:
+            _pending -= 1
+        try:
+            results = future.result()
+        except Exception as exc:  # noqa: BLE001
+            results = [exc]
+        _report(results, len(messages))
 
     try:
-        failures = [r for r in async_to_sync(send_all)() if isinstance(r, Exception)]
-    except Exception as exc:  # noqa: BLE001 - the channel layer's errors are many; none must stop us
-        failures = [exc]
+        asyncio.run_coroutine_threadsafe(_send_all(layer, messages), loop).add_done_callback(sent)
+    except RuntimeError as exc:  # the loop is closed: the server is stopping
+        with _pending_lock:
+            _pending -= 1
+        _report([exc], len(messages))
+
+
+def pending() -> int:
+    """Pushes handed to the server's loop and not sent yet."""
+    return _pending
+
+
+def _report(results: list, count: int) -> None:
+    failures = [r for r in results if isinstance(r, Exception)]
     if failures:
-        log.warning("could not push %d of %d live updates: %s", len(failures), len(messages), failures[0])
+        log.warning("could not push %d of %d live updates: %s", len(failures), count, failures[0])

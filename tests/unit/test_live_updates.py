@@ -1,0 +1,77 @@
+"""Live updates from a request of the server are handed to its event loop: the answer does not
+wait for them, they still arrive, and a loop that cannot send bounds how many wait."""
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+import time
+
+import pytest
+from asgiref.sync import async_to_sync
+from channels.layers import get_channel_layer
+
+from lifecycle_site.fleet import live_updates
+
+GROUP = "unit-live-updates"
+
+
+@pytest.fixture
+def server_loop(redis_server):
+    """An event loop in a thread of its own, as daphne's; set as the server's for the test."""
+    loop = asyncio.new_event_loop()
+    thread = threading.Thread(target=loop.run_forever, daemon=True)
+    thread.start()
+    token = live_updates.server_loop.set(loop)
+    yield loop
+    live_updates.server_loop.reset(token)
+    loop.call_soon_threadsafe(loop.stop)
+    thread.join(5)
+    loop.close()
+
+
+def busy(loop: asyncio.AbstractEventLoop, seconds: float) -> None:
+    """Keep the loop from running anything else for a while (a loop serving many sockets)."""
+    loop.call_soon_threadsafe(time.sleep, seconds)
+
+
+def wait_until(check, timeout: float) -> None:
+    end = time.monotonic() + timeout
+    while not check():
+        assert time.monotonic() < end, "timed out"
+        time.sleep(0.01)
+
+
+def test_a_request_does_not_wait_for_its_push_and_the_push_arrives(server_loop):
+    layer = get_channel_layer()
+    channel = async_to_sync(layer.new_channel)()
+    async_to_sync(layer.group_add)(GROUP, channel)
+    busy(server_loop, 0.5)
+    began = time.monotonic()
+    live_updates.push([(GROUP, {"type": "audit.record", "record": {"id": 7}})])
+    assert time.monotonic() - began < 0.1, "the request waited for the server's loop"
+    assert live_updates.pending() == 1
+    message = async_to_sync(asyncio.wait_for)(layer.receive(channel), 5)
+    assert message == {"type": "audit.record", "record": {"id": 7}}
+    wait_until(lambda: live_updates.pending() == 0, 5)
+
+
+def test_pushes_waiting_for_the_loop_are_bounded(server_loop, monkeypatch, caplog):
+    monkeypatch.setattr(live_updates, "MAX_PENDING", 2)
+    busy(server_loop, 1.0)
+    with caplog.at_level(logging.WARNING, logger="lifecycle_site.fleet.live_updates"):
+        for n in range(3):
+            live_updates.push([(GROUP, {"type": "audit.record", "record": {"id": n}})])
+    assert live_updates.pending() == 2
+    assert "dropped 1 live updates: 2 are still waiting" in caplog.text
+    wait_until(lambda: live_updates.pending() == 0, 5)
+
+
+def test_outside_the_server_a_push_is_sent_before_it_returns(redis_server):
+    """The ingest process (no server loop) sends and waits, as before."""
+    layer = get_channel_layer()
+    channel = async_to_sync(layer.new_channel)()
+    async_to_sync(layer.group_add)(GROUP, channel)
+    live_updates.push([(GROUP, {"type": "audit.record", "record": {"id": 1}})])
+    assert live_updates.pending() == 0
+    assert async_to_sync(asyncio.wait_for)(layer.receive(channel), 5)["record"] == {"id": 1}
