@@ -47,8 +47,8 @@ def with_links(nodes: Iterable[dict]) -> None:
         key = quote(node["id"], safe=_URL_SAFE)
         node["url"] = page_head + key + page_tail
         node["transition_url"] = post_head + key + post_tail
-        if node.get("last_seen") is None:  # a watched name not seen yet: it can be unwatched
-            robot = node["robot"]
+        robot = node.get("robot")
+        if robot and node.get("last_seen") is None:  # a watched name not seen yet: it can be unwatched
             if robot not in watch_urls:
                 watch_urls[robot] = reverse("dashboard:watch-node", args=[robot])
             node["watch_url"] = watch_urls[robot]

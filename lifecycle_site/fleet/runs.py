@@ -88,7 +88,7 @@ def tiers(robot: Robot, only: list[str]) -> list[list[str]]:
     would fail there and, with the "stop" policy, stop the run for the nodes that are up."""
     rows = ManagedNode.objects.filter(robot=robot).order_by(F("order").asc(nulls_last=True), "name")
     if not only:
-        rows = rows.exclude(last_seen__isnull=True)
+        rows = rows.exclude(alive=False, last_seen__isnull=True)  # "waiting" on the pages
     wanted = set(only)
     by_position: dict[int | None, list[str]] = {}
     for name, position in rows.values_list("name", "order"):
