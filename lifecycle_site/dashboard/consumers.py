@@ -21,6 +21,7 @@ from ros_gateway.shared import protocol
 
 log = logging.getLogger(__name__)
 
+OPEN_RUN_CHECK_S = 0.5  # how often a page with an open run looks at its runs (cached 1 s per page kind)
 GATEWAY_CHECK_S = 3.0  # also how soon a socket closes after logout, deactivation or role removal
 NOT_LOGGED_IN = socket_checks.NOT_LOGGED_IN
 NO_ROLE = socket_checks.NO_ROLE
@@ -120,7 +121,7 @@ class LiveConsumer(AsyncWebsocketConsumer):
                 await self.send_gateway_status(offline)
             await self.gateways_seen(views)
             await self.check_runs()
-            await asyncio.sleep(GATEWAY_CHECK_S)
+            await self.pause(GATEWAY_CHECK_S)
 
     def refusal(self) -> int | None:
         """Whether this socket may still receive updates (socket_checks.check_session, kept a
@@ -140,6 +141,9 @@ class LiveConsumer(AsyncWebsocketConsumer):
 
     async def check_runs(self) -> None:
         pass
+
+    async def pause(self, seconds: float) -> None:
+        await asyncio.sleep(seconds)
 
     async def send_gateway_status(self, offline: list[dict]) -> None:
         await self.send_html("dashboard/_gateway_banner.html", {"offline_gateways": offline, "oob": True})
@@ -188,6 +192,16 @@ class RunPanels:
         ranks = self.ranks()
         ranks[run["id"]] = max(ranks.get(run["id"], -1), snapshots.run_rank(run))
         await self.send_html("dashboard/_run.html", {"run": run, "runs_in": self.runs_in(run)})
+
+    async def pause(self, seconds: float) -> None:
+        """Until the next gateway check; while a run the page shows is open, its runs are read
+        every OPEN_RUN_CHECK_S meanwhile, so that its end shows within about a second."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + seconds
+        while (left := deadline - loop.time()) > 0:
+            await asyncio.sleep(min(OPEN_RUN_CHECK_S, left))
+            if any(rank < snapshots.DONE_RANK for rank in self.ranks().values()):
+                await self.check_runs()
 
     async def check_runs(self) -> None:
         runs = await database_sync_to_async(snapshots.runs_view, thread_sensitive=False)(*self.run_scope())

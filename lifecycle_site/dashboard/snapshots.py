@@ -138,12 +138,13 @@ def runs_view(robot_id: int | None = None, node_name: str | None = None) -> list
 
 
 DONE_STATUSES = ("succeeded", "failed", "partial")
+DONE_RANK = 1_000_000  # run_rank of a run that is over, with no results
 
 
 def run_rank(run: dict) -> int:
     """How far a run has come: a page never replaces a panel with an older state of it
     (a push, the database and a request's answer can arrive in any order)."""
-    return (1_000_000 if run.get("status") in DONE_STATUSES else 0) + len(run.get("results") or [])
+    return (DONE_RANK if run.get("status") in DONE_STATUSES else 0) + len(run.get("results") or [])
 
 
 # Every open page's socket asks for its gateways every few seconds (consumers.watch_gateway):
