@@ -21,6 +21,7 @@ from ros_gateway.shared import protocol
 
 log = logging.getLogger(__name__)
 
+OPEN_RUN_CHECK_S = 0.5  # how often a page with an open run looks at its runs (cached 1 s per page kind)
 GATEWAY_CHECK_S = 3.0  # also how soon a socket closes after logout, deactivation or role removal
 NOT_LOGGED_IN = socket_checks.NOT_LOGGED_IN
 NO_ROLE = socket_checks.NO_ROLE
@@ -119,7 +120,8 @@ class LiveConsumer(AsyncWebsocketConsumer):
                 self.offline_seen = seen
                 await self.send_gateway_status(offline)
             await self.gateways_seen(views)
-            await asyncio.sleep(GATEWAY_CHECK_S)
+            await self.check_runs()
+            await self.pause(GATEWAY_CHECK_S)
 
     def refusal(self) -> int | None:
         """Whether this socket may still receive updates (socket_checks.check_session, kept a
@@ -136,6 +138,12 @@ class LiveConsumer(AsyncWebsocketConsumer):
 
     async def gateways_seen(self, views: list[dict]) -> None:
         pass
+
+    async def check_runs(self) -> None:
+        pass
+
+    async def pause(self, seconds: float) -> None:
+        await asyncio.sleep(seconds)
 
     async def send_gateway_status(self, offline: list[dict]) -> None:
         await self.send_html("dashboard/_gateway_banner.html", {"offline_gateways": offline, "oob": True})
@@ -156,14 +164,58 @@ class LiveConsumer(AsyncWebsocketConsumer):
         pass
 
 
-class RunProgressMixin:
+class RunPanels:
+    """The run panels of what a page shows: the gateway's pushes as they come, and every few
+    seconds what the database says of the page's runs, so that every run's final state
+    arrives (a recovery the gateway started itself, a run made on another screen or by the
+    API, a last push that went only to other groups). Each panel goes into the page's run list
+    (live.js replaces the one there unless it shows a later state)."""
+
+    run_ranks: dict[str, int]  # how far each run shown has come (snapshots.run_rank)
+
+    def ranks(self) -> dict[str, int]:
+        if not hasattr(self, "run_ranks"):
+            self.run_ranks = {}
+        return self.run_ranks
+
+    def runs_in(self, run: dict) -> str:
+        raise NotImplementedError
+
+    def run_scope(self) -> tuple[int | None, str | None]:
+        """(robot id, node name) for snapshots.recent_runs: None for every robot / node."""
+        return None, None
+
     async def run_progress(self, event: dict) -> None:
-        """Live progress of a group run, swapped into its panel (if this page shows it)."""
-        await self.send_html("dashboard/_run.html", {"run": event["run"], "oob": True})
+        await self.send_run(event["run"])
+
+    async def send_run(self, run: dict) -> None:
+        ranks = self.ranks()
+        ranks[run["id"]] = max(ranks.get(run["id"], -1), snapshots.run_rank(run))
+        await self.send_html("dashboard/_run.html", {"run": run, "runs_in": self.runs_in(run)})
+
+    async def pause(self, seconds: float) -> None:
+        """Until the next gateway check; while a run the page shows is open, its runs are read
+        every OPEN_RUN_CHECK_S meanwhile, so that its end shows within about a second."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + seconds
+        while (left := deadline - loop.time()) > 0:
+            await asyncio.sleep(min(OPEN_RUN_CHECK_S, left))
+            if any(rank < snapshots.DONE_RANK for rank in self.ranks().values()):
+                await self.check_runs()
+
+    async def check_runs(self) -> None:
+        runs = await database_sync_to_async(snapshots.runs_view, thread_sensitive=False)(*self.run_scope())
+        ranks = self.ranks()
+        for run in runs:  # oldest first: each new one goes first in its list
+            if snapshots.run_rank(run) > ranks.get(run["id"], -1):
+                await self.send_run(run)
 
 
-class FleetConsumer(RunProgressMixin, LiveConsumer):
+class FleetConsumer(RunPanels, LiveConsumer):
     groups_to_join = [protocol.FLEET_GROUP]
+
+    def runs_in(self, run: dict) -> str:
+        return f"robot-{run['robot']}-run"
 
     async def send_snapshot(self) -> None:
         """The whole fleet list, so a page that reconnects catches up with what it missed.
@@ -181,6 +233,10 @@ class FleetConsumer(RunProgressMixin, LiveConsumer):
                 "dashboard/_robots.html", {"gateways": groups, "can_operate": self.can_operate, "oob": True}
             )
         self.heads = {g["gateway"]["name"]: _head(g["gateway"]) for g in groups}
+        self.views = {g["gateway"]["name"]: g["gateway"] for g in groups}
+        self.gateway_of = {robot.name: g["gateway"]["name"] for g in groups for robot, _ in g["robots"]}
+        self.run_ranks = {run["id"]: snapshots.run_rank(run)
+                          for g in groups for robot, _ in g["robots"] for run in robot.recent_runs}
         return html, {n["id"] for group in groups for _, nodes in group["robots"] for n in nodes}
 
     def gateway_views(self) -> list[dict]:
@@ -190,9 +246,24 @@ class FleetConsumer(RunProgressMixin, LiveConsumer):
         """Each gateway's header follows its health and counters (a new gateway needs a reload)."""
         for view in views:
             head = _head(view)
+            self.views[view["name"]] = view
             if view["name"] in self.heads and self.heads[view["name"]] != head:
+                went = self.heads[view["name"]]["online"] != head["online"]
                 self.heads[view["name"]] = head
                 await self.send_html("dashboard/_gateway_head.html", {"gateway": view, "oob": True})
+                if went:  # its rows: last known states and no commands, or live again
+                    await self.send_rows(view)
+
+    async def send_rows(self, view: dict) -> None:
+        def render() -> str:
+            with script_prefix(self.prefix):
+                rows = snapshots.robot_rows(view["robots"], view)
+                return render_to_string("dashboard/_node_row.html",
+                                        {"nodes": rows, "oob": "true", "can_operate": self.can_operate})
+
+        html = await database_sync_to_async(render, thread_sensitive=False)()
+        if html.strip():
+            await self.send(text_data=html)
 
     async def node_state(self, event: dict) -> None:
         node = event["node"]
@@ -201,14 +272,27 @@ class FleetConsumer(RunProgressMixin, LiveConsumer):
         template = "dashboard/_node_row_new.html" if new else "dashboard/_node_row.html"
         with script_prefix(self.prefix):
             row = snapshots.fleet_row(node)  # its links carry the prefix
+        view = self.views.get(self.gateway_of.get(node["robot"], ""))
+        if view is not None:
+            snapshots.mark_gateway([row], view)
         await self.send_html(template, {"node": row, "nodes": [row], "oob": "true", "can_operate": self.can_operate})
 
 
-class NodeConsumer(RunProgressMixin, LiveConsumer):
+class NodeConsumer(RunPanels, LiveConsumer):
     async def prepare(self) -> bool:
         self.key = self.scope["url_route"]["kwargs"]["key"]
         self.groups_to_join = [protocol.node_group(self.key)]
-        return await database_sync_to_async(snapshots.node_exists)(self.key)
+        found = await database_sync_to_async(snapshots.node_robot_and_name)(self.key)
+        if found is None:
+            return False
+        self.robot_id, self.node_name = found
+        return True
+
+    def runs_in(self, run: dict) -> str:
+        return "node-run"
+
+    def run_scope(self) -> tuple[int | None, str | None]:
+        return self.robot_id, self.node_name
 
     def gateway_views(self) -> list[dict]:
         return snapshots.node_gateway(self.key)
@@ -217,11 +301,23 @@ class NodeConsumer(RunProgressMixin, LiveConsumer):
         node = await database_sync_to_async(snapshots.one_node)(self.key)
         await self.node_state({"node": node})
 
+    gateway_offline = ""  # the node's gateway's name while it is offline
+
+    async def send_gateway_status(self, offline: list[dict]) -> None:
+        """Besides the banner: while the gateway is offline the panel offers no command."""
+        await super().send_gateway_status(offline)
+        now_offline = offline[0]["name"] if offline else ""
+        if now_offline != self.gateway_offline:
+            self.gateway_offline = now_offline
+            await self.send_snapshot()
+
     async def node_state(self, event: dict) -> None:
-        await self.send_html(
-            "dashboard/_node_state.html",
-            {**snapshots.state_panel(event["node"]), "can_operate": self.can_operate, "oob": True},
-        )
+        panel = snapshots.state_panel(event["node"], self.gateway_offline)
+        context = {**panel, "can_operate": self.can_operate, "oob": True}
+        with script_prefix(self.prefix):
+            html = render_to_string("dashboard/_node_state.html", context) + render_to_string(
+                "dashboard/_node_restart.html", context)
+        await self.send(text_data=html)
 
     async def audit_record(self, event: dict) -> None:
         await self.send_html("dashboard/_audit_row_oob.html", {"record": event["record"]})
@@ -255,6 +351,9 @@ class LogConsumer(LiveConsumer):
         pass
 
     async def run_progress(self, event: dict) -> None:
+        pass
+
+    async def check_runs(self) -> None:
         pass
 
     async def send_gateway_status(self, offline: list[dict]) -> None:

@@ -5,15 +5,20 @@ from django.http import Http404, HttpRequest, HttpResponse
 from django.shortcuts import render
 from django.views.decorators.http import require_POST
 
+from lifecycle_site.dashboard import snapshots
 from lifecycle_site.dashboard.access import operator_required
 from lifecycle_site.dashboard.views import node_or_404
 from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
 from lifecycle_site.fleet.runs import RunRefused, start_run
+from lifecycle_site.fleet.serializers import node_dict
 
 
-def _run_panel(request: HttpRequest, run: GroupRun | None, error: str = "", status: int = 200) -> HttpResponse:
-    return render(request, "dashboard/_run.html", {"run": run.as_dict() if run else None, "error": error},
-                  status=status)
+def _run_panel(request: HttpRequest, run: GroupRun | None, runs_in: str, error: str = "",
+               status: int = 200) -> HttpResponse:
+    """The answer to a run's button: an error in place, or the run's panel put into the page's
+    run list (out of band: a live update of the same run may have put it there already)."""
+    return render(request, "dashboard/_run.html",
+                  {"run": run.as_dict() if run else None, "error": error, "runs_in": runs_in}, status=status)
 
 
 @operator_required
@@ -22,26 +27,30 @@ def robot_operation(request: HttpRequest, robot: str) -> HttpResponse:
     robot_obj = Robot.objects.filter(name=robot).first()
     if robot_obj is None:
         raise Http404(f"There is no robot {robot}.")
+    runs_in = f"robot-{robot_obj.name}-run"
     try:
         timeout = float(request.POST.get("timeout") or 5)
         run = start_run(robot_obj, request.POST.get("operation", ""), user=request.user, source="dashboard",
                         policy=request.POST.get("policy", "stop"), node_timeout=max(0.5, min(timeout, 25.0)))
     except ValueError:
-        return _run_panel(request, None, "The timeout must be a number of seconds.")
+        return _run_panel(request, None, runs_in, "The timeout must be a number of seconds.")
     except RunRefused as exc:
-        return _run_panel(request, None, exc.message)
-    return _run_panel(request, run)
+        return _run_panel(request, None, runs_in, exc.message)
+    return _run_panel(request, run, runs_in)
 
 
 @operator_required
 @require_POST
 def node_restart(request: HttpRequest, key: str) -> HttpResponse:
     node = node_or_404(key)
+    refusal = snapshots.restart_refusal(node_dict(node))
+    if refusal:
+        return _run_panel(request, None, "node-run", refusal)
     try:
         run = start_run(node.robot, "restart", user=request.user, source="dashboard", nodes=[node.name])
     except RunRefused as exc:
-        return _run_panel(request, None, exc.message)
-    return _run_panel(request, run)
+        return _run_panel(request, None, "node-run", exc.message)
+    return _run_panel(request, run, "node-run")
 
 
 @operator_required

@@ -1,11 +1,13 @@
 """Plain-data snapshots that pages and consumers render (one query each, no N+1)."""
 from __future__ import annotations
 
+from datetime import datetime, timedelta, timezone
 from functools import lru_cache
 from typing import Iterable
 from urllib.parse import quote
 
 from django.core.cache import cache
+from django.db.models import Q
 from django.template.loader import render_to_string
 from django.urls import reverse
 from django.utils.http import RFC3986_SUBDELIMS
@@ -13,7 +15,7 @@ from django.utils.safestring import mark_safe
 
 from lifecycle_site.dashboard.graph import layout
 from lifecycle_site.fleet import gateways
-from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
+from lifecycle_site.fleet.models import Gateway, GroupRun, ManagedNode, Robot
 from lifecycle_site.fleet.serializers import node_dict
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
@@ -32,17 +34,24 @@ _URL_SAFE = RFC3986_SUBDELIMS + "/~:@"
 
 def with_links(nodes: Iterable[dict]) -> None:
     """Put each node's page and transition URLs into its dict, as ``url`` and
-    ``transition_url``, for the fleet row (dashboard/_node_row.html).
+    ``transition_url`` (and ``watch_url`` for a name not seen yet), for the fleet row
+    (dashboard/_node_row.html).
 
     Each route is reversed once, under the current script prefix (so sub-path serving keeps
     working), and the quoted key is put in per node: a fleet of 300 nodes needs about a
     thousand URLs, and a reverse() each was half the time of rendering it."""
     page_head, _, page_tail = reverse("dashboard:node", args=[_KEY]).rpartition(_KEY)
     post_head, _, post_tail = reverse("dashboard:node-transition", args=[_KEY]).rpartition(_KEY)
+    watch_urls: dict[str, str] = {}
     for node in nodes:
         key = quote(node["id"], safe=_URL_SAFE)
         node["url"] = page_head + key + page_tail
         node["transition_url"] = post_head + key + post_tail
+        robot = node.get("robot")
+        if robot and node.get("last_seen") is None:  # a watched name not seen yet: it can be unwatched
+            if robot not in watch_urls:
+                watch_urls[robot] = reverse("dashboard:watch-node", args=[robot])
+            node["watch_url"] = watch_urls[robot]
 
 
 def fleet_row(node: dict) -> dict:
@@ -71,14 +80,71 @@ def fleet() -> list[dict]:
     for robot in robots:
         by_gateway.setdefault(robot.gateway_id, []).append(robot)
     groups = []
+    runs = recent_runs()
     for row, state in zip(rows, gateways.statuses(rows), strict=True):
         mine = by_gateway.get(row.id, [])
         if mine or state.beat or row.last_beat:
-            groups.append({
-                "gateway": gateways.describe(row, state, [r.name for r in mine]),
-                "robots": [(robot, by_robot[robot.id]) for robot in mine],
-            })
+            view = gateways.describe(row, state, [r.name for r in mine])
+            for robot in mine:
+                robot.recent_runs = runs.get(robot.name, [])
+                mark_gateway(by_robot[robot.id], view)
+            groups.append({"gateway": view, "robots": [(robot, by_robot[robot.id]) for robot in mine]})
     return groups
+
+
+def mark_gateway(rows: Iterable[dict], view: dict) -> None:
+    """What a node row needs of its robot's gateway: while it is offline the row shows the
+    states as last known (as of its last heartbeat) and offers no command."""
+    for row in rows:
+        row["gateway"] = view["name"]
+        row["gateway_offline"] = not view["online"]
+        row["known_at"] = view.get("last_beat")
+
+
+# A page shows every open run of what it shows and the latest few that ended this recently.
+RECENT_RUNS_S = 15 * 60
+RUNS_PER_ROBOT = 3
+RUNS_READ = 200  # at most this many rows read for one page
+
+
+def recent_runs(robot_id: int | None = None, node_name: str | None = None) -> dict[str, list[dict]]:
+    """Runs to show, newest first, per robot name: the open ones and the RUNS_PER_ROBOT latest
+    that ended within RECENT_RUNS_S. With ``node_name``, only runs that drive that node (its
+    restarts and recoveries, and its robot's whole-robot runs)."""
+    since = datetime.now(timezone.utc) - timedelta(seconds=RECENT_RUNS_S)
+    open_states = (GroupRun.Status.QUEUED, GroupRun.Status.RUNNING)
+    rows = GroupRun.objects.select_related("robot", "requested_by").filter(
+        Q(created__gte=since) | Q(status__in=open_states)).order_by("-created")
+    if robot_id is not None:
+        rows = rows.filter(robot_id=robot_id)
+    by_robot: dict[str, list[dict]] = {}
+    for run in rows[:RUNS_READ]:
+        if node_name and run.only_nodes and node_name not in run.only_nodes:
+            continue
+        shown = by_robot.setdefault(run.robot.name, [])
+        if not run.done or sum(1 for r in shown if r["status"] not in open_states) < RUNS_PER_ROBOT:
+            shown.append(run.as_dict())
+    return by_robot
+
+
+def runs_view(robot_id: int | None = None, node_name: str | None = None) -> list[dict]:
+    """recent_runs() as one list, oldest first, for a page's socket (kept GATEWAY_VIEWS_TTL_S:
+    every open page asks every few seconds)."""
+    def read() -> list[dict]:
+        runs = [run for shown in recent_runs(robot_id, node_name).values() for run in shown]
+        return sorted(runs, key=lambda run: run["created"])
+
+    return cache.get_or_set(f"socket-runs:{robot_id}:{node_name}", read, GATEWAY_VIEWS_TTL_S)
+
+
+DONE_STATUSES = ("succeeded", "failed", "partial")
+DONE_RANK = 1_000_000  # run_rank of a run that is over, with no results
+
+
+def run_rank(run: dict) -> int:
+    """How far a run has come: a page never replaces a panel with an older state of it
+    (a push, the database and a request's answer can arrive in any order)."""
+    return (DONE_RANK if run.get("status") in DONE_STATUSES else 0) + len(run.get("results") or [])
 
 
 # Every open page's socket asks for its gateways every few seconds (consumers.watch_gateway):
@@ -134,6 +200,20 @@ def node_exists(key: str) -> bool:
     return ManagedNode.objects.filter(key=key).exists()
 
 
+def node_robot_and_name(key: str) -> tuple[int, str] | None:
+    """The node's robot id and its name, or None if there is no such node."""
+    return ManagedNode.objects.filter(key=key).values_list("robot_id", "name").first()
+
+
+def robot_rows(robot_names: list[str], view: dict) -> list[dict]:
+    """The fleet rows of these robots' nodes, marked with their gateway's state (``view``)."""
+    rows = [node_dict(node) for node in
+            ManagedNode.objects.select_related("robot").filter(robot__name__in=robot_names).order_by("name")]
+    with_links(rows)
+    mark_gateway(rows, view)
+    return rows
+
+
 def one_node(key: str) -> dict:
     return node_dict(ManagedNode.objects.select_related("robot").get(key=key))
 
@@ -146,14 +226,38 @@ def graph_svg(state_id: int, alive: bool) -> str:
     return mark_safe(render_to_string("dashboard/_graph.html", context))
 
 
-def state_panel(node: dict) -> dict:
-    """Context of the node page's live part: state, valid transitions, graph."""
+def state_panel(node: dict, gateway_offline: str = "") -> dict:
+    """Context of the node page's live part: state, valid transitions, graph, whether a
+    restart can work. ``gateway_offline``: the name of the node's gateway while it is offline
+    (the state shown is then the last known one, and no command can be sent)."""
+    refusal = restart_refusal(node)
+    if gateway_offline and not refusal:
+        refusal = f"The gateway {gateway_offline} is offline: no command can be sent until it is back."
     return {
         "node": node,
         "graph_svg": graph_svg(node["state"]["id"], node["alive"]),
         "busy": node["alive"] and not sm.is_primary(node["state"]["id"]),
         "states": STATES,
+        "gateway_offline": gateway_offline,
+        "restart_refusal": refusal,
+        # A state is rendered when the node enters it (a push) or when the page loads: how long
+        # a transition has been under way counts from here (live.js, data-elapsed-from).
+        "state_since": datetime.now(timezone.utc).isoformat(),
     }
+
+
+def restart_refusal(node: dict) -> str:
+    """Why a restart cannot work now ('' if it can): it drives the node's lifecycle, which a
+    finalized node (or one that is not running) no longer has."""
+    name = node["name"]
+    if node.get("last_seen") is None and not node["alive"]:
+        return f"{name} has not appeared yet: there is nothing to restart."
+    if not node["alive"]:
+        return f"{name} is not running: its process must be started again (a restart needs a running node)."
+    if node["state"]["id"] == sm.FINALIZED:
+        return (f"{name} is finalized: a lifecycle restart cannot bring it back. Restart its process "
+                "(its supervisor or launch file); with a desired state set, it is then brought back to it.")
+    return ""
 
 
 def log_group(scope: str, name: str) -> str | None:

@@ -7,13 +7,14 @@ from django.contrib import messages
 from django.contrib.auth.decorators import permission_required
 from django.http import Http404, HttpRequest, HttpResponse
 from django.shortcuts import redirect, render
+from django.template.loader import render_to_string
 from django.views.decorators.http import require_POST
-from django_htmx.http import HttpResponseClientRefresh
 
 from lifecycle_site.audit import denials
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.dashboard import snapshots
 from lifecycle_site.dashboard.access import viewer_required
+from lifecycle_site.dashboard.templatetags.dashboard import dom_id
 from lifecycle_site.fleet.models import ManagedNode, Robot
 from lifecycle_site.fleet.serializers import node_dict
 from lifecycle_site.fleet.transitions import request_transition
@@ -61,9 +62,10 @@ def node_detail(request: HttpRequest, key: str) -> HttpResponse:
         request,
         "dashboard/node.html",
         {
-            **snapshots.state_panel(payload),
+            **snapshots.state_panel(payload, "" if gateway["online"] else gateway["name"]),
             "node_obj": node,
             "records": [r.as_dict() for r in records],
+            "runs": snapshots.recent_runs(node.robot_id, node.name).get(node.robot.name, []),
             "gateway": gateway,
             "offline_gateways": [] if gateway["online"] else [gateway],
             "can_operate": _can_operate(request),
@@ -77,17 +79,25 @@ def node_transition(request: HttpRequest, key: str) -> HttpResponse:
     """A transition button: answers with a status message (and the state panel, in case
     the WebSocket is down)."""
     node = node_or_404(key)
+    # The node page shows answers in its #transition-result; a fleet row in its own result,
+    # naming robot and node (two robots may both have a /camera_driver).
+    on_row = request.htmx.target != "transition-result"
+    answer = "dashboard/_node_row_result.html" if on_row else "dashboard/_transition_result.html"
+    named = {"robot": node.robot.name, "node": node.name}
     if not _can_operate(request):
         denials.record(request, 403, "forbidden", "operator needed")
         outcome_context = {"ok": False, "message": "Your role may view but not operate nodes (operator needed)."}
-        return render(request, "dashboard/_transition_result.html", outcome_context, status=403)
+        return render(request, answer, {**named, **outcome_context}, status=403)
     requested = request.POST.get("transition", "")
     try:
         sm.resolve_transition(requested, sm.UNCONFIGURED)
     except sm.UnknownTransition:
-        return render(request, "dashboard/_transition_result.html",
-                      {"ok": False, "message": f"{requested!r} is not a lifecycle transition."}, status=400)
+        refused = {**named, "ok": False, "message": f"{requested!r} is not a lifecycle transition."}
+        return render(request, answer, refused, status=400)
     outcome = request_transition(node, requested, request.user, "dashboard")
+    if on_row:
+        return render(request, answer, {**named, "ok": outcome.succeeded, "code": outcome.code,
+                                        "message": outcome.message})
     node.refresh_from_db()
     payload = node_dict(node)
     if outcome.data.get("to"):  # the gateway's answer is fresher than the database write
@@ -104,21 +114,45 @@ def node_transition(request: HttpRequest, key: str) -> HttpResponse:
 @permission_required("fleet.operate_node", raise_exception=True)
 @require_POST
 def watch_node(request: HttpRequest, robot: str) -> HttpResponse:
-    """Pin a node name to a robot before it exists; it shows as 'waiting' until discovered."""
-    robot_obj = Robot.objects.filter(name=robot).first()
+    """Pin a node name to a robot before it exists (it shows as 'waiting' until discovered),
+    or, with ``action=unwatch``, drop such a name again. Answered in the page: the message, and
+    the row added or removed (a plain form post gets the fleet page again)."""
+    robot_obj = Robot.objects.select_related("gateway").filter(name=robot).first()
     if robot_obj is None:
         raise Http404(f"There is no robot {robot}.")
     name = request.POST.get("name", "").strip()
     if name and not name.startswith("/"):
         name = "/" + name
-    if not ROS_NAME.match(name) or "__" in name:
-        messages.error(request, f"{name or 'An empty name'} is not a ROS node name (e.g. /lidar_driver).")
+    row_html, ok = "", False
+    if request.POST.get("action") == "unwatch":
+        node = ManagedNode.objects.filter(robot=robot_obj, name=name).first()
+        if node is None:
+            message = f"{robot} has no node {name or '(no name given)'}."
+        elif node.last_seen is not None:
+            message = (f"{name} on {robot} has been seen running, so its history is kept: remove it in the admin "
+                       "if it is gone for good.")
+        else:
+            key = node.key
+            node.delete()
+            ok, message = True, f"No longer watching {name} on {robot}."
+            row_html = f'<tr id="{dom_id(key)}" hx-swap-oob="delete"></tr>'
+    elif not ROS_NAME.match(name) or "__" in name:
+        message = f"{name or 'An empty name'} is not a ROS node name (e.g. /lidar_driver)."
     else:
         node, created = ManagedNode.objects.get_or_create(robot=robot_obj, name=name)
+        ok = True
         if created:
-            messages.success(request, f"Watching {name} on {robot}: it shows as waiting until it appears.")
+            message = f"Watching {name} on {robot}: it shows as waiting until it appears."
+            row = snapshots.fleet_row(node_dict(node))
+            snapshots.mark_gateway([row], snapshots.gateway_of(robot_obj))
+            row_html = render_to_string("dashboard/_node_row_new.html",
+                                        {"node": row, "nodes": [row], "can_operate": True}, request=request)
         else:
-            messages.info(request, f"{name} on {robot} is already listed.")
-    if request.htmx:
-        return HttpResponseClientRefresh()
-    return redirect("dashboard:fleet")
+            message = f"{name} on {robot} is already listed."
+    if not request.htmx:
+        (messages.success if ok else messages.error)(request, message)
+        return redirect("dashboard:fleet")
+    answer = render_to_string("dashboard/_node_row_result.html", {"ok": ok, "message": message}, request=request)
+    # Table parts after other content are dropped by the HTML parser, unless in a template
+    # (htmx swaps out-of-band elements found in one).
+    return HttpResponse(answer + (f"<template>{row_html}</template>" if row_html else ""))

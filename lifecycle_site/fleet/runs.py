@@ -82,8 +82,13 @@ def tiers(robot: Robot, only: list[str]) -> list[list[str]]:
     """The robot's bring-up order as tiers run one after the other: one tier per position
     (nodes sharing a position go together), then every node without a position. Nodes within
     a tier have no order between them. ``only`` narrows the run to those nodes. The gateway
-    runs the tiers in reverse for the operations that go down (pause, reset, shut down)."""
+    runs the tiers in reverse for the operations that go down (pause, reset, shut down).
+
+    A whole-robot run leaves out names watched but never seen (a node not started yet): it
+    would fail there and, with the "stop" policy, stop the run for the nodes that are up."""
     rows = ManagedNode.objects.filter(robot=robot).order_by(F("order").asc(nulls_last=True), "name")
+    if not only:
+        rows = rows.exclude(alive=False, last_seen__isnull=True)  # "waiting" on the pages
     wanted = set(only)
     by_position: dict[int | None, list[str]] = {}
     for name, position in rows.values_list("name", "order"):

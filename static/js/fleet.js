@@ -69,4 +69,80 @@
   document.addEventListener("htmx:oobAfterSwap", apply);
   document.addEventListener("htmx:afterSwap", apply);
   document.addEventListener("htmx:wsAfterMessage", apply);
+
+  // Keyboard focus stays in a node's row when a live update redraws it, or its button is
+  // disabled while its request runs (the browser then drops the focus to the page): the same
+  // button if it is still offered, else the row's first button, else its link. Without this,
+  // the keyboard was back at the top of the page.
+  var refocus = null;  // {row, transition, at}: a row whose button was used (or focused) last
+  function focusInRow(rowId, transition) {
+    var row = document.getElementById(rowId);
+    if (!row) return;
+    var same = transition && row.querySelector("button[data-transition='" + transition + "']:not([disabled])");
+    var target = same || row.querySelector(".actions button:not([disabled])") || row.querySelector("a");
+    if (target) target.focus();
+  }
+  function restore() {
+    var active = document.activeElement;
+    if (refocus && (!active || active === document.body) && Date.now() - refocus.at < 60000) {
+      focusInRow(refocus.row, refocus.transition);
+    }
+  }
+  function remember(elt) {
+    var row = elt && elt.closest && elt.closest("tr.node-row");
+    refocus = row ? { row: row.id, transition: elt.dataset.transition, at: Date.now() } : null;
+  }
+  document.addEventListener("focusin", function (e) { remember(e.target); });
+  // A click elsewhere means the user moved on: no focus is brought back to the row then.
+  document.addEventListener("pointerdown", function (e) {
+    if (!e.target.closest || !e.target.closest("tr.node-row")) refocus = null;
+  });
+  document.addEventListener("htmx:beforeRequest", function (e) { remember(e.detail.elt); });
+  document.addEventListener("htmx:oobAfterSwap", restore);
+  // The answer lands in the row's result (kept across redraws); the button that asked may
+  // already be gone from the page, so its own events do not reach the document.
+  document.addEventListener("htmx:afterSwap", function () { setTimeout(restore, 0); });
+  document.addEventListener("htmx:afterRequest", function () { setTimeout(restore, 0); });
+
+  // A row's answer (templates/dashboard/_node_row_result.html) clears itself.
+  document.addEventListener("htmx:afterSwap", function (e) {
+    var slot = e.detail.target, result = slot && slot.classList.contains("row-result") && slot.firstElementChild;
+    if (!result) return;
+    setTimeout(function () { result.remove(); }, 1000 * Number(result.dataset.clearAfter || 10));
+  });
+
+  // The snapshot a page gets when its socket (re)connects redraws the robots, forms included:
+  // the choices made in them (failure policy, timeout, a name being typed) are kept.
+  var choices = null;
+  function controls(root) {
+    return root.querySelectorAll("section.robot form:not([data-local]) [name]:not([type=hidden]):not(button)");
+  }
+  function choiceKey(el) {
+    var section = el.closest("section.robot"), form = el.closest("form");
+    return (section ? section.dataset.robot : "") + "|" + (form ? form.className : "") + "|" + el.name;
+  }
+  document.addEventListener("htmx:oobBeforeSwap", function (e) {
+    if (!e.detail.target || e.detail.target.id !== "robots") return;
+    choices = {};
+    controls(e.detail.target).forEach(function (el) { choices[choiceKey(el)] = el.value; });
+  });
+  document.addEventListener("htmx:oobAfterSwap", function () {
+    if (!choices) return;
+    var robots = document.getElementById("robots");
+    if (robots) controls(robots).forEach(function (el) {
+      var key = choiceKey(el);
+      if (Object.prototype.hasOwnProperty.call(choices, key)) el.value = choices[key];
+    });
+    choices = null;
+  });
+
+  // "3 min ago" next to a last known state stays true while the page is open.
+  function ages() {
+    document.querySelectorAll("[data-age]").forEach(function (el) {
+      var seconds = Math.max(0, Math.round((Date.now() - Date.parse(el.dataset.age)) / 1000));
+      el.textContent = seconds < 60 ? seconds + " s ago" : seconds < 3600 ? Math.floor(seconds / 60) + " min ago"
+        : Math.floor(seconds / 3600) + " h ago";
+    });
+  }
+  setInterval(ages, 10000);
 })();

@@ -39,4 +39,32 @@
   document.addEventListener("htmx:wsError", function () { banner(true); });
   document.addEventListener("htmx:wsOpen", function () { banner(false); });
   window.lifecycleBanner = banner;
+
+  // "for 12 s" beside a transition under way (data-elapsed-from: when the page saw it begin).
+  setInterval(function () {
+    document.querySelectorAll("[data-elapsed-from]").forEach(function (el) {
+      var seconds = Math.max(0, Math.round((Date.now() - Date.parse(el.dataset.elapsedFrom)) / 1000));
+      el.textContent = seconds < 120 ? seconds + " s" : Math.floor(seconds / 60) + " min";
+    });
+  }, 1000);
+
+  // Run panels (templates/dashboard/_run.html) come wrapped to go first into their page's run
+  // list. A run already shown is replaced in place instead, unless the panel shown is further
+  // along (data-rank): a push, the database and a request's answer arrive in any order.
+  var MAX_RUNS = 6;
+  document.addEventListener("htmx:oobBeforeSwap", function (e) {
+    var list = e.detail.target;
+    if (!list || !list.classList || !list.classList.contains("runs")) return;
+    var panel = e.detail.fragment && e.detail.fragment.querySelector(".run[id^='run-']");
+    if (!panel) return;
+    e.detail.shouldSwap = false;
+    var shown = document.getElementById(panel.id);
+    if (shown) {
+      if (Number(panel.dataset.rank) >= Number(shown.dataset.rank)) shown.replaceWith(panel);
+      return;
+    }
+    list.insertBefore(panel, list.firstChild);
+    var runs = list.querySelectorAll(":scope > .run");
+    for (var i = MAX_RUNS; i < runs.length; i++) runs[i].remove();
+  });
 })();

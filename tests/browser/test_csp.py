@@ -66,7 +66,7 @@ def test_the_dashboard_works_under_the_policy(page: Page, site, robot, operator)
     page.evaluate("window.__sameDocument = true")
     # htmx: a transition button (hx-post, hx-vals, the CSRF header), its answer and the live push.
     row.get_by_role("button", name=re.compile("^configure")).click()
-    expect(page.locator("#toast")).to_contain_text("configure succeeded", timeout=WAIT_MS)
+    expect(row.locator(".row-result")).to_contain_text("configure succeeded", timeout=WAIT_MS)
     expect(row.locator(".badge")).to_have_text("inactive", timeout=WAIT_MS)
     page.fill("input[data-filter=q]", "lidar")
     page.press("input[data-filter=q]", "Enter")  # filters in the page: no reload (was an inline handler)

@@ -55,7 +55,7 @@ def test_operator_flow(page: Page, base_url):
     # Configure from the fleet list: the badge changes in place, without a reload.
     page.evaluate("window.__sameDocument = true")
     row.get_by_role("button", name=re.compile("^configure")).click()
-    expect(page.locator("#toast")).to_contain_text("configure succeeded", timeout=WAIT_MS)
+    expect(row.locator(".row-result")).to_contain_text("configure succeeded", timeout=WAIT_MS)
     expect(row.locator(".badge")).to_have_text("inactive", timeout=WAIT_MS)
     assert page.evaluate("window.__sameDocument") is True
 

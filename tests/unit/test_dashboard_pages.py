@@ -87,6 +87,59 @@ def test_watch_by_name_pins_a_waiting_node(operator_client, fleet):
     assert not ManagedNode.objects.filter(name__contains="bad").exists()
 
 
+def test_watch_answers_in_the_page_and_a_name_never_seen_can_be_unwatched(operator_client, fleet):
+    robot = fleet[0][0]
+    url = f"/robots/{robot.name}/watch"
+    answer = operator_client.post(url, {"name": "/arm_controller"}, HTTP_HX_REQUEST="true").content.decode()
+    assert "Watching /arm_controller" in answer and "HX-Refresh" not in answer
+    assert f'hx-swap-oob="beforeend:#robot-{robot.name}-nodes"' in answer and "waiting" in answer
+    assert "unwatch" in answer  # the new row offers to drop the name again
+    answer = operator_client.post(url, {"name": "/arm_controller", "action": "unwatch"},
+                                  HTTP_HX_REQUEST="true").content.decode()
+    assert "No longer watching /arm_controller" in answer and 'hx-swap-oob="delete"' in answer
+    assert not ManagedNode.objects.filter(robot=robot, name="/arm_controller").exists()
+    seen = fleet[1][0]  # seen running once: its history stays, it is removed in the admin
+    answer = operator_client.post(url, {"name": seen.name, "action": "unwatch"}, HTTP_HX_REQUEST="true")
+    assert "admin" in answer.content.decode() and ManagedNode.objects.filter(pk=seen.pk).exists()
+
+
+def test_whole_robot_runs_leave_out_names_never_seen(fleet):
+    from lifecycle_site.fleet.runs import tiers
+
+    robot = fleet[0][0]
+    ManagedNode.objects.create(robot=robot, name="/not_started", key=f"{robot.name}.not_started")
+    assert "/not_started" not in [name for tier in tiers(robot, []) for name in tier]
+    assert tiers(robot, ["/not_started"]) == [["/not_started"]]  # named: reported as not running
+
+
+def test_pages_show_the_open_and_recent_runs_of_what_they_show(operator_client, fleet):
+    from lifecycle_site.fleet.models import GroupRun
+
+    node, other = fleet[1][1], fleet[1][5]
+    assert node.robot_id == other.robot_id
+    GroupRun.objects.create(id="a" * 32, robot=node.robot, operation="recover", only_nodes=[node.name],
+                            status="succeeded", policy="stop", results=[{"node": node.name, "outcome": "succeeded"}])
+    GroupRun.objects.create(id="b" * 32, robot=node.robot, operation="restart", only_nodes=[other.name],
+                            status="running")
+    fleet_page = operator_client.get("/").content.decode()
+    assert f'id="run-{"a" * 32}"' in fleet_page and f'id="run-{"b" * 32}"' in fleet_page
+    assert "stops at the first failure" in fleet_page
+    node_page = operator_client.get(f"/nodes/{node.key}/").content.decode()
+    assert f'id="run-{"a" * 32}"' in node_page and f'id="run-{"b" * 32}"' not in node_page
+
+
+def test_restart_is_not_offered_to_a_finalized_node(operator_client, fleet):
+    node = fleet[1][1]
+    ManagedNode.objects.filter(pk=node.pk).update(alive=True, state_id=sm.FINALIZED, state_label="finalized")
+    page = operator_client.get(f"/nodes/{node.key}/").content.decode()
+    assert "is finalized: a lifecycle restart cannot bring it back" in page
+    refused = operator_client.post(f"/nodes/{node.key}/restart", HTTP_HX_REQUEST="true").content.decode()
+    assert "is finalized" in refused
+    # No gateway has reported here: the fleet rows say their states are the last known ones.
+    fleet_page = operator_client.get("/").content.decode()
+    assert "last known" in fleet_page and "is offline" in fleet_page and "running" not in fleet_page
+
+
 def test_audit_history_filters_pages_and_exports_csv(viewer_client, fleet):
     node = fleet[1][3]
     now = timezone.now()

@@ -87,3 +87,25 @@ OPERATION_LABELS = {"bringup": "Bring-up", "pause": "Pause", "resume": "Resume",
 @register.filter
 def operation_label(operation: str) -> str:
     return OPERATION_LABELS.get(operation, operation)
+
+
+@register.filter
+def run_rank(run: dict) -> int:
+    from lifecycle_site.dashboard.snapshots import run_rank as rank
+
+    return rank(run)
+
+
+@register.filter
+def age(iso: str | None) -> str:
+    """'12 s ago', '3 min ago', '2 h ago' (fleet.js keeps it current in the page)."""
+    if not iso:
+        return ""
+    from datetime import datetime, timezone
+
+    seconds = max(0, int((datetime.now(timezone.utc) - datetime.fromisoformat(iso)).total_seconds()))
+    if seconds < 60:
+        return f"{seconds} s ago"
+    if seconds < 3600:
+        return f"{seconds // 60} min ago"
+    return f"{seconds // 3600} h ago"
