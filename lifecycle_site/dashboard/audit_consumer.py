@@ -3,8 +3,7 @@
 What is shown is read from the database with the page's own filter (audit_views.filtered),
 so a live row is exactly a row the page would show after a reload. The socket reads when it is
 told a record was stored (a message in AUDIT_GROUP) and every few seconds regardless, so the
-page is live also for records whose push was lost (or, until the site's record pushes name
-this group, from polling alone). Each read is one indexed query for ids above the newest one
+page is live also for records whose push was lost. Each read is one indexed query for ids above the newest one
 shown; only when there are new ones is the first page rendered again, whole (bounded: PAGE_SIZE
 rows replace the table body, the count follows).
 """
@@ -18,10 +17,8 @@ from django.template.loader import render_to_string
 
 from lifecycle_site.dashboard.audit_views import PAGE_SIZE, filtered
 from lifecycle_site.dashboard.consumers import LiveConsumer
+from lifecycle_site.fleet.live_updates import AUDIT_GROUP
 from lifecycle_site.prefix import script_prefix
-
-# Where the site announces stored audit records to open audit pages (any record, any node).
-AUDIT_GROUP = "audit"
 
 
 class AuditConsumer(LiveConsumer):

@@ -17,13 +17,23 @@ from ros_gateway.shared import protocol
 
 log = logging.getLogger(__name__)
 
+# Open audit history pages (dashboard/audit_consumer.py): told that records were stored, they
+# read what is new through their own filter.
+AUDIT_GROUP = "audit"
+
+
 def record_messages(records: Iterable[TransitionRecord]) -> list[tuple[str, dict]]:
-    """The node pages' live audit rows for new records: (group, message) pairs."""
-    return [
+    """The node pages' live audit rows for new records, and one word to the audit pages:
+    (group, message) pairs."""
+    records = list(records)
+    messages = [
         (protocol.node_group(record.node.key), {"type": "audit.record", "record": record.as_dict()})
         for record in records
         if record.node_id is not None and record.node is not None
     ]
+    if records:
+        messages.append((AUDIT_GROUP, {"type": "audit.record", "record": {}}))
+    return messages
 
 
 # Live updates sent side by side (fewer than the channel layer's Redis pool of 100 connections).

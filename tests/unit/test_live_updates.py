@@ -12,6 +12,7 @@ from asgiref.sync import async_to_sync
 from channels.layers import get_channel_layer
 
 from lifecycle_site.fleet import live_updates
+from ros_gateway.shared import protocol
 
 GROUP = "unit-live-updates"
 
@@ -75,3 +76,23 @@ def test_outside_the_server_a_push_is_sent_before_it_returns(redis_server):
     live_updates.push([(GROUP, {"type": "audit.record", "record": {"id": 1}})])
     assert live_updates.pending() == 0
     assert async_to_sync(asyncio.wait_for)(layer.receive(channel), 5)["record"] == {"id": 1}
+
+
+def test_stored_records_reach_their_node_pages_and_once_the_audit_pages(db):
+    from django.utils import timezone
+
+    from lifecycle_site.audit.models import TransitionRecord
+    from lifecycle_site.fleet.models import ManagedNode, Robot
+
+    robot = Robot.objects.create(name="unit-live", domain_id=98)
+    node = ManagedNode.objects.create(robot=robot, name="/lidar")
+    now = timezone.now()
+    records = [
+        TransitionRecord.objects.create(node=node, robot=robot, robot_name=robot.name, node_name=node.name,
+                                        transition_label="configure", outcome="succeeded", source="api",
+                                        requested_at=now)
+        for _ in range(2)
+    ]
+    groups = [group for group, _ in live_updates.record_messages(records)]
+    assert groups == [protocol.node_group(node.key)] * 2 + [live_updates.AUDIT_GROUP]
+    assert live_updates.record_messages([]) == []
