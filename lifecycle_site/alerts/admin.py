@@ -3,9 +3,9 @@ from __future__ import annotations
 
 from django import forms
 from django.contrib import admin
-from django.http import HttpRequest
 
 from lifecycle_site.alerts.models import Alert, Delivery, Receiver, Rule
+from lifecycle_site.audit.admin import ReadOnlyAdmin
 
 
 class ReceiverForm(forms.ModelForm):
@@ -63,26 +63,15 @@ class RuleAdmin(admin.ModelAdmin):
         return ", ".join(p for p in parts if p) or "fleet"
 
 
-class ReadOnly(admin.ModelAdmin):
-    def has_add_permission(self, request: HttpRequest) -> bool:
-        return False
-
-    def has_change_permission(self, request: HttpRequest, obj=None) -> bool:
-        return False
-
-    def has_delete_permission(self, request: HttpRequest, obj=None) -> bool:
-        return False
-
-
 @admin.register(Alert)
-class AlertAdmin(ReadOnly):
+class AlertAdmin(ReadOnlyAdmin):
     list_display = ("id", "rule_name", "subject", "status", "fired_at", "acknowledged_by_name", "resolved_at")
     list_filter = ("status", "rule_name")
     search_fields = ("subject", "summary")
 
 
 @admin.register(Delivery)
-class DeliveryAdmin(ReadOnly):
+class DeliveryAdmin(ReadOnlyAdmin):
     list_display = ("at", "receiver_name", "event", "alert", "attempt", "outcome", "status_code", "duration_ms",
                     "error")
     list_filter = ("outcome", "event", "receiver_name")

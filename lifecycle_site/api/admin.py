@@ -16,6 +16,7 @@ from django.http import HttpRequest, HttpResponse
 from django.template.response import TemplateResponse
 
 from lifecycle_site.api.models import MAX_TOKENS_PER_USER, ApiToken, TokenEvent, TooManyTokens
+from lifecycle_site.audit.admin import ReadOnlyAdmin
 from lifecycle_site.fleet.roles import ADMIN_ROLE
 
 VIA = "admin"
@@ -105,7 +106,7 @@ class ApiTokenAdmin(admin.ModelAdmin):
 
 
 @admin.register(TokenEvent)
-class TokenEventAdmin(admin.ModelAdmin):
+class TokenEventAdmin(ReadOnlyAdmin):
     """Tokens made and revoked: read-only, for whoever may review tokens."""
 
     list_display = ("at", "action", "hint", "token_name", "owner_name", "actor_name", "via")
@@ -121,12 +122,3 @@ class TokenEventAdmin(admin.ModelAdmin):
 
     def has_view_permission(self, request: HttpRequest, obj=None) -> bool:
         return self._reviewer(request)
-
-    def has_add_permission(self, request: HttpRequest) -> bool:
-        return False
-
-    def has_change_permission(self, request: HttpRequest, obj=None) -> bool:
-        return False
-
-    def has_delete_permission(self, request: HttpRequest, obj=None) -> bool:
-        return False

@@ -4,7 +4,8 @@ from lifecycle_site.audit.models import AccessDenial, ParameterRecord, Transitio
 
 
 class ReadOnlyAdmin(admin.ModelAdmin):
-    """Audit records can be browsed, never added, changed or deleted."""
+    """Records that can be browsed, never added, changed or deleted in the admin (audit records,
+    token events, alerts and their deliveries)."""
 
     def has_add_permission(self, request) -> bool:
         return False

@@ -9,10 +9,12 @@ import socket
 import subprocess
 import sys
 import textwrap
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
 from django.conf import settings
+from playwright.sync_api import expect
 
 from tests import stack
 from tests.conftest import make_user
@@ -37,6 +39,23 @@ def submit_login(page, username: str, password: str = PASSWORD) -> None:
     page.fill("#id_username", username)
     page.fill("#id_password", password)
     page.click("button[type=submit]")
+
+
+@contextmanager
+def logged_in_page(browser, site: str, username: str = "bruno-operator", **context_options):
+    """A page in a browser context of its own, logged in as ``username`` and showing the fleet
+    page; errors on its console are kept in ``page.console_errors``."""
+    context = browser.new_context(**{"viewport": {"width": 1280, "height": 900}, **context_options})
+    page = context.new_page()
+    page.console_errors = []
+    page.on("console", lambda m: page.console_errors.append(m.text) if m.type == "error" else None)
+    try:
+        page.goto(site + "login/")
+        submit_login(page, username)
+        expect(page.locator("h2", has_text=ROBOT)).to_be_visible(timeout=20_000)
+        yield page
+    finally:
+        context.close()
 
 
 def pytest_collection_modifyitems(items):

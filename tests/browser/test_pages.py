@@ -6,7 +6,7 @@ import pytest
 from playwright.sync_api import Page, expect
 
 from lifecycle_site.audit.models import ParameterRecord
-from tests.browser.conftest import ARTIFACTS, ROBOT, submit_login
+from tests.browser.conftest import ARTIFACTS, ROBOT, logged_in_page, submit_login
 
 WAIT_MS = 30_000
 PHONE = {"width": 390, "height": 844}
@@ -14,15 +14,9 @@ PHONE = {"width": 390, "height": 844}
 
 @pytest.fixture
 def phone(browser, site, robot, operator):
-    context = browser.new_context(viewport=PHONE, device_scale_factor=1, is_mobile=True, has_touch=True)
-    page = context.new_page()
-    page.console_errors = []
-    page.on("console", lambda m: page.console_errors.append(m.text) if m.type == "error" else None)
-    page.goto(site + "login/")
-    submit_login(page, "bruno-operator")
-    expect(page.locator("h2", has_text=ROBOT)).to_be_visible(timeout=WAIT_MS)
-    yield page
-    context.close()
+    with logged_in_page(browser, site, viewport=PHONE, device_scale_factor=1, is_mobile=True,
+                        has_touch=True) as page:
+        yield page
 
 
 def overflow(page: Page, selector: str) -> list[str]:

@@ -10,7 +10,7 @@ import pytest
 from playwright.sync_api import Page, expect
 
 from lifecycle_site.fleet.models import LogRecord, Robot
-from tests.browser.conftest import ROBOT, submit_login
+from tests.browser.conftest import ROBOT, logged_in_page
 
 WAIT_MS = 20_000
 LINES = [("lidar_driver", 20, "scan ok"), ("lidar_driver", 30, "scan late by 40 ms"),
@@ -27,15 +27,8 @@ def page(browser, site, robot, operator):
         LogRecord(robot=robot_row, logger=logger, level=level, message=message, stamp=start + timedelta(seconds=i))
         for i, (logger, level, message) in enumerate(LINES)
     ])
-    context = browser.new_context(viewport={"width": 1280, "height": 900}, accept_downloads=True)
-    page = context.new_page()
-    page.console_errors = []
-    page.on("console", lambda m: page.console_errors.append(m.text) if m.type == "error" else None)
-    page.goto(site + "login/")
-    submit_login(page, "bruno-operator")
-    expect(page.locator("h2", has_text=ROBOT)).to_be_visible(timeout=WAIT_MS)
-    yield page
-    context.close()
+    with logged_in_page(browser, site, accept_downloads=True) as page:
+        yield page
 
 
 def shown(page: Page) -> list[str]:

@@ -13,6 +13,7 @@ from django.utils import timezone
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.fleet.models import ManagedNode, Robot
 from tests.conftest import make_user, session_of
+from tests.unit.sockets import receive_until
 
 
 @pytest.fixture
@@ -72,12 +73,6 @@ def test_the_first_page_follows_new_records_of_its_filter(transactional_db, memo
     browser.force_login(user)
     page = browser.get("/audit/?outcome=failed").content.decode()
     assert f'ws-connect="/ws/audit/?outcome=failed&amp;shown={old.id}"' in page
-
-    async def receive_until(communicator, text: str) -> str:
-        while True:
-            message = await communicator.receive_from(timeout=5)
-            if text in message:
-                return message
 
     async def scenario():
         communicator = WebsocketCommunicator(URLRouter(websocket_urlpatterns),

@@ -15,6 +15,7 @@ from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
 from ros_gateway.shared import state_machine as sm
 from tests import stack
 from tests.conftest import make_user, session_of
+from tests.unit.sockets import receive_until
 
 
 @pytest.fixture
@@ -99,24 +100,19 @@ def test_a_live_fleet_page_follows_a_gateway_going_away(transactional_db, redis_
     user = make_user("olga-live", "operator")
     session = session_of(user)
 
-    async def receive_until(communicator, text: str) -> str:
-        while True:
-            message = await communicator.receive_from(timeout=8)
-            if text in message:
-                return message
-
     async def scenario():
         communicator = WebsocketCommunicator(URLRouter(websocket_urlpatterns), "/ws/fleet/")
         communicator.scope["user"] = user
         communicator.scope["session"] = session
         assert (await communicator.connect(timeout=5))[0]
         try:
-            banner = await receive_until(communicator, 'id="gateway-banner"')
+            banner = await receive_until(communicator, 'id="gateway-banner"', timeout=8)
             assert "hidden" in banner.split(">")[0]
             stack.write_beat("cell-live", stopped=True)
-            banner = await receive_until(communicator, "The ROS gateway cell-live is offline (it stopped at")
+            banner = await receive_until(communicator, "The ROS gateway cell-live is offline (it stopped at",
+                                         timeout=8)
             assert "live-agv shows" in banner
-            head = await receive_until(communicator, 'id="gateway-cell-live-head"')
+            head = await receive_until(communicator, 'id="gateway-cell-live-head"', timeout=8)
             assert 'hx-swap-oob="true"' in head and 'data-gateway-online="false"' in head and ">stopped<" in head
         finally:
             await communicator.disconnect()

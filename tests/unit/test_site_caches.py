@@ -30,6 +30,7 @@ from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 from tests import stack
 from tests.conftest import make_user, session_of
+from tests.unit.sockets import receive_until
 
 AUTH_TABLES = ("api_apitoken", "auth_user", "auth_permission", "auth_group")
 
@@ -262,12 +263,6 @@ def test_fleet_socket_snapshot_is_rendered_off_the_event_loop_under_the_prefix(t
 
     monkeypatch.setattr(snapshots, "fleet", spied_fleet)
     monkeypatch.setattr(consumers, "render_to_string", spied_render)
-
-    async def receive_until(communicator, text: str) -> str:
-        while True:
-            message = await communicator.receive_from(timeout=5)
-            if text in message:
-                return message
 
     async def scenario():
         threads["loop"] = threading.get_ident()
