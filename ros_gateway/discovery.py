@@ -15,6 +15,7 @@ from typing import Callable
 from ros_gateway.domain import RosDomain
 from ros_gateway.lifecycle import NodeUnreachable, read_state
 from ros_gateway.outbox import Outbox
+from ros_gateway.processes import LocalProcesses, ProcessRecords
 from ros_gateway.registry import LiveNode, NodeRegistry, NodeSettings, RobotInfo
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
@@ -56,8 +57,11 @@ class Discovery:
     def __init__(self, registry: NodeRegistry, domains: dict[int, RosDomain], new_domain: DomainFactory,
                  outbox: Outbox, service_timeout: float, forget_parameters: Callable[[str], None],
                  holds_back: HoldsBack = lambda domain, name: False,
-                 unresponsive: Callable[[LiveNode], None] = lambda node: None) -> None:
+                 unresponsive: Callable[[LiveNode], None] = lambda node: None,
+                 processes: LocalProcesses | None = None) -> None:
         self.registry, self.domains, self.new_domain, self.outbox = registry, domains, new_domain, outbox
+        self.processes = processes or LocalProcesses()
+        self.records = ProcessRecords(outbox)
         self.unresponsive = unresponsive
         self.service_timeout = service_timeout
         self.forget_parameters = forget_parameters
@@ -105,12 +109,16 @@ class Discovery:
         self._passes += 1
         check_incarnations = self._passes % 4 == 0
         for domain_id, domain in list(self.domains.items()):
+            if self.processes.host is None:
+                self.processes.learn_host(domain.own_gid())
             present = domain.lifecycle_node_names(name for d, name in self.registry.nodes if d == domain_id)
             for name in present:
                 node = self.registry.nodes.get((domain_id, name))
                 if node is None or not node.seen:
                     robot = self.registry.robot_for(domain_id, name)
-                    if robot is not None and not self.holds_back(domain, name):
+                    # A process seen ended stays in the graph until its DDS lease runs out.
+                    if (robot is not None and not self.holds_back(domain, name)
+                            and not self.processes.all_ended(domain.incarnation(name))):
                         self._appeared(domain, robot, name)
                 elif not node.state_read:
                     spawn(self.read_state(node))
@@ -118,12 +126,21 @@ class Discovery:
                     self._check_incarnation(domain, node)
             if domain.settling():
                 continue
-            for (node_domain, name), node in list(self.registry.nodes.items()):
-                if node_domain == domain_id and node.alive and name not in present:
-                    domain.forget_node(node.name)
-                    log.info("node %s on %s is gone", node.name, node.robot.name)
-                    self.registry.vanished(node)
+            # A transition of ours watches the process itself (and records its loss).
+            watched = [node for (node_domain, _), node in list(self.registry.nodes.items())
+                       if node_domain == domain_id and node.alive and not node.in_transition]
+            ended = self.processes.ended_among(gid for node in watched for gid in node.incarnation)
+            for node in watched:
+                if node.name not in present:
+                    self._lost(domain, node, "ended: its node left the ROS graph (or was shut down)")
+                elif self.processes.all_ended(node.incarnation, ended):
+                    self._lost(domain, node, "exited (seen on this host)")
             self._report_robots(domain)
+
+    def _lost(self, domain: RosDomain, node: LiveNode, how: str) -> None:
+        domain.forget_node(node.name)
+        self.registry.vanished(node, reason=protocol.PROCESS_LOST)
+        self.records.lost(node, how)
 
     def _report_robots(self, domain: RosDomain) -> None:
         """Each settled robot's running nodes, now and then: what the site believes alive

@@ -22,13 +22,13 @@ from collections import defaultdict
 
 from ros_gateway.domain import RosDomain
 from ros_gateway.lifecycle import NodeUnreachable, read_state
+from ros_gateway.processes import GUID_PREFIX_BYTES
 from ros_gateway.registry import LiveNode, NodeRegistry
 from ros_gateway.shared import state_machine as sm
 from ros_gateway.tasks import spawn
 
 log = logging.getLogger(__name__)
 
-GUID_PREFIX_BYTES = 12  # RTPS: a participant's GUID prefix; the rest names the endpoint
 UNREACHABLE = "unreachable"
 
 # (domain id, participant) -- or (domain id, node name) while a node's endpoints are unknown.
