@@ -118,7 +118,7 @@ class Discovery:
                     robot = self.registry.robot_for(domain_id, name)
                     # A process seen ended stays in the graph until its DDS lease runs out.
                     if (robot is not None and not self.holds_back(domain, name)
-                            and not self.processes.all_ended(domain.incarnation(name))):
+                            and not self.processes.all_ended(domain_id, domain.incarnation(name))):
                         self._appeared(domain, robot, name)
                 elif not node.state_read:
                     spawn(self.read_state(node))
@@ -129,11 +129,11 @@ class Discovery:
             # A transition of ours watches the process itself (and records its loss).
             watched = [node for (node_domain, _), node in list(self.registry.nodes.items())
                        if node_domain == domain_id and node.alive and not node.in_transition]
-            ended = self.processes.ended_among(gid for node in watched for gid in node.incarnation)
+            ended = self.processes.ended_among(domain_id, (gid for node in watched for gid in node.incarnation))
             for node in watched:
                 if node.name not in present:
                     self._lost(domain, node, "ended: its node left the ROS graph (or was shut down)")
-                elif self.processes.all_ended(node.incarnation, ended):
+                elif self.processes.all_ended(domain_id, node.incarnation, ended):
                     self._lost(domain, node, "exited (seen on this host)")
             self._report_robots(domain)
 

@@ -287,7 +287,7 @@ class NodeDriver:
         def gone() -> str | None:
             if not before:
                 return None  # its endpoints were never seen: nothing to compare with
-            if self.processes.all_ended(node.incarnation):
+            if self.processes.all_ended(domain.domain_id, node.incarnation):
                 return "it exited, as seen on this host"
             now = {participant(gid) for gid in domain.incarnation(node.name)}
             if not now:

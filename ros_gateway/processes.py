@@ -6,14 +6,16 @@ participant's lease runs out (about 20 s with Fast DDS's defaults, measured 19.7
 kill -9). On the gateway's own host it need not wait. A Fast DDS participant's GUID prefix
 carries its vendor (01 0f), its host id (bytes 2-3) and the low 16 bits of its process id
 (bytes 4-5): a participant of this host is matched once to the one process with those low
-bits that maps Fast DDS's shared memory, and from then on a missing ``/proc`` entry, a zombie
-or another start time means it ended, at once. Anywhere else the signs are the node leaving
-the graph and a new process publishing its ``~/transition_event`` (a restart).
+bits that maps Fast DDS's shared-memory ports of the participant's ROS domain, and from then on
+a missing ``/proc`` entry, a zombie or another start time means it ended, at once. Anywhere
+else the signs are the node leaving the graph and a new process publishing its
+``~/transition_event`` (a restart).
 """
 from __future__ import annotations
 
 import logging
 import os
+import re
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
@@ -31,6 +33,10 @@ GUID_PREFIX_BYTES = 12  # RTPS: a participant's GUID prefix; the rest names the 
 PROCESS_LOST, PROCESS_RESTARTED = protocol.PROCESS_LOST, protocol.PROCESS_RESTARTED
 # Matched processes remembered at most (participants of nodes that come and go).
 KNOWN_LIMIT = 4096
+# RTPS well-known ports: a domain's participants use ports PB + DG * domain ... below the next
+# domain's; Fast DDS's shared-memory transport names its port segments after them.
+PORT_BASE, DOMAIN_GAIN = 7400, 250
+SHM_PORT = re.compile(r"/dev/shm/fastrtps_port(\d+)")
 
 
 @dataclass(frozen=True)
@@ -49,11 +55,14 @@ def _stat(proc: Path, pid: int) -> tuple[str, str] | None:
     return fields[0], fields[19]
 
 
-def _maps_fastdds(proc: Path, pid: int) -> bool:
+def _maps_domain_ports(proc: Path, pid: int, domain_id: int) -> bool:
+    """Whether the process maps a Fast DDS shared-memory port of the ROS domain."""
     try:
-        return "/dev/shm/fastrtps_" in (proc / str(pid) / "maps").read_text()
+        maps = (proc / str(pid) / "maps").read_text()
     except OSError:  # gone, or not ours to read
         return False
+    low = PORT_BASE + DOMAIN_GAIN * domain_id
+    return any(low <= int(port) < low + DOMAIN_GAIN for port in SHM_PORT.findall(maps))
 
 
 def participant(gid: bytes) -> bytes:
@@ -66,13 +75,14 @@ class LocalProcesses:
     def __init__(self, proc: Path = Path("/proc")) -> None:
         self.proc = proc
         self.host: bytes | None = None  # our own participants' host id (set by the first domain)
-        self._known: dict[bytes, OsProcess | None] = {}  # participant -> its process (None: not matched)
+        # (domain id, participant) -> its process (None: not matched)
+        self._known: dict[tuple[int, bytes], OsProcess | None] = {}
 
     def learn_host(self, own_gid: bytes | None) -> None:
         if own_gid and self.host is None and bytes(own_gid)[:2] == FASTDDS_VENDOR:
             self.host = bytes(own_gid)[2:4]
 
-    def _match(self, prefix: bytes) -> OsProcess | None:
+    def _match(self, domain_id: int, prefix: bytes) -> OsProcess | None:
         if self.host is None or prefix[:2] != FASTDDS_VENDOR or prefix[2:4] != self.host:
             return None  # another vendor's or another host's participant: nothing to look up here
         low = int.from_bytes(prefix[4:6], "little")
@@ -80,40 +90,41 @@ class LocalProcesses:
             pids = [int(name) for name in os.listdir(self.proc) if name.isdigit() and int(name) & 0xFFFF == low]
         except OSError:
             return None
-        matches = [pid for pid in pids if _maps_fastdds(self.proc, pid)]
-        if len(matches) != 1:  # none (another PID namespace) or ambiguous: rely on DDS
+        matches = [pid for pid in pids if _maps_domain_ports(self.proc, pid, domain_id)]
+        if len(matches) != 1:  # none (another PID namespace, a container) or ambiguous: rely on DDS
             return None
         stat = _stat(self.proc, matches[0])
         if stat is None or stat[0] in "ZX":
             return None
         return OsProcess(matches[0], stat[1])
 
-    def process(self, prefix: bytes) -> OsProcess | None:
-        if prefix not in self._known:
+    def process(self, domain_id: int, prefix: bytes) -> OsProcess | None:
+        key = (domain_id, prefix)
+        if key not in self._known:
             if len(self._known) >= KNOWN_LIMIT:
                 self._known.clear()
-            self._known[prefix] = self._match(prefix)
-        return self._known[prefix]
+            self._known[key] = self._match(domain_id, prefix)
+        return self._known[key]
 
-    def ended(self, prefix: bytes) -> bool:
+    def ended(self, domain_id: int, prefix: bytes) -> bool:
         """Whether the participant is known to be of a process of this host that has ended."""
-        found = self.process(prefix)
+        found = self.process(domain_id, prefix)
         if found is None:
             return False
         stat = _stat(self.proc, found.pid)
         return stat is None or stat[0] in "ZX" or stat[1] != found.started
 
-    def all_ended(self, gids: Iterable[bytes], ended: set[bytes] | None = None) -> bool:
+    def all_ended(self, domain_id: int, gids: Iterable[bytes], ended: set[bytes] | None = None) -> bool:
         """Whether every participant of these endpoints is known to have ended (False for none);
         ``ended``: those found ended by ``ended_among`` just before (one look per process)."""
         prefixes = {participant(gid) for gid in gids}
         if ended is not None:
             return bool(prefixes) and prefixes <= ended
-        return bool(prefixes) and all(self.ended(prefix) for prefix in prefixes)
+        return bool(prefixes) and all(self.ended(domain_id, prefix) for prefix in prefixes)
 
-    def ended_among(self, gids: Iterable[bytes]) -> set[bytes]:
+    def ended_among(self, domain_id: int, gids: Iterable[bytes]) -> set[bytes]:
         """The participants of these endpoints that are known to have ended."""
-        return {prefix for prefix in {participant(gid) for gid in gids} if self.ended(prefix)}
+        return {prefix for prefix in {participant(gid) for gid in gids} if self.ended(domain_id, prefix)}
 
 
 def lost_message(node: LiveNode, how: str) -> str:
