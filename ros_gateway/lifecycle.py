@@ -21,8 +21,8 @@ from lifecycle_msgs.srv import ChangeState, GetAvailableStates, GetAvailableTran
 from ros_gateway.domain import RosDomain, ServiceTimeout, ServiceUnavailable
 from ros_gateway.logs import LogPipeline
 from ros_gateway.outbox import Outbox
-from ros_gateway.processes import LocalProcesses, participant
-from ros_gateway.registry import LiveNode, NodeRegistry
+from ros_gateway.processes import LocalProcesses
+from ros_gateway.registry import LiveNode, NodeRegistry, participants
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 
@@ -70,6 +70,7 @@ async def available_transitions(domain: RosDomain, fqn: str, timeout: float, gra
 
 # While a transition runs, how often the node's process is looked at (processes.py).
 PROCESS_POLL_S = 0.1
+LEFT_GRAPH = "its node left the ROS graph"
 # () -> how the node's process went ("exited", ...), or None while it is there.
 ProcessGone = Callable[[], "str | None"]
 
@@ -83,6 +84,7 @@ class TransitionResult:
     duration_ms: float
     message: str = ""
     valid: list[dict] = field(default_factory=list)
+    process_gone: str | None = None  # process_lost: how (LEFT_GRAPH, or it is known to have ended)
 
 
 async def perform_transition(
@@ -139,10 +141,11 @@ async def perform_transition(
         response = None
     duration = (time.perf_counter() - began) * 1000
     if gone is not None:
-        return TransitionResult("process_lost", transition, start_state, None, duration, (
-            f"The node's process ended during {transition.label} ({gone}, {duration / 1000:.1f} s after the "
-            f"request): the transition's answer will never come. Its supervisor may start it again; a new "
-            f"instance starts unconfigured."))
+        message = (f"The node's process ended during {transition.label} ({gone}, {duration / 1000:.1f} s after "
+                   "the request): the transition's answer will never come. Its supervisor may start it again; "
+                   "a new instance starts unconfigured.")
+        return TransitionResult(protocol.PROCESS_LOST, transition, start_state, None, duration, message,
+                                process_gone=gone)
     if response.success:
         return TransitionResult("succeeded", transition, start_state, sm.SUCCESS_GOAL[transition.id], duration)
     now_state = await _reread(domain, fqn, timeout)
@@ -232,11 +235,21 @@ class NodeDriver:
     ) -> Driven:
         """Carry out one transition; the caller holds ``node.lock``. Raises
         NodeUnreachableRecorded (reported too) when nothing could be sent."""
+        # Until it is reported, what becomes of the node's process is this transition's to say
+        # (discovery keeps out of it: one record, and no restart taken for another one's).
+        node.in_transition = True
+        try:
+            return await self._transition(node, requested, timeout, source=source, user_id=user_id,
+                                          run_id=run_id, known_state=known_state)
+        finally:
+            node.in_transition = False
+
+    async def _transition(self, node: LiveNode, requested, timeout: float, *, source: str, user_id: int | None,
+                          run_id: str, known_state: int | None) -> Driven:
         domain = self.domains[node.robot.domain_id]
         requested_at = datetime.now(timezone.utc)
         audit = dict(robot=node.robot.name, node=node.name, source=source, user_id=user_id, run_id=run_id,
                      requested_at=requested_at.isoformat())
-        node.in_transition = True  # discovery leaves a loss of its process to us (one record)
         try:
             result = await perform_transition(domain, node.name, requested, timeout,
                                               on_send=lambda t: self._claim(node, t), known_state=known_state,
@@ -250,16 +263,15 @@ class NodeDriver:
             )
             await self.outbox.delivered(fact, DELIVERY_WAIT_S)
             raise NodeUnreachableRecorded(message, fact) from None
-        finally:
-            node.in_transition = False
         if result.transition is not None and node.tracker.commanded == result.transition.id:
             node.tracker.settled = result.transition.id  # its beginning is yet to come
-        if result.outcome in ("failed", protocol.PROCESS_LOST):
-            result.message = await self._with_reason(node, requested_at, result.message)
         facts = []
         if result.outcome == protocol.PROCESS_LOST and node.alive:
             domain.forget_node(node.name)
-            facts.append(self.registry.vanished(node, reason=protocol.PROCESS_LOST).fact)
+            ended = result.process_gone != LEFT_GRAPH  # exited, or replaced: the old one lingers dead
+            facts.append(self.registry.vanished(node, reason=protocol.PROCESS_LOST, ended=ended).fact)
+        if result.outcome in ("failed", protocol.PROCESS_LOST):
+            result.message = await self._with_reason(node, requested_at, result.message)
         if result.result_state is not None:
             change = self.registry.set_state(node, result.result_state)
             # The state goes with the answer even when a transition event reported it first,
@@ -282,17 +294,17 @@ class NodeDriver:
     def _process_gone(self, node: LiveNode, domain: RosDomain) -> ProcessGone:
         """How the node's process went, once it has: it exited (seen on this host), it left the
         ROS graph, or a process of another DDS participant now publishes its transition events."""
-        before = {participant(gid) for gid in node.incarnation}
+        before = node.live
 
         def gone() -> str | None:
             if not before:
                 return None  # its endpoints were never seen: nothing to compare with
-            if self.processes.all_ended(domain.domain_id, node.incarnation):
+            if self.processes.all_ended(domain.domain_id, before):
                 return "it exited, as seen on this host"
-            now = {participant(gid) for gid in domain.incarnation(node.name)}
-            if not now:
-                return "its node left the ROS graph"
-            if now - before:
+            now = participants(domain.incarnation(node.name))
+            if not now & before:
+                return LEFT_GRAPH
+            if now - before - node.departed:
                 return "a new process now runs under its name"
             return None
 

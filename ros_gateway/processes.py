@@ -29,7 +29,6 @@ from ros_gateway.shared import state_machine as sm
 log = logging.getLogger(__name__)
 
 FASTDDS_VENDOR = b"\x01\x0f"
-GUID_PREFIX_BYTES = 12  # RTPS: a participant's GUID prefix; the rest names the endpoint
 PROCESS_LOST, PROCESS_RESTARTED = protocol.PROCESS_LOST, protocol.PROCESS_RESTARTED
 # Matched processes remembered at most (participants of nodes that come and go).
 KNOWN_LIMIT = 4096
@@ -63,10 +62,6 @@ def _maps_domain_ports(proc: Path, pid: int, domain_id: int) -> bool:
         return False
     low = PORT_BASE + DOMAIN_GAIN * domain_id
     return any(low <= int(port) < low + DOMAIN_GAIN for port in SHM_PORT.findall(maps))
-
-
-def participant(gid: bytes) -> bytes:
-    return bytes(gid)[:GUID_PREFIX_BYTES]
 
 
 class LocalProcesses:
@@ -114,17 +109,16 @@ class LocalProcesses:
         stat = _stat(self.proc, found.pid)
         return stat is None or stat[0] in "ZX" or stat[1] != found.started
 
-    def all_ended(self, domain_id: int, gids: Iterable[bytes], ended: set[bytes] | None = None) -> bool:
-        """Whether every participant of these endpoints is known to have ended (False for none);
+    def all_ended(self, domain_id: int, prefixes: frozenset, ended: set[bytes] | None = None) -> bool:
+        """Whether every one of these participants is known to have ended (False for none);
         ``ended``: those found ended by ``ended_among`` just before (one look per process)."""
-        prefixes = {participant(gid) for gid in gids}
         if ended is not None:
             return bool(prefixes) and prefixes <= ended
         return bool(prefixes) and all(self.ended(domain_id, prefix) for prefix in prefixes)
 
-    def ended_among(self, domain_id: int, gids: Iterable[bytes]) -> set[bytes]:
-        """The participants of these endpoints that are known to have ended."""
-        return {prefix for prefix in {participant(gid) for gid in gids} if self.ended(domain_id, prefix)}
+    def ended_among(self, domain_id: int, prefixes: Iterable[bytes]) -> set[bytes]:
+        """The participants among these that are known to have ended."""
+        return {prefix for prefix in set(prefixes) if self.ended(domain_id, prefix)}
 
 
 def lost_message(node: LiveNode, how: str) -> str:

@@ -17,6 +17,14 @@ from ros_gateway.streams import TransitionTracker
 log = logging.getLogger(__name__)
 
 
+GUID_PREFIX_BYTES = 12  # RTPS: a participant's GUID prefix; the rest names the endpoint
+
+
+def participants(gids) -> frozenset:
+    """The DDS participants (GUID prefixes) of these endpoint ids."""
+    return frozenset(bytes(gid)[:GUID_PREFIX_BYTES] for gid in gids)
+
+
 @dataclass(frozen=True)
 class RobotInfo:
     """A robot as the site's configuration describes it to this gateway."""
@@ -58,6 +66,10 @@ class LiveNode:
     last_seen: datetime | None = None
     last_push: asyncio.Future | None = None  # the node's latest live update, so the next one waits for it
     in_transition: bool = False  # a transition of ours is being called (it watches the process)
+    # DDS participants (processes) publishing its transition events: the one believed running,
+    # and those known to have ended or left (a killed one lingers in the graph for its lease).
+    live: frozenset = frozenset()
+    departed: frozenset = frozenset()
     process_status: str = ""  # protocol.PROCESS_LOST / "restarted": what was last seen of its process
     process_since: datetime | None = None
 
@@ -170,16 +182,26 @@ class NodeRegistry:
         node.alive, node.seen, node.state_read, node.gone_reason = True, True, False, ""
         node.last_seen = datetime.now(timezone.utc)
         node.tracker = TransitionTracker()
-        node.respawned = node.incarnation != frozenset()  # seen before in this run: it came back
+        previous = node.live | node.departed
+        node.departed &= participants(incarnation)  # those no longer in the graph need no remembering
+        node.live = participants(incarnation) - node.departed
+        # Seen before in this run and back with another process (or with none known yet): a new
+        # instance. Back with the same one (it answers again after it was unreachable): not.
+        node.respawned = node.incarnation != frozenset() and (not node.live or bool(node.live - previous))
         node.incarnation = incarnation
         self.changes.publish(StateChange(node, "seen", node.state_id))
         return node
 
-    def vanished(self, node: LiveNode, reason: str = "") -> StateChange:
+    def vanished(self, node: LiveNode, reason: str = "", *, ended: bool = False) -> StateChange:
+        """The node is gone. ``ended``: its process is known dead (it may linger in the graph
+        until its DDS lease runs out, and is not taken back meanwhile); a node that merely left
+        the graph is taken back if the same process shows up again."""
         node.alive, node.seen, node.last_seen = False, False, datetime.now(timezone.utc)
         node.gone_reason = reason
         if reason == protocol.PROCESS_LOST:
             node.process_status, node.process_since = "lost", node.last_seen
+        if ended:
+            node.departed |= node.live
         return self.changes.publish(StateChange(node, "gone", node.state_id, reason=reason))
 
     def set_state(self, node: LiveNode, state_id: int, *, read: bool = False) -> StateChange | None:

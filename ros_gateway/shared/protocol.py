@@ -189,6 +189,7 @@ def node_payload(
     and when; status "" while nothing was."""
     from ros_gateway.shared import state_machine as sm
 
+    status = "" if alive and process_status == "lost" else process_status
     return {
         "id": key,
         "robot": robot,
@@ -198,7 +199,8 @@ def node_payload(
         "alive": alive,
         "gone_reason": "" if alive else gone_reason,  # "unreachable", or "process_lost"
         "last_seen": last_seen,
-        "process": {"status": process_status, "since": process_since if process_status else None},
+        # A node back with the same process after it left the graph is not "lost" any more.
+        "process": {"status": status, "since": process_since if status else None},
     }
 
 

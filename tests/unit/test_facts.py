@@ -177,7 +177,7 @@ def test_a_lost_process_and_its_new_instance_move_the_nodes_process_status(cell)
     part, robot = cell
     apply_facts("cell-f", [part.fact(protocol.NODE_SEEN, robot=robot.name, node="/lidar"),
                            part.fact(protocol.NODE_STATE, robot=robot.name, node="/lidar", state_id=sm.ACTIVE)])
-    lost_at = datetime.now(timezone.utc).replace(microsecond=123456)
+    lost_at = datetime.fromisoformat(part.tick())  # the gateway's own time of the loss
     gone = part.fact(protocol.NODE_GONE, robot=robot.name, node="/lidar", reason=protocol.PROCESS_LOST,
                      since=lost_at.isoformat())
     record = part.transition(robot.name, "/lidar", None, "", sm.ACTIVE, None, outcome=protocol.PROCESS_LOST,
@@ -189,6 +189,9 @@ def test_a_lost_process_and_its_new_instance_move_the_nodes_process_status(cell)
         False, "process_lost", "lost", lost_at)
     assert node_dict(lidar)["process"] == {"status": "lost", "since": lost_at.isoformat()}
     assert TransitionRecord.objects.get().as_dict()["outcome"] == "process_lost"
+    # Back with the same process (it only left the graph for a moment): alive, not "lost".
+    apply_facts("cell-f", [part.fact(protocol.NODE_SEEN, robot=robot.name, node="/lidar")])
+    assert node_dict(node(robot))["process"] == {"status": "", "since": None}
 
     back = part.fact(protocol.NODE_SEEN, robot=robot.name, node="/lidar")
     restarted = part.transition(robot.name, "/lidar", None, "", None, sm.UNCONFIGURED,
