@@ -94,6 +94,8 @@ class LocalProcesses:
         return OsProcess(matches[0], stat[1])
 
     def process(self, domain_id: int, prefix: bytes) -> OsProcess | None:
+        if self.host is None:
+            return None  # not known yet which host is ours: look again later
         key = (domain_id, prefix)
         if key not in self._known:
             if len(self._known) >= KNOWN_LIMIT:
