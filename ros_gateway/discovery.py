@@ -179,6 +179,8 @@ class Discovery:
                         "name, or a killed process whose DDS lease has not run out yet; its state may be misread",
                         len(now - node.departed), node.name, node.robot.name)
         node.incarnation = current
+        if node.live & now:
+            node.live &= now  # a process that stopped publishing is not the one it runs in
         new = now - node.live - node.departed
         if new and node.live:
             log.info("%s on %s was restarted (new process under the same name)", node.name, node.robot.name)

@@ -186,8 +186,10 @@ class NodeRegistry:
         node.departed &= participants(incarnation)  # those no longer in the graph need no remembering
         node.live = participants(incarnation) - node.departed
         # Seen before in this run and back with another process (or with none known yet): a new
-        # instance. Back with the same one (it answers again after it was unreachable): not.
-        node.respawned = node.incarnation != frozenset() and (not node.live or bool(node.live - previous))
+        # instance. Back with the same one (it answers again after it was unreachable): not, unless
+        # a new instance seen before it went has not had its state read yet.
+        node.respawned = node.respawned or (
+            node.incarnation != frozenset() and (not node.live or bool(node.live - previous)))
         node.incarnation = incarnation
         self.changes.publish(StateChange(node, "seen", node.state_id))
         return node

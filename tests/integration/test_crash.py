@@ -84,7 +84,8 @@ def test_a_new_instance_is_recorded_with_its_state_and_parameters_read_again(api
         process = await asyncio.to_thread(start_flaky, "crash-2", domain, "none")
         try:
             seen: list[dict] = []
-            while not any(m["type"] == "node.parameters" for m in seen):
+            while not any(m["type"] == "node.parameters" and any(c["name"] == "failure_mode" for c in m["changes"])
+                          for m in seen):
                 assert time.time() - since < 30, f"no parameters pushed; saw {[m['type'] for m in seen]}"
                 seen.append(await asyncio.wait_for(layer.receive(channel), 30))
             return seen
@@ -96,7 +97,8 @@ def test_a_new_instance_is_recorded_with_its_state_and_parameters_read_again(api
     asked = TransitionRecord.objects.order_by("-requested_at").first().requested_at
     try:
         messages = async_to_sync(restart_and_listen)()
-        pushed = next(m for m in messages if m["type"] == "node.parameters")
+        pushed = next(m for m in messages if m["type"] == "node.parameters"
+                      and any(c["name"] == "failure_mode" for c in m["changes"]))
         assert {"name": "failure_mode", "old": "crash", "new": "none"} in pushed["changes"], pushed
         wait_node(api, KEY, alive=True, state="unconfigured", timeout=30)
         restarted = stack.wait_for(lambda: records("process_restarted", asked), 10, "the restart's record")
