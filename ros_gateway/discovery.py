@@ -15,7 +15,8 @@ from typing import Callable
 from ros_gateway.domain import RosDomain
 from ros_gateway.lifecycle import NodeUnreachable, read_state
 from ros_gateway.outbox import Outbox
-from ros_gateway.registry import LiveNode, NodeRegistry, NodeSettings, RobotInfo
+from ros_gateway.processes import LocalProcesses, ProcessRecords
+from ros_gateway.registry import LiveNode, NodeRegistry, NodeSettings, RobotInfo, participants
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 from ros_gateway.streams import Completed, TransitionTracker
@@ -25,10 +26,11 @@ log = logging.getLogger(__name__)
 
 # How often every robot's full list of running nodes is reported (the site marks the rest lost).
 SNAPSHOT_EVERY_S = 30.0
+LEFT_GRAPH = "ended: its node left the ROS graph (or was shut down)"
 
 DomainFactory = Callable[[int], RosDomain]
-# (domain, node name) -> whether the node's process is known not to answer
-HoldsBack = Callable[[RosDomain, str], bool]
+# (domain, node name, processes known ended) -> whether the node's process is known not to answer
+HoldsBack = Callable[[RosDomain, str, frozenset], bool]
 
 
 def robots_from_config(config: dict) -> tuple[dict[int, RobotInfo], dict[int, dict[str, NodeSettings]]]:
@@ -55,9 +57,12 @@ def robots_from_config(config: dict) -> tuple[dict[int, RobotInfo], dict[int, di
 class Discovery:
     def __init__(self, registry: NodeRegistry, domains: dict[int, RosDomain], new_domain: DomainFactory,
                  outbox: Outbox, service_timeout: float, forget_parameters: Callable[[str], None],
-                 holds_back: HoldsBack = lambda domain, name: False,
-                 unresponsive: Callable[[LiveNode], None] = lambda node: None) -> None:
+                 holds_back: HoldsBack = lambda domain, name, departed: False,
+                 unresponsive: Callable[[LiveNode], None] = lambda node: None,
+                 processes: LocalProcesses | None = None) -> None:
         self.registry, self.domains, self.new_domain, self.outbox = registry, domains, new_domain, outbox
+        self.processes = processes or LocalProcesses()
+        self.records = ProcessRecords(outbox)
         self.unresponsive = unresponsive
         self.service_timeout = service_timeout
         self.forget_parameters = forget_parameters
@@ -105,25 +110,44 @@ class Discovery:
         self._passes += 1
         check_incarnations = self._passes % 4 == 0
         for domain_id, domain in list(self.domains.items()):
+            if self.processes.host is None:
+                self.processes.learn_host(domain.own_gid())
             present = domain.lifecycle_node_names(name for d, name in self.registry.nodes if d == domain_id)
             for name in present:
                 node = self.registry.nodes.get((domain_id, name))
                 if node is None or not node.seen:
                     robot = self.registry.robot_for(domain_id, name)
-                    if robot is not None and not self.holds_back(domain, name):
+                    if robot is not None and not self._held_back(domain, node, name):
                         self._appeared(domain, robot, name)
                 elif not node.state_read:
                     spawn(self.read_state(node))
-                elif check_incarnations:
+                elif check_incarnations and not node.in_transition:  # a transition of ours watches it
                     self._check_incarnation(domain, node)
             if domain.settling():
                 continue
-            for (node_domain, name), node in list(self.registry.nodes.items()):
-                if node_domain == domain_id and node.alive and name not in present:
-                    domain.forget_node(node.name)
-                    log.info("node %s on %s is gone", node.name, node.robot.name)
-                    self.registry.vanished(node)
+            # A transition of ours watches the process itself (and records its loss).
+            watched = [node for (node_domain, _), node in list(self.registry.nodes.items())
+                       if node_domain == domain_id and node.alive and not node.in_transition]
+            ended = self.processes.ended_among(domain_id, (prefix for node in watched for prefix in node.live))
+            for node in watched:
+                if node.name not in present:
+                    self._lost(domain, node, LEFT_GRAPH)
+                elif self.processes.all_ended(domain_id, node.live, ended):
+                    self._lost(domain, node, "exited (seen on this host)", ended=True)
             self._report_robots(domain)
+
+    def _held_back(self, domain: RosDomain, node: LiveNode | None, name: str) -> bool:
+        """Whether the node is in the graph only by processes known to have ended or left (a
+        killed process stays there until its DDS lease runs out, 20 s by default) or that do
+        not answer (liveness.py)."""
+        current = participants(domain.incarnation(name))
+        gone = (node.departed if node else frozenset()) | self.processes.ended_among(domain.domain_id, current)
+        return bool(current) and current <= gone or self.holds_back(domain, name, frozenset(gone))
+
+    def _lost(self, domain: RosDomain, node: LiveNode, how: str, ended: bool = False) -> None:
+        domain.forget_node(node.name)
+        self.registry.vanished(node, reason=protocol.PROCESS_LOST, ended=ended)
+        self.records.lost(node, how)
 
     def _report_robots(self, domain: RosDomain) -> None:
         """Each settled robot's running nodes, now and then: what the site believes alive
@@ -144,18 +168,30 @@ class Discovery:
         spawn(self.read_state(node))
 
     def _check_incarnation(self, domain: RosDomain, node: LiveNode) -> None:
+        """A new process under the node's name (restarted), or the one we knew gone from the
+        graph while a dead one lingers under the name (it left)."""
         current = domain.incarnation(node.name)
-        if len(current) > 1 and current != node.incarnation:
+        now = participants(current)
+        node.departed &= now  # gone from the graph: no need to remember them
+        if len(now - node.departed) > 1 and current != node.incarnation:
             # Service requests then reach every one of them and the first answer wins.
             log.warning("%d processes publish the transition events of %s on %s: a second node under the same "
                         "name, or a killed process whose DDS lease has not run out yet; its state may be misread",
-                        len(current), node.name, node.robot.name)
-        if current - node.incarnation and node.incarnation:
+                        len(now - node.departed), node.name, node.robot.name)
+        node.incarnation = current
+        if node.live & now:
+            node.live &= now  # a process that stopped publishing is not the one it runs in
+        new = now - node.live - node.departed
+        if new and node.live:
             log.info("%s on %s was restarted (new process under the same name)", node.name, node.robot.name)
+            node.departed, node.live = node.departed | node.live, new
             node.respawned, node.state_read = True, False
             node.tracker = TransitionTracker()
             self.forget_parameters(node.key)
-        node.incarnation = current
+        elif new:
+            node.live = new  # its endpoints, seen after it appeared
+        elif node.live and not now & node.live:
+            self._lost(domain, node, LEFT_GRAPH)
 
     async def read_state(self, node: LiveNode) -> bool | None:
         """Read the node's state; False if it did not answer, None if not asked (a command

@@ -270,6 +270,15 @@ class RosDomain:
         infos = self.node.get_publishers_info_by_topic(f"{fqn}/transition_event")
         return frozenset(bytes(info.endpoint_gid) for info in infos)
 
+    def own_gid(self) -> bytes | None:
+        """An endpoint id of the gateway's own participant in this domain (its GUID prefix
+        tells which host this is, see processes.py)."""
+        name = self.node.get_name()
+        for info in self.node.get_publishers_info_by_topic("/parameter_events"):
+            if info.node_name == name:
+                return bytes(info.endpoint_gid)
+        return None
+
     def forget_node(self, fqn: str) -> None:
         """Drop the node's subscription and clients (it vanished or left our robots)."""
         shard = self._shard_of.pop(fqn, None)
@@ -310,6 +319,9 @@ class RosDomain:
         except asyncio.TimeoutError:
             client.remove_pending_request(ros_future)
             raise ServiceTimeout(f"{fqn}/{service} did not answer within {timeout:g} s") from None
+        except asyncio.CancelledError:  # the caller stopped waiting (the node's process ended)
+            client.remove_pending_request(ros_future)
+            raise
 
     # -- callbacks (executor thread) ------------------------------------------------
     def _hand_over(self, callback: Callable, *args: Any) -> None:

@@ -13,6 +13,7 @@ import asyncio
 import time
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
+from typing import Any, Callable
 
 from lifecycle_msgs.msg import Transition as TransitionMsg
 from lifecycle_msgs.srv import ChangeState, GetAvailableStates, GetAvailableTransitions, GetState
@@ -20,7 +21,8 @@ from lifecycle_msgs.srv import ChangeState, GetAvailableStates, GetAvailableTran
 from ros_gateway.domain import RosDomain, ServiceTimeout, ServiceUnavailable
 from ros_gateway.logs import LogPipeline
 from ros_gateway.outbox import Outbox
-from ros_gateway.registry import LiveNode, NodeRegistry
+from ros_gateway.processes import LocalProcesses
+from ros_gateway.registry import LiveNode, NodeRegistry, participants
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 
@@ -66,15 +68,23 @@ async def available_transitions(domain: RosDomain, fqn: str, timeout: float, gra
     ]
 
 
+# While a transition runs, how often the node's process is looked at (processes.py).
+PROCESS_POLL_S = 0.1
+LEFT_GRAPH = "its node left the ROS graph"
+# () -> how the node's process went ("exited", ...), or None while it is there.
+ProcessGone = Callable[[], "str | None"]
+
+
 @dataclass
 class TransitionResult:
-    outcome: str  # succeeded | failed | rejected | timed_out
+    outcome: str  # succeeded | failed | rejected | timed_out | process_lost
     transition: sm.Transition | None
     start_state: int
     result_state: int | None  # None: could not be read (node still busy or gone)
     duration_ms: float
     message: str = ""
     valid: list[dict] = field(default_factory=list)
+    process_gone: str | None = None  # process_lost: how (LEFT_GRAPH, or it is known to have ended)
 
 
 async def perform_transition(
@@ -84,6 +94,7 @@ async def perform_transition(
     timeout: float,
     on_send=None,
     known_state: int | None = None,
+    process_gone: ProcessGone | None = None,
 ) -> TransitionResult:
     """Check, call and verify one transition. Raises NodeUnreachable and sm.UnknownTransition.
 
@@ -91,6 +102,8 @@ async def perform_transition(
     node's transition events that follow apart from other tools' transitions.
     ``known_state``: the state the caller has just read from the node itself (a group run
     step by step), which spares one get_state call.
+    ``process_gone``: looked at while the call runs; once it says the node's process went,
+    the call ends at once as ``process_lost`` (its answer would never come).
     """
     start_state = known_state if known_state is not None else await read_state(domain, fqn, timeout)
     transition = sm.resolve_transition(requested, start_state)
@@ -111,25 +124,55 @@ async def perform_transition(
     request = ChangeState.Request(transition=TransitionMsg(id=transition.id, label=transition.label))
     began = time.perf_counter()
     try:
-        response = await domain.call(fqn, "change_state", ChangeState, request, timeout)
+        response, gone = await _call_watching(domain, fqn, request, timeout, process_gone)
     except (ServiceTimeout, ServiceUnavailable):
-        duration = (time.perf_counter() - began) * 1000
-        now_state = await _reread(domain, fqn, timeout)
-        where = (
-            f"it is now {sm.state_label(now_state)}" if now_state is not None
-            else "its state could not be read either (still busy, or gone)"
-        )
-        return TransitionResult(
-            "timed_out", transition, start_state, now_state, duration,
-            f"{transition.label} did not answer within {timeout:g} s; {where}.",
-        )
+        gone = process_gone() if process_gone is not None else None
+        if gone is None:
+            duration = (time.perf_counter() - began) * 1000
+            now_state = await _reread(domain, fqn, timeout)
+            where = (
+                f"it is now {sm.state_label(now_state)}" if now_state is not None
+                else "its state could not be read either (still busy, or gone)"
+            )
+            return TransitionResult(
+                "timed_out", transition, start_state, now_state, duration,
+                f"{transition.label} did not answer within {timeout:g} s; {where}.",
+            )
+        response = None
     duration = (time.perf_counter() - began) * 1000
+    if gone is not None:
+        message = (f"The node's process ended during {transition.label} ({gone}, {duration / 1000:.1f} s after "
+                   "the request): the transition's answer will never come. Its supervisor may start it again; "
+                   "a new instance starts unconfigured.")
+        return TransitionResult(protocol.PROCESS_LOST, transition, start_state, None, duration, message,
+                                process_gone=gone)
     if response.success:
         return TransitionResult("succeeded", transition, start_state, sm.SUCCESS_GOAL[transition.id], duration)
     now_state = await _reread(domain, fqn, timeout)
     return TransitionResult(
         "failed", transition, start_state, now_state, duration, _failure_message(transition, start_state, now_state)
     )
+
+
+async def _call_watching(domain: RosDomain, fqn: str, request: Any, timeout: float,
+                         process_gone: ProcessGone | None) -> tuple[Any, str | None]:
+    """change_state's answer, or (None, how it went) as soon as the node's process is seen gone.
+    Raises ServiceTimeout and ServiceUnavailable as RosDomain.call does."""
+    call = asyncio.ensure_future(domain.call(fqn, "change_state", ChangeState, request, timeout))
+    if process_gone is None:
+        return await call, None
+    try:
+        while True:
+            done, _ = await asyncio.wait({call}, timeout=PROCESS_POLL_S)
+            if done:
+                return call.result(), None
+            gone = process_gone()
+            if gone is not None:
+                return None, gone
+    finally:
+        if not call.done():
+            call.cancel()
+            await asyncio.gather(call, return_exceptions=True)
 
 
 async def _reread(domain: RosDomain, fqn: str, timeout: float) -> int | None:
@@ -181,9 +224,10 @@ class NodeUnreachableRecorded(NodeUnreachable):
 
 class NodeDriver:
     def __init__(self, domains: dict[int, RosDomain], registry: NodeRegistry, outbox: Outbox, logs: LogPipeline,
-                 service_timeout: float) -> None:
+                 service_timeout: float, processes: LocalProcesses | None = None) -> None:
         self.domains, self.registry, self.outbox, self.logs = domains, registry, outbox, logs
         self.service_timeout = service_timeout
+        self.processes = processes or LocalProcesses()
 
     async def transition(
         self, node: LiveNode, requested, timeout: float, *, source: str, user_id: int | None = None,
@@ -191,13 +235,25 @@ class NodeDriver:
     ) -> Driven:
         """Carry out one transition; the caller holds ``node.lock``. Raises
         NodeUnreachableRecorded (reported too) when nothing could be sent."""
+        # Until it is reported, what becomes of the node's process is this transition's to say
+        # (discovery keeps out of it: one record, and no restart taken for another one's).
+        node.in_transition = True
+        try:
+            return await self._transition(node, requested, timeout, source=source, user_id=user_id,
+                                          run_id=run_id, known_state=known_state)
+        finally:
+            node.in_transition = False
+
+    async def _transition(self, node: LiveNode, requested, timeout: float, *, source: str, user_id: int | None,
+                          run_id: str, known_state: int | None) -> Driven:
         domain = self.domains[node.robot.domain_id]
         requested_at = datetime.now(timezone.utc)
         audit = dict(robot=node.robot.name, node=node.name, source=source, user_id=user_id, run_id=run_id,
                      requested_at=requested_at.isoformat())
         try:
             result = await perform_transition(domain, node.name, requested, timeout,
-                                              on_send=lambda t: self._claim(node, t), known_state=known_state)
+                                              on_send=lambda t: self._claim(node, t), known_state=known_state,
+                                              process_gone=self._process_gone(node, domain))
         except NodeUnreachable as exc:
             message = f"{node.name} on {node.robot.name} did not answer ({exc}); nothing was sent to it."
             fact = self.outbox.emit(
@@ -209,9 +265,13 @@ class NodeDriver:
             raise NodeUnreachableRecorded(message, fact) from None
         if result.transition is not None and node.tracker.commanded == result.transition.id:
             node.tracker.settled = result.transition.id  # its beginning is yet to come
-        if result.outcome == "failed":
-            result.message = await self._with_reason(node, requested_at, result.message)
         facts = []
+        if result.outcome == protocol.PROCESS_LOST and node.alive:
+            domain.forget_node(node.name)
+            ended = result.process_gone != LEFT_GRAPH  # exited, or replaced: the old one lingers dead
+            facts.append(self.registry.vanished(node, reason=protocol.PROCESS_LOST, ended=ended).fact)
+        if result.outcome in ("failed", protocol.PROCESS_LOST):
+            result.message = await self._with_reason(node, requested_at, result.message)
         if result.result_state is not None:
             change = self.registry.set_state(node, result.result_state)
             # The state goes with the answer even when a transition event reported it first,
@@ -230,6 +290,25 @@ class NodeDriver:
         facts.append(fact)
         await self.outbox.delivered(fact, DELIVERY_WAIT_S)
         return Driven(result, fact, facts)
+
+    def _process_gone(self, node: LiveNode, domain: RosDomain) -> ProcessGone:
+        """How the node's process went, once it has: it exited (seen on this host), it left the
+        ROS graph, or a process of another DDS participant now publishes its transition events."""
+        before = node.live
+
+        def gone() -> str | None:
+            if not before:
+                return None  # its endpoints were never seen: nothing to compare with
+            if self.processes.all_ended(domain.domain_id, before):
+                return "it exited, as seen on this host"
+            now = participants(domain.incarnation(node.name))
+            if not now & before:
+                return LEFT_GRAPH
+            if now - before - node.departed:
+                return "a new process now runs under its name"
+            return None
+
+        return gone
 
     def _claim(self, node: LiveNode, transition: sm.Transition) -> None:
         """Mark the transition about to be sent as ours, so its events are not 'external'."""

@@ -22,13 +22,12 @@ from collections import defaultdict
 
 from ros_gateway.domain import RosDomain
 from ros_gateway.lifecycle import NodeUnreachable, read_state
-from ros_gateway.registry import LiveNode, NodeRegistry
+from ros_gateway.registry import GUID_PREFIX_BYTES, LiveNode, NodeRegistry
 from ros_gateway.shared import state_machine as sm
 from ros_gateway.tasks import spawn
 
 log = logging.getLogger(__name__)
 
-GUID_PREFIX_BYTES = 12  # RTPS: a participant's GUID prefix; the rest names the endpoint
 UNREACHABLE = "unreachable"
 
 # (domain id, participant) -- or (domain id, node name) while a node's endpoints are unknown.
@@ -60,24 +59,25 @@ class Liveness:
     def enabled(self) -> bool:
         return self.interval > 0
 
-    def holds_back(self, domain: RosDomain, node_name: str) -> bool:
+    def holds_back(self, domain: RosDomain, node_name: str, departed: frozenset = frozenset()) -> bool:
         """Whether discovery should not (yet) call this node alive: its process does not answer.
         A node restarted under the same name lists its old and new endpoints for a while; it
-        is held back only if none of them belongs to a process that may answer."""
+        is held back only if none of them belongs to a process that may answer (``departed``:
+        processes known to have ended, left out)."""
         if not self.unreachable:
             return False
-        return all((domain.domain_id, participant) in self.unreachable
-                   for participant in participants(node_name, domain.incarnation(node_name)))
+        alive = participants(node_name, domain.incarnation(node_name)) - departed
+        return bool(alive) and all((domain.domain_id, participant) in self.unreachable for participant in alive)
 
     def suspect(self, node: LiveNode) -> None:
         """Probe the node's process even though the node sits in a transition state."""
-        self._suspects.add(process_of(node.robot.domain_id, node.name, node.incarnation))
+        self._suspects.add(process_of(node.robot.domain_id, node.name, node.live or node.incarnation))
 
     def _groups(self) -> dict[Process, list[LiveNode]]:
         """Watched nodes by process: the live ones, and those of unreachable processes."""
         groups: dict[Process, list[LiveNode]] = defaultdict(list)
         for (domain_id, name), node in self.registry.nodes.items():
-            process = process_of(domain_id, name, node.incarnation)
+            process = process_of(domain_id, name, node.live or node.incarnation)
             if node.alive or process in self.unreachable:
                 groups[process].append(node)
         return groups

@@ -7,9 +7,10 @@ import time
 from typing import Any
 
 from ros_gateway.domain import RosDomain
+from ros_gateway.lifecycle import NodeUnreachable
 from ros_gateway.outbox import Outbox
 from ros_gateway.parameters import NoAnswer, from_msg, list_parameters, set_parameters, type_of
-from ros_gateway.registry import LiveNode, NodeRegistry
+from ros_gateway.registry import LiveNode, NodeRegistry, StateChange
 from ros_gateway.relay import Relay
 from ros_gateway.shared import param_types as pt
 from ros_gateway.shared import protocol
@@ -22,10 +23,14 @@ ECHO_WINDOW_S = 10.0
 
 
 class ParameterKeeper:
-    def __init__(self, domains: dict[int, RosDomain], registry: NodeRegistry, outbox: Outbox, relay: Relay) -> None:
+    def __init__(self, domains: dict[int, RosDomain], registry: NodeRegistry, outbox: Outbox, relay: Relay,
+                 timeout: float = 5.0) -> None:
         self.domains, self.registry, self.outbox, self.relay = domains, registry, outbox, relay
+        self.timeout = timeout
         # node key -> {parameter name: listing entry}; filled on first use
         self.cache: dict[str, dict[str, dict]] = {}
+        # node key -> what the cache held of a process since replaced by a new instance
+        self.stale: dict[str, dict[str, dict]] = {}
         # node key -> {parameter name: (value we set, until when we expect its echo)}
         self.expected: dict[str, dict[str, tuple[Any, float]]] = {}
 
@@ -136,6 +141,31 @@ class ParameterKeeper:
         ))
 
     def forget(self, node_key: str) -> None:
-        self.cache.pop(node_key, None)
+        """The node may be a new process: what we knew of its parameters is the old one's."""
         self.expected.pop(node_key, None)
+        if node_key in self.cache:
+            self.stale[node_key] = self.cache.pop(node_key)
+
+    def on_change(self, change: StateChange) -> None:
+        """State-change listener: a new instance of a node's process whose old parameters were
+        shown has them read again, so that open pages show the new process's values."""
+        if change.kind == "state" and change.respawned and change.node.key in self.stale:
+            spawn(self.reread(change.node))
+
+    async def reread(self, node: LiveNode) -> None:
+        old = self.stale.pop(node.key, None)
+        if old is None:
+            return
+        try:
+            fresh = await self.listing(node, self.timeout)
+        except NodeUnreachable as exc:
+            log.info("could not read the parameters of the new instance of %s on %s: %s",
+                     node.name, node.robot.name, exc)
+            return
+        changes = [{"name": p["name"], "old": old.get(p["name"], {}).get("value"), "new": p["value"]}
+                   for p in fresh if old.get(p["name"], {}).get("value") != p["value"]]
+        if changes:
+            log.info("new instance of %s on %s: parameters now %s", node.name, node.robot.name,
+                     ", ".join(f"{c['name']}={c['new']!r}" for c in changes))
+            self._push(node, changes)
 

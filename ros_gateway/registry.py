@@ -17,6 +17,14 @@ from ros_gateway.streams import TransitionTracker
 log = logging.getLogger(__name__)
 
 
+GUID_PREFIX_BYTES = 12  # RTPS: a participant's GUID prefix; the rest names the endpoint
+
+
+def participants(gids) -> frozenset:
+    """The DDS participants (GUID prefixes) of these endpoint ids."""
+    return frozenset(bytes(gid)[:GUID_PREFIX_BYTES] for gid in gids)
+
+
 @dataclass(frozen=True)
 class RobotInfo:
     """A robot as the site's configuration describes it to this gateway."""
@@ -46,7 +54,7 @@ class LiveNode:
     robot: RobotInfo
     name: str
     alive: bool = False  # believed running (as the site shows it)
-    gone_reason: str = ""  # why it is not alive: "" (left the graph) or "unreachable"
+    gone_reason: str = ""  # why it is not alive: "unreachable", "process_lost" (or "": not watched)
     seen: bool = False  # found in the ROS graph by this gateway run, and subscribed to
     # Set when this run saw the node go and come back, or its process replaced: worth recovering.
     respawned: bool = False
@@ -57,6 +65,13 @@ class LiveNode:
     lock: asyncio.Lock = field(default_factory=asyncio.Lock)  # one transition at a time
     last_seen: datetime | None = None
     last_push: asyncio.Future | None = None  # the node's latest live update, so the next one waits for it
+    in_transition: bool = False  # a transition of ours is being called (it watches the process)
+    # DDS participants (processes) publishing its transition events: the one believed running,
+    # and those known to have ended or left (a killed one lingers in the graph for its lease).
+    live: frozenset = frozenset()
+    departed: frozenset = frozenset()
+    process_status: str = ""  # protocol.PROCESS_LOST / "restarted": what was last seen of its process
+    process_since: datetime | None = None
 
     @property
     def key(self) -> str:
@@ -71,6 +86,8 @@ class LiveNode:
             alive=self.alive,
             gone_reason=self.gone_reason,
             last_seen=self.last_seen.isoformat() if self.last_seen else None,
+            process_status=self.process_status,
+            process_since=self.process_since.isoformat() if self.process_since else None,
         )
 
     def groups(self) -> list[str]:
@@ -86,7 +103,7 @@ class StateChange:
     kind: str  # "seen" | "gone" | "state"
     state_id: int
     respawned: bool = False
-    reason: str = ""  # why a node went: "" (it left the ROS graph) or "unreachable"
+    reason: str = ""  # why a node went: "process_lost" (it ended, or left the ROS graph), "unreachable"
     fact: dict | None = None
 
 
@@ -165,15 +182,29 @@ class NodeRegistry:
         node.alive, node.seen, node.state_read, node.gone_reason = True, True, False, ""
         node.last_seen = datetime.now(timezone.utc)
         node.tracker = TransitionTracker()
-        node.respawned = node.incarnation != frozenset()  # seen before in this run: it came back
+        previous = node.live | node.departed
+        node.departed &= participants(incarnation)  # those no longer in the graph need no remembering
+        node.live = participants(incarnation) - node.departed
+        # Seen before in this run and back with another process (or with none known yet): a new
+        # instance. Back with the same one (it answers again after it was unreachable): not, unless
+        # a new instance seen before it went has not had its state read yet.
+        node.respawned = node.respawned or (
+            node.incarnation != frozenset() and (not node.live or bool(node.live - previous)))
         node.incarnation = incarnation
         self.changes.publish(StateChange(node, "seen", node.state_id))
         return node
 
-    def vanished(self, node: LiveNode, reason: str = "") -> None:
+    def vanished(self, node: LiveNode, reason: str = "", *, ended: bool = False) -> StateChange:
+        """The node is gone. ``ended``: its process is known dead (it may linger in the graph
+        until its DDS lease runs out, and is not taken back meanwhile); a node that merely left
+        the graph is taken back if the same process shows up again."""
         node.alive, node.seen, node.last_seen = False, False, datetime.now(timezone.utc)
         node.gone_reason = reason
-        self.changes.publish(StateChange(node, "gone", node.state_id, reason=reason))
+        if reason == protocol.PROCESS_LOST:
+            node.process_status, node.process_since = "lost", node.last_seen
+        if ended:
+            node.departed |= node.live
+        return self.changes.publish(StateChange(node, "gone", node.state_id, reason=reason))
 
     def set_state(self, node: LiveNode, state_id: int, *, read: bool = False) -> StateChange | None:
         """The node is now in ``state_id``; returns the change, or None if it is no news.
@@ -187,4 +218,6 @@ class NodeRegistry:
             return None
         node.state_id = state_id
         node.last_seen = datetime.now(timezone.utc)
+        if respawned:  # the first state of a new instance of its process
+            node.process_status, node.process_since = "restarted", node.last_seen
         return self.changes.publish(StateChange(node, "state", state_id, respawned=respawned))

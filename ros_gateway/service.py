@@ -32,6 +32,7 @@ from ros_gateway.liveness import Liveness
 from ros_gateway.logs import LogPipeline
 from ros_gateway.outbox import Outbox
 from ros_gateway.param_keeper import ParameterKeeper
+from ros_gateway.processes import LocalProcesses
 from ros_gateway.registry import NodeRegistry, StateChange, StateChanges
 from ros_gateway.relay import Relay
 from ros_gateway.shared import protocol
@@ -59,19 +60,24 @@ class Gateway:
         self.registry = NodeRegistry(self.changes)
         self.domains: dict[int, RosDomain] = {}
         self.logs = LogPipeline(self.registry, self.outbox, config.log_buffer)
-        self.params = ParameterKeeper(self.domains, self.registry, self.outbox, self.relay)
+        self.params = ParameterKeeper(self.domains, self.registry, self.outbox, self.relay, config.service_timeout)
         self.liveness = Liveness(self.registry, self.domains, config.liveness_interval, config.liveness_timeout)
+        self.processes = LocalProcesses()
         self.discovery = Discovery(self.registry, self.domains, self._new_domain, self.outbox,
                                    config.service_timeout, self.params.forget, self.liveness.holds_back,
-                                   self.liveness.suspect)
-        self.driver = NodeDriver(self.domains, self.registry, self.outbox, self.logs, config.service_timeout)
+                                   self.liveness.suspect, self.processes)
+        self.driver = NodeDriver(self.domains, self.registry, self.outbox, self.logs, config.service_timeout,
+                                 self.processes)
         self.runs = GroupRunner(self.domains, self.registry, self.driver, self.outbox, self.relay)
         self.commands = CommandHandler(Parts(self.relay, self.registry, self.domains, self.driver, self.params,
                                              self.runs, config.service_timeout, self.outbox))
         # Who hears of a state change, in this order: the site (a fact), the pages (a push),
-        # the stuck-transition check, and automatic recovery.
+        # the audit of a new process instance, its parameters read again, the stuck-transition
+        # check, and automatic recovery.
         self.changes.subscribe("report", self._report)
         self.changes.subscribe("push", self._push)
+        self.changes.subscribe("restarts", self.discovery.records.on_change)
+        self.changes.subscribe("parameters", self.params.on_change)
         self.changes.subscribe("settle", self.discovery.on_change)
         self.changes.subscribe("recover", self.runs.on_change)
 
@@ -86,6 +92,8 @@ class Gateway:
         fields = {"state_id": change.state_id} if change.kind == "state" else {}
         if change.reason:
             fields["reason"] = change.reason
+        if change.reason == protocol.PROCESS_LOST and node.process_since is not None:
+            fields["since"] = node.process_since.isoformat()  # the time the node's payload shows
         change.fact = self.outbox.emit(kind, robot=node.robot.name, node=node.name, **fields)
 
     def _push(self, change: StateChange) -> None:

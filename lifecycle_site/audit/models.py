@@ -48,6 +48,10 @@ class TransitionRecord(AppendOnlyRecord):
         REJECTED = "rejected", "rejected"
         TIMED_OUT = "timed_out", "timed out"
         OBSERVED = "observed", "observed"
+        # Not transitions: the node's process ended (during a transition, or by itself), or a
+        # new instance of it appeared (its state then read fresh). See ros_gateway/processes.py.
+        PROCESS_LOST = "process_lost", "process lost"
+        PROCESS_RESTARTED = "process_restarted", "process restarted (new instance)"
 
     class Source(models.TextChoices):
         DASHBOARD = "dashboard", "dashboard"
@@ -73,7 +77,7 @@ class TransitionRecord(AppendOnlyRecord):
     goal_state_label = models.CharField(max_length=32, blank=True)
     result_state_id = models.PositiveSmallIntegerField(null=True, blank=True)
     result_state_label = models.CharField(max_length=32, blank=True)
-    outcome = models.CharField(max_length=16, choices=Outcome.choices)
+    outcome = models.CharField(max_length=20, choices=Outcome.choices)
     source = models.CharField(max_length=16, choices=Source.choices)
     requested_at = models.DateTimeField()
     completed_at = models.DateTimeField(null=True, blank=True)

@@ -23,8 +23,10 @@ from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 
 log = logging.getLogger(__name__)
-# Why a node.gone fact says a node went (ros_gateway/liveness.py); anything else counts as "".
-GONE_REASONS = ("unreachable",)
+# Why a node.gone fact says a node went (ros_gateway/liveness.py, processes.py); anything else counts as "".
+GONE_REASONS = ("unreachable", protocol.PROCESS_LOST)
+# A transition record with this outcome moves the node's process status (a loss comes as node.gone).
+PROCESS_STATUS = {protocol.PROCESS_RESTARTED: "restarted"}
 
 DONE = (GroupRun.Status.SUCCEEDED, GroupRun.Status.FAILED, GroupRun.Status.PARTIAL)
 
@@ -96,6 +98,16 @@ def _node_gone(known: KnownRecords, fact: dict, at: datetime, applied: Applied) 
     if node is not None:
         reason = fact.get("reason") if fact.get("reason") in GONE_REASONS else ""
         ManagedNode.objects.filter(pk=node.pk).update(alive=False, gone_reason=reason, last_seen=at)
+        if reason == protocol.PROCESS_LOST:
+            _process_seen(node, "lost", optional_time(fact.get("since"), "since") or at)
+
+
+def _process_seen(node: ManagedNode, status: str, at: datetime) -> None:
+    """The node's process was lost or restarted at ``at`` (a later report is never overwritten
+    by an earlier one applied late)."""
+    ManagedNode.objects.filter(pk=node.pk).filter(Q(process_since__isnull=True) | Q(process_since__lte=at)).update(
+        process_status=status, process_since=at
+    )
 
 
 def _node_state(known: KnownRecords, fact: dict, at: datetime, applied: Applied) -> None:
@@ -186,6 +198,8 @@ def _transition(known: KnownRecords, fact: dict, at: datetime, applied: Applied)
     )
     if _save_once(known, record):
         applied.created.append(record)
+        if node is not None and outcome in PROCESS_STATUS:
+            _process_seen(node, PROCESS_STATUS[outcome], completed_at or requested_at)
     else:
         record = TransitionRecord.objects.select_related("node").get(fact_id=fact_id)
     applied.transitions[fact_id] = record

@@ -135,9 +135,15 @@ class ManagedNode(models.Model):
     alive = models.BooleanField(default=False)
     gone_reason = models.CharField(
         max_length=16, blank=True, default="",
-        help_text="Why a node that is not alive went: empty (it left the ROS graph) or 'unreachable' "
-        "(its process stopped answering the gateway's probes: its host or link may be down).",
+        help_text="Why a node that is not alive went: 'process_lost' (its process ended, or its node left "
+        "the ROS graph), 'unreachable' (its process stopped answering the gateway's probes: its host or "
+        "link may be down), or empty (not known, or its robot is no longer watched).",
     )
+    process_status = models.CharField(
+        max_length=16, blank=True, default="", choices=[("", "-"), ("lost", "lost"), ("restarted", "restarted")],
+        help_text="What was last seen of the node's process: lost, or restarted (a new instance).",
+    )
+    process_since = models.DateTimeField(null=True, blank=True, help_text="When that was seen.")
     first_seen = models.DateTimeField(null=True, blank=True)
     last_seen = models.DateTimeField(null=True, blank=True)
     state_changed = models.DateTimeField(null=True, blank=True)

@@ -15,4 +15,6 @@ def node_dict(node: ManagedNode) -> dict:
         alive=node.alive,
         gone_reason=node.gone_reason,
         last_seen=node.last_seen.isoformat() if node.last_seen else None,
+        process_status=node.process_status,
+        process_since=node.process_since.isoformat() if node.process_since else None,
     )

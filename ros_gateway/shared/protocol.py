@@ -69,13 +69,19 @@ PING = "ping"
 # Facts a gateway reports (the ``type`` of each; fields as in the docstrings of the
 # builders below and in docs/architecture.md).
 NODE_SEEN = "node.seen"  # robot, node
-NODE_GONE = "node.gone"  # robot, node
+NODE_GONE = "node.gone"  # robot, node, reason: "" | "unreachable" | PROCESS_LOST
 NODE_STATE = "node.state"  # robot, node, state_id
 ROBOT_NODES = "robot.nodes"  # robot, nodes: every node of the robot running now
 TRANSITION = "transition"  # one audit record of a lifecycle transition (or attempt)
 PARAMETER = "parameter"  # one audit record of a parameter change (or attempt)
 RUN = "run"  # a group run's spec (for runs the gateway starts) and its progress or end
 GATEWAY_STARTED = "gateway.started"  # a new instance: runs it does not know are over
+
+# A node's process: lost (it ended, or its node left the graph), or replaced by a new instance.
+# A node.gone reason, and, with PROCESS_RESTARTED, a transition record's outcome (which also
+# moves the node's ``process`` status on the site).
+PROCESS_LOST = "process_lost"
+PROCESS_RESTARTED = "process_restarted"
 
 
 def gateway_key(prefix: str, gateway: str, what: str) -> str:
@@ -175,11 +181,15 @@ def node_key(robot_name: str, node_name: str) -> str:
 
 
 def node_payload(
-    *, key: str, robot: str, name: str, state_id: int, alive: bool, last_seen: str | None, gone_reason: str = ""
+    *, key: str, robot: str, name: str, state_id: int, alive: bool, last_seen: str | None, gone_reason: str = "",
+    process_status: str = "", process_since: str | None = None,
 ) -> dict:
-    """How a node is described to the API and to live pages, from the DB or the gateway."""
+    """How a node is described to the API and to live pages, from the DB or the gateway.
+    ``process``: what was last seen of its process, ``lost`` or ``restarted`` (a new instance),
+    and when; status "" while nothing was."""
     from ros_gateway.shared import state_machine as sm
 
+    status = "" if alive and process_status == "lost" else process_status
     return {
         "id": key,
         "robot": robot,
@@ -187,8 +197,10 @@ def node_payload(
         "state": sm.state_dict(state_id),
         "transitions": [t.as_dict() for t in sm.valid_transitions(state_id)] if alive else [],
         "alive": alive,
-        "gone_reason": "" if alive else gone_reason,  # "unreachable": its process stopped answering
+        "gone_reason": "" if alive else gone_reason,  # "unreachable", or "process_lost"
         "last_seen": last_seen,
+        # A node back with the same process after it left the graph is not "lost" any more.
+        "process": {"status": status, "since": process_since if status else None},
     }
 
 

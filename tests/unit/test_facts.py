@@ -10,6 +10,7 @@ from lifecycle_site.audit.models import ParameterRecord, TransitionRecord
 from lifecycle_site.fleet.fact_context import Hints
 from lifecycle_site.fleet.facts import apply_facts
 from lifecycle_site.fleet.models import Gateway, GroupRun, ManagedNode, Robot
+from lifecycle_site.fleet.serializers import node_dict
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 from tests.conftest import make_user
@@ -170,3 +171,41 @@ def test_hints_about_one_robot_still_let_facts_name_the_gateways_other_robots(ce
     ], Hints(lidar))
     assert applied.rejected == 1
     assert list(second.nodes.values_list("name", flat=True)) == ["/camera"] and not outsider.nodes.exists()
+
+
+def test_a_lost_process_and_its_new_instance_move_the_nodes_process_status(cell):
+    part, robot = cell
+    apply_facts("cell-f", [part.fact(protocol.NODE_SEEN, robot=robot.name, node="/lidar"),
+                           part.fact(protocol.NODE_STATE, robot=robot.name, node="/lidar", state_id=sm.ACTIVE)])
+    lost_at = datetime.fromisoformat(part.tick())  # the gateway's own time of the loss
+    gone = part.fact(protocol.NODE_GONE, robot=robot.name, node="/lidar", reason=protocol.PROCESS_LOST,
+                     since=lost_at.isoformat())
+    record = part.transition(robot.name, "/lidar", None, "", sm.ACTIVE, None, outcome=protocol.PROCESS_LOST,
+                             source="external", error="The process of /lidar on facts-agv exited")
+    record["transition_id"], record["result_state"] = None, None
+    apply_facts("cell-f", [gone, record])
+    lidar = node(robot)
+    assert (lidar.alive, lidar.gone_reason, lidar.process_status, lidar.process_since) == (
+        False, "process_lost", "lost", lost_at)
+    assert node_dict(lidar)["process"] == {"status": "lost", "since": lost_at.isoformat()}
+    assert TransitionRecord.objects.get().as_dict()["outcome"] == "process_lost"
+    # Back with the same process (it only left the graph for a moment): alive, not "lost".
+    apply_facts("cell-f", [part.fact(protocol.NODE_SEEN, robot=robot.name, node="/lidar")])
+    assert node_dict(node(robot))["process"] == {"status": "", "since": None}
+
+    back = part.fact(protocol.NODE_SEEN, robot=robot.name, node="/lidar")
+    restarted = part.transition(robot.name, "/lidar", None, "", None, sm.UNCONFIGURED,
+                                outcome=protocol.PROCESS_RESTARTED, source="external", error="new instance")
+    restarted["transition_id"], restarted["start_state"] = None, None
+    apply_facts("cell-f", [back, restarted])
+    lidar = node(robot)
+    since = datetime.fromisoformat(restarted["completed_at"])
+    assert (lidar.alive, lidar.gone_reason, lidar.process_status, lidar.process_since) == (
+        True, "", "restarted", since)
+    assert node_dict(lidar)["process"] == {"status": "restarted", "since": since.isoformat()}
+    # An older loss applied late does not undo the restart.
+    apply_facts("cell-f", [part.fact(protocol.NODE_GONE, robot=robot.name, node="/lidar", reason=protocol.PROCESS_LOST,
+                                     since=(lost_at - timedelta(seconds=5)).isoformat())])
+    assert node(robot).process_status == "restarted"
+    outcomes = sorted(TransitionRecord.objects.values_list("outcome", flat=True))
+    assert outcomes == ["process_lost", "process_restarted"]
