@@ -166,6 +166,8 @@ def node_json(node: ManagedNode, state: dict | None = None, **extra: Any) -> dic
         alive=node.alive,
         gone_reason=node.gone_reason,
         last_seen=node.last_seen.isoformat() if node.last_seen else None,
+        process_status=node.process_status,
+        process_since=node.process_since.isoformat() if node.process_since else None,
     )
     return {**payload, **extra}
 

@@ -90,6 +90,8 @@ def request_transition(node: ManagedNode, requested, user, source: str, timeout:
     details = {"state": reply["to"], "duration_ms": reply["duration_ms"], **common}
     if outcome == "timed_out":
         return Outcome(504, "timeout", reply["message"], details)
+    if outcome == protocol.PROCESS_LOST:  # the node's process ended during the transition
+        return Outcome(422, "process_lost", reply["message"], details)
     return Outcome(422, "transition_failed", reply["message"], details)
 
 

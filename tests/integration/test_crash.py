@@ -52,7 +52,7 @@ def test_a_process_that_dies_during_activate_is_lost_at_once(api, domain):
         print(f"[crash] activate answered {took:.2f} s after the request: {response.json()}")
         error = response.json()["error"]
         assert took < BOUND_S, f"answered after {took:.1f} s"
-        assert response.status_code == 422 and error["state"] is None, error
+        assert response.status_code == 422 and error["code"] == "process_lost" and error["state"] is None, error
         assert "process ended during activate" in error["message"], error["message"]
         assert "segmentation fault" in error["message"], "the node's own FATAL line is in the reason"
         record = TransitionRecord.objects.get(id=error["record_id"])

@@ -201,15 +201,14 @@ def test_a_robot_process_killed_in_a_transition_is_answered_within_its_bound_and
     robot.kill()
     killed = time.monotonic()
     answer = call.result(20)
-    assert call.seconds < 3 * 2 + 3 + ANSWER_SLACK_S, f"answered after {call.seconds:.1f} s"
+    # Its process is seen gone (on this host, at once): the answer does not wait for the timeout.
+    assert time.monotonic() - killed < 2 + ANSWER_SLACK_S, f"answered {time.monotonic() - killed:.1f} s after the kill"
     error = answer.json()["error"]
-    assert answer.status_code == 504 and error["code"] == "timeout", error
+    assert answer.status_code == 422 and error["code"] == "process_lost", error
+    assert "process ended during configure" in error["message"], error
     made = records("k/flaky_node", since)
-    assert [r.outcome for r in made] == ["timed_out"] and made[0].id == error["record_id"]
-    # Stuck in "configuring" and silent, it is probed although busy: lost well before the DDS
-    # lease of its dead process runs out (20 s and more).
-    wait_node(None, key("k/flaky_node"), alive=False, timeout=30)
-    assert time.monotonic() - killed < 16, f"seen lost {time.monotonic() - killed:.1f} s after the kill"
+    assert [r.outcome for r in made] == ["process_lost"] and made[0].id == error["record_id"]
+    wait_node(None, key("k/flaky_node"), alive=False, timeout=5)
     assert transition("k/flaky_node", "configure").json()["error"]["code"] == "node_offline"
     # Its supervisor starts it again: a new, unconfigured process under the same node.
     cell.start_robot("fault-flaky-k2", "flaky_node", namespace="/k")

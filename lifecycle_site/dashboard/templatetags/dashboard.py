@@ -3,6 +3,8 @@ from __future__ import annotations
 
 from django import template
 
+from lifecycle_site.audit.models import TransitionRecord
+
 register = template.Library()
 
 
@@ -109,3 +111,12 @@ def age(iso: str | None) -> str:
     if seconds < 3600:
         return f"{seconds // 60} min ago"
     return f"{seconds // 3600} h ago"
+
+
+OUTCOME_LABELS = dict(TransitionRecord.Outcome.choices)
+
+
+@register.filter
+def outcome_label(outcome: str) -> str:
+    """An audit outcome as people read it ("timed out", "process lost"), as the filters name it."""
+    return OUTCOME_LABELS.get(outcome, str(outcome).replace("_", " "))
