@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from ros_gateway.domain import RosDomain
 from ros_gateway.groups import GroupRunner
 from ros_gateway.lifecycle import (
+    DELIVERY_WAIT_S,
     NodeDriver,
     NodeUnreachable,
     NodeUnreachableRecorded,
@@ -119,7 +120,19 @@ class CommandHandler:
         finally:
             self._slots.release()
         self.handled += 1
-        await self.parts.relay.reply(command["request_id"], reply)
+        await self._reply(command["request_id"], reply)
+
+    async def _reply(self, request_id: str, reply: dict) -> None:
+        """The reply and the facts queued before it in one round trip; if that fails, as
+        before: the reply's facts reach the stream first (a bounded wait), then the reply."""
+        relay, outbox = self.parts.relay, self.parts.outbox
+        key, message = relay.reply_parts(request_id, reply)
+        if await outbox.reply(key, message, protocol.REPLY_TTL_S):
+            return
+        numbered = [f for f in reply.get("facts") or [] if isinstance(f, dict) and "seq" in f]
+        if numbered:
+            await outbox.delivered(max(numbered, key=lambda f: f["seq"]), DELIVERY_WAIT_S)
+        await relay.reply(request_id, reply)
 
     async def handle(self, command: dict) -> dict:
         parts = self.parts
@@ -195,6 +208,7 @@ class CommandHandler:
                 driven = await self.parts.driver.transition(
                     node, requested, timeout, source=str(command.get("source") or "api"),
                     user_id=_user(command), run_id=str(command.get("run_id") or ""),
+                    delivered_by_reply=True,
                 )
             except NodeUnreachableRecorded as exc:
                 raise CommandError("node_unreachable", str(exc), facts=[exc.fact]) from None

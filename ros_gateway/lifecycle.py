@@ -231,18 +231,27 @@ class NodeDriver:
 
     async def transition(
         self, node: LiveNode, requested, timeout: float, *, source: str, user_id: int | None = None,
-        run_id: str = "", known_state: int | None = None,
+        run_id: str = "", known_state: int | None = None, delivered_by_reply: bool = False,
     ) -> Driven:
         """Carry out one transition; the caller holds ``node.lock``. Raises
-        NodeUnreachableRecorded (reported too) when nothing could be sent."""
+        NodeUnreachableRecorded (reported too) when nothing could be sent. Returns once its
+        audit fact is in Redis (bounded), unless ``delivered_by_reply``: a command's reply takes
+        its facts along (commands.py), so waiting for the flusher first would cost a round trip."""
         # Until it is reported, what becomes of the node's process is this transition's to say
         # (discovery keeps out of it: one record, and no restart taken for another one's).
         node.in_transition = True
         try:
-            return await self._transition(node, requested, timeout, source=source, user_id=user_id,
-                                          run_id=run_id, known_state=known_state)
+            driven = await self._transition(node, requested, timeout, source=source, user_id=user_id,
+                                            run_id=run_id, known_state=known_state)
+        except NodeUnreachableRecorded as exc:
+            if not delivered_by_reply:
+                await self.outbox.delivered(exc.fact, DELIVERY_WAIT_S)
+            raise
         finally:
             node.in_transition = False
+        if not delivered_by_reply:
+            await self.outbox.delivered(driven.record, DELIVERY_WAIT_S)
+        return driven
 
     async def _transition(self, node: LiveNode, requested, timeout: float, *, source: str, user_id: int | None,
                           run_id: str, known_state: int | None) -> Driven:
@@ -261,7 +270,6 @@ class NodeDriver:
                 start_state=node.state_id, result_state=None, outcome="rejected",
                 completed_at=datetime.now(timezone.utc).isoformat(), error=message,
             )
-            await self.outbox.delivered(fact, DELIVERY_WAIT_S)
             raise NodeUnreachableRecorded(message, fact) from None
         if result.transition is not None and node.tracker.commanded == result.transition.id:
             node.tracker.settled = result.transition.id  # its beginning is yet to come
@@ -288,7 +296,6 @@ class NodeDriver:
             completed_at=datetime.now(timezone.utc).isoformat(), error=result.message,
         )
         facts.append(fact)
-        await self.outbox.delivered(fact, DELIVERY_WAIT_S)
         return Driven(result, fact, facts)
 
     def _process_gone(self, node: LiveNode, domain: RosDomain) -> ProcessGone:

@@ -48,6 +48,7 @@ class Outbox:
         self.logs = _Stream(relay.key("logs"), protocol.LOGS_MAXLEN, protocol.OUTBOX_LOG_BATCHES_LIMIT)
         self._wake = asyncio.Event()
         self._flushed = asyncio.Condition()
+        self._sending = asyncio.Lock()  # one pipeline at a time: the streams stay in seq order
         self.unreachable_since: float | None = None
 
     def _envelope(self, stream: _Stream, kind: str | None) -> dict:
@@ -110,27 +111,63 @@ class Outbox:
         """One round: facts first (they carry the audit), then log batches. False on failure."""
         for stream in (self.facts, self.logs):
             while stream.queue:
-                batch = list(stream.queue)[:FLUSH_BATCH]
                 try:
-                    async with self.relay.redis.pipeline(transaction=False) as pipe:
-                        for entry in batch:
-                            pipe.xadd(stream.key, {"f": protocol.encode(entry)}, maxlen=stream.maxlen, approximate=True)
-                        await pipe.execute()
+                    async with self._sending:
+                        batch = list(stream.queue)[:FLUSH_BATCH]
+                        if not batch:
+                            break
+                        async with self.relay.redis.pipeline(transaction=False) as pipe:
+                            self._add(pipe, stream, batch)
+                            await pipe.execute()
+                        await self._sent(stream, batch)
                 except Exception as exc:
-                    if self.unreachable_since is None:
-                        self.unreachable_since = asyncio.get_running_loop().time()
-                    self.relay.complain(f"sending {len(stream.queue)} facts to the site", exc)
+                    self._unreachable(f"sending {len(stream.queue)} facts to the site", exc)
                     return False
-                if self.unreachable_since is not None:
-                    log.info("Redis is back: sending the %d facts and %d log batches held meanwhile",
-                             len(self.facts.queue), len(self.logs.queue))
-                    self.unreachable_since = None
-                # Entries dropped meanwhile (bound reached) were the oldest: drop only what was sent.
-                sent_last = batch[-1]["seq"]
-                while stream.queue and stream.queue[0]["seq"] <= sent_last:
-                    stream.queue.popleft()
-                stream.sent = max(stream.sent, sent_last)
-                if stream is self.facts:
-                    async with self._flushed:
-                        self._flushed.notify_all()
         return True
+
+    async def reply(self, key: str, message: str, ttl: int) -> bool:
+        """Hand a command's reply over together with every fact queued before it (its own
+        among them), in one round trip and all or nothing (MULTI): whenever the reply exists,
+        the stream holds its facts too (should the site die before storing them from the
+        reply, its ingest process still finds them). False when Redis failed or too many facts
+        wait: the caller then waits for the flusher and replies on its own."""
+        async with self._sending:
+            batch = list(self.facts.queue)
+            if len(batch) > FLUSH_BATCH:
+                return False
+            try:
+                async with self.relay.redis.pipeline(transaction=True) as pipe:
+                    self._add(pipe, self.facts, batch)
+                    pipe.lpush(key, message)
+                    pipe.expire(key, ttl)
+                    await pipe.execute()
+            except Exception as exc:
+                self._unreachable("handing over a reply with its facts", exc)
+                return False
+            if batch:
+                await self._sent(self.facts, batch)
+        return True
+
+    @staticmethod
+    def _add(pipe: Any, stream: _Stream, batch: list[dict]) -> None:
+        for entry in batch:
+            pipe.xadd(stream.key, {"f": protocol.encode(entry)}, maxlen=stream.maxlen, approximate=True)
+
+    def _unreachable(self, what: str, exc: Exception) -> None:
+        if self.unreachable_since is None:
+            self.unreachable_since = asyncio.get_running_loop().time()
+        self.relay.complain(what, exc)
+
+    async def _sent(self, stream: _Stream, batch: list[dict]) -> None:
+        if self.unreachable_since is not None:
+            log.info("Redis is back: sending the %d facts and %d log batches held meanwhile",
+                     len(self.facts.queue), len(self.logs.queue))
+            self.unreachable_since = None
+        # Entries dropped meanwhile (bound reached) were the oldest: drop only what was sent.
+        sent_last = batch[-1]["seq"]
+        while stream.queue and stream.queue[0]["seq"] <= sent_last:
+            stream.queue.popleft()
+        stream.sent = max(stream.sent, sent_last)
+        if stream is self.facts:
+            async with self._flushed:
+                self._flushed.notify_all()

@@ -110,10 +110,14 @@ class Relay:
             log.warning("ignored a malformed command: %s", exc)
             return None
 
+    def reply_parts(self, request_id: str, payload: dict) -> tuple[str, str]:
+        """The key a reply goes to, and the reply as sent."""
+        return protocol.reply_key(self.prefix, self.gateway, request_id), protocol.encode({"request_id": request_id,
+                                                                                           **payload})
+
     async def reply(self, request_id: str, payload: dict) -> None:
         """Hand the reply over; tried a few times, since the site is waiting for it."""
-        key = protocol.reply_key(self.prefix, self.gateway, request_id)
-        message = protocol.encode({"request_id": request_id, **payload})
+        key, message = self.reply_parts(request_id, payload)
         for attempt in range(3):
             try:
                 async with self.redis.pipeline(transaction=True) as pipe:

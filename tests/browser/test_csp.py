@@ -75,8 +75,6 @@ def test_the_dashboard_works_under_the_policy(page: Page, site, robot, operator)
     assert_clean(page)
 
     visit(page, f"{site}nodes/{key}/")
-    visit(page, f"{site}nodes/{key}/timeline/?window=week")
-    visit(page, f"{site}robots/{ROBOT}/timeline/")
     expect(page.locator("#parameters table")).to_be_visible(timeout=WAIT_MS)  # hx-trigger="load"
     page.get_by_role("button", name="activate", exact=True).click()
     expect(page.locator("#transition-result")).to_contain_text("activate succeeded", timeout=WAIT_MS)
@@ -91,6 +89,11 @@ def test_the_dashboard_works_under_the_policy(page: Page, site, robot, operator)
     page.press("[data-log=text]", "Enter")
     assert page.evaluate("window.__sameDocument") is True
     assert_clean(page)
+
+    for timeline in (f"nodes/{key}/timeline/?window=week", f"robots/{ROBOT}/timeline/"):
+        visit(page, site + timeline)
+        expect(page.locator("svg").first).to_be_visible(timeout=WAIT_MS)
+        assert_clean(page)
 
     visit(page, f"{site}audit/")
     expect(page.locator("table.audit tbody tr").first).to_contain_text("bruno-operator")

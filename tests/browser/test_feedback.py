@@ -10,7 +10,7 @@ import pytest
 from django.test import Client
 from playwright.sync_api import expect
 
-from lifecycle_site.fleet.models import GroupRun, ManagedNode
+from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
 from tests import stack
 from tests.browser.conftest import ARTIFACTS, submit_login
 from tests.integration.conftest import register, transition, wait_node
@@ -36,6 +36,7 @@ def other_robot(robot):
     wait_node(None, KEY, alive=True, state="unconfigured", seen_since=started, timeout=30)
     yield process
     process.stop()
+    Robot.objects.filter(name=OTHER).delete()  # later modules see the fleet of br-agv alone
 
 
 def open_fleet(browser, site, **viewport):
