@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 # DDS discovery stays on this machine unless you say otherwise (see README).
 export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 
-.PHONY: setup system-packages demo test test-unit test-integration test-deploy bench images edge-package edge-cell-package clean
+.PHONY: setup system-packages demo test test-unit test-integration test-postgres test-deploy bench images edge-package edge-cell-package clean
 
 $(BIN)/.installed: requirements.txt requirements-dev.txt
 	@$(PYTHON) -c 'import sys; assert sys.version_info[:2] == (3, 11), "Python 3.11 is needed (the ROS 2 Jazzy wheels are built for it); set PYTHON=/path/to/python3.11"'
@@ -27,6 +27,14 @@ demo: setup
 
 test: system-packages setup
 	$(BIN)/python -m pytest --ignore=tests/deploy $(PYTEST_ARGS)
+	$(MAKE) --no-print-directory test-postgres
+
+# The integration tests again with the site's database on PostgreSQL: a throw-away cluster of
+# Debian's postgresql, started and removed by the run (tests/postgres.py). A JUnit report
+# asked for in PYTEST_ARGS goes to junit-postgres.xml beside the first run's.
+test-postgres: system-packages setup
+	LIFECYCLE_TEST_DATABASE=postgres $(BIN)/python -m pytest --ignore=tests/deploy -m integration \
+		$(subst junit.xml,junit-postgres.xml,$(PYTEST_ARGS))
 
 test-unit: setup
 	$(BIN)/python -m pytest --ignore=tests/deploy -m "not integration and not browser"
