@@ -32,8 +32,9 @@ test: system-packages setup
 # The integration tests again with the site's database on PostgreSQL: a throw-away cluster of
 # Debian's postgresql, started and removed by the run (tests/postgres.py). A JUnit report
 # asked for in PYTEST_ARGS goes to junit-postgres.xml beside the first run's.
+# The log store's unit tests too: on PostgreSQL it stores through COPY, a path of its own.
 test-postgres: system-packages setup
-	LIFECYCLE_TEST_DATABASE=postgres $(BIN)/python -m pytest --ignore=tests/deploy -m integration \
+	LIFECYCLE_TEST_DATABASE=postgres $(BIN)/python -m pytest tests/integration tests/unit/test_log_store.py \
 		$(subst junit.xml,junit-postgres.xml,$(PYTEST_ARGS))
 
 test-unit: setup

@@ -111,6 +111,9 @@ def _insert_logs_copy(rows: list[LogRow]) -> list[int]:
         with cursor.cursor.copy(f"COPY {table} ({columns}) FROM STDIN (FORMAT BINARY)") as copy:
             copy.set_types(COPY_TYPES)  # cursor.cursor: psycopg's own (Django's wrapper has no copy())
             for row_id, row in zip(ids, rows, strict=True):
+                if not (isinstance(row.stamp, datetime) and timezone.is_aware(row.stamp)):
+                    # As the ORM would: made aware in the current time zone, with Django's warning.
+                    row = row._replace(stamp=LogRecord._meta.get_field("stamp").get_prep_value(row.stamp))
                 copy.write_row((row_id, *row))
     return ids
 
