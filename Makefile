@@ -32,9 +32,10 @@ test: system-packages setup
 # The integration tests again with the site's database on PostgreSQL: a throw-away cluster of
 # Debian's postgresql, started and removed by the run (tests/postgres.py). A JUnit report
 # asked for in PYTEST_ARGS goes to junit-postgres.xml beside the first run's.
-# The log store's unit tests too: on PostgreSQL it stores through COPY, a path of its own.
+# Unit tests of what differs there too: the log store (COPY) and values PostgreSQL refuses.
 test-postgres: system-packages setup
 	LIFECYCLE_TEST_DATABASE=postgres $(BIN)/python -m pytest tests/integration tests/unit/test_log_store.py \
+		tests/unit/test_database_input.py \
 		$(subst junit.xml,junit-postgres.xml,$(PYTEST_ARGS))
 
 test-unit: setup

@@ -124,6 +124,7 @@ MIDDLEWARE = [
     "django.contrib.messages.middleware.MessageMiddleware",
     "django.middleware.clickjacking.XFrameOptionsMiddleware",
     "django_htmx.middleware.HtmxMiddleware",
+    "lifecycle_site.database_input.DatabaseInputMiddleware",  # PostgreSQL's DataError: 400, not 500
     "axes.middleware.AxesMiddleware",  # last: answers a locked-out login with the page below
 ]
 # Brute force (django-axes): after LIFECYCLE_LOGIN_FAILURES wrong passwords for one account,
