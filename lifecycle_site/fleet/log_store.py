@@ -43,8 +43,9 @@ def insert_logs(rows: list[LogRow]) -> list[int]:
     a clash would fail the batch rather than push wrong ids. (Python's sqlite3 returns no rows
     from ``executemany`` with ``RETURNING``.)
 
-    On PostgreSQL the rows go in through one binary COPY, 4-5 times as fast as ``bulk_create``
-    from 100 rows a batch on (docs/performance.md). Other databases use ``bulk_create``.
+    On PostgreSQL the rows go in through one binary COPY, about 3 times as fast as ``bulk_create``
+    from 100 rows a batch on (32-41k against 10-13k records/s; multi-row INSERTs: 11k). Other
+    databases use ``bulk_create``.
     """
     if not rows:
         return []
