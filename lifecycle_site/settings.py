@@ -124,6 +124,7 @@ MIDDLEWARE = [
     "django.contrib.messages.middleware.MessageMiddleware",
     "django.middleware.clickjacking.XFrameOptionsMiddleware",
     "django_htmx.middleware.HtmxMiddleware",
+    "lifecycle_site.database_input.DatabaseInputMiddleware",  # PostgreSQL's DataError: 400, not 500
     "axes.middleware.AxesMiddleware",  # last: answers a locked-out login with the page below
 ]
 # Brute force (django-axes): after LIFECYCLE_LOGIN_FAILURES wrong passwords for one account,
@@ -157,12 +158,19 @@ TEMPLATES = [
     },
 ]
 
+# SQLite by default; DATABASE_URL=postgres://USER:PASSWORD@HOST:PORT/NAME for a bigger site
+# (psycopg 3; several site instances may share it). Each daphne keeps up to
+# http_handler.WORKERS connections, so PostgreSQL's max_connections must cover the instances
+# times that, plus the ingest process and the management commands (docker/README.md, PostgreSQL).
 DATABASES = {
     "default": dj_database_url.parse(
         os.environ.get("DATABASE_URL", f"sqlite:///{DATA_DIR / 'db.sqlite3'}"), conn_max_age=0
     )
 }
-if DATABASES["default"]["ENGINE"] == "django.db.backends.sqlite3":
+if DATABASES["default"]["ENGINE"] == "django.db.backends.postgresql":
+    # A database that does not answer fails the request within seconds, not after minutes.
+    DATABASES["default"].setdefault("OPTIONS", {}).setdefault("connect_timeout", 10)
+elif DATABASES["default"]["ENGINE"] == "django.db.backends.sqlite3":
     # WAL lets the gateway write while the site reads; IMMEDIATE avoids lock upgrades failing.
     DATABASES["default"]["OPTIONS"] = {
         "init_command": "PRAGMA journal_mode=WAL; PRAGMA synchronous=NORMAL;",

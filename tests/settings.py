@@ -29,10 +29,26 @@ os.environ.setdefault("LIFECYCLE_ROBOT_REFRESH_INTERVAL", "0.5")
 os.environ.setdefault("LIFECYCLE_HEARTBEAT_INTERVAL", "0.5")
 os.environ.setdefault("LIFECYCLE_GATEWAY_OFFLINE_AFTER", "3")
 os.environ.setdefault("LIFECYCLE_SERVICE_TIMEOUT", "3")
+# LIFECYCLE_TEST_DATABASE=postgres (`make test-postgres`): a throw-away PostgreSQL cluster for the
+# run, stopped and removed when this process ends (tests/postgres.py); every child process
+# gets its DATABASE_URL. The run's first process starts it; the URL travels to the others.
+if os.environ.get("LIFECYCLE_TEST_DATABASE", "sqlite") == "postgres" and not os.environ.get(
+        "DATABASE_URL", "").startswith("postgres"):
+    import atexit
+
+    from tests.postgres import Cluster
+
+    _cluster = Cluster()
+    os.environ["DATABASE_URL"] = _cluster.start()
+    atexit.register(_cluster.stop)
+elif os.environ.get("LIFECYCLE_TEST_DATABASE", "sqlite") not in ("sqlite", "postgres"):
+    raise RuntimeError(f"LIFECYCLE_TEST_DATABASE={os.environ['LIFECYCLE_TEST_DATABASE']!r}: use 'sqlite' (the "
+                       "default) or 'postgres'")
 os.environ.setdefault("DATABASE_URL", f"sqlite:///{os.environ['LIFECYCLE_DATA_DIR']}/test.sqlite3")
 
 from lifecycle_site.settings import *  # noqa: E402,F401,F403
 from lifecycle_site.settings import DATABASES  # noqa: E402
 
-# pytest-django creates this file (not an in-memory DB), so other processes share it.
+# pytest-django creates this file (not an in-memory DB), or this database on PostgreSQL, under the
+# name the URL gives: other processes share it.
 DATABASES["default"]["TEST"] = {"NAME": DATABASES["default"]["NAME"]}

@@ -25,12 +25,19 @@ def environment(**extra: str) -> dict[str, str]:
     env.pop("DJANGO_ALLOW_ASYNC_UNSAFE", None)  # set for Playwright in this process only
     env.update(
         DJANGO_SETTINGS_MODULE="lifecycle_site.settings",
-        DATABASE_URL=f"sqlite:///{settings.DATABASES['default']['NAME']}",
+        DATABASE_URL=_database_url(),
         PYTHONUNBUFFERED="1",
         ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
     )
     env.update(extra)
     return env
+
+
+def _database_url() -> str:
+    """The test database as a URL for child processes (tests/settings.py chose it)."""
+    if settings.DATABASES["default"]["ENGINE"] == "django.db.backends.sqlite3":
+        return f"sqlite:///{settings.DATABASES['default']['NAME']}"
+    return os.environ["DATABASE_URL"]  # PostgreSQL: the test database is the one the URL names
 
 
 def domain(offset: int) -> int:

@@ -8,6 +8,7 @@ from typing import Any, Callable
 
 from django.conf import settings
 from django.core.exceptions import RequestDataTooBig, SuspiciousOperation, TooManyFieldsSent
+from django.db import DataError
 from django.http import Http404, HttpRequest, JsonResponse
 from django.middleware.csrf import CsrfViewMiddleware
 from django.utils import timezone
@@ -17,6 +18,7 @@ from lifecycle_site.api import grants
 from lifecycle_site.api.limits import MAX_DEPTH, MAX_DIGITS, body_limit, cut, size_text
 from lifecycle_site.api.models import ApiToken, hash_token
 from lifecycle_site.audit import denials
+from lifecycle_site.database_input import MESSAGE as DATA_ERROR_MESSAGE
 from lifecycle_site.fleet.gateway_client import GatewayError
 from ros_gateway.shared import param_types as pt
 
@@ -209,6 +211,8 @@ def api_view(methods: tuple[str, ...] = ("GET",), permission: str = VIEW_PERMISS
                              f"{settings.DATA_UPLOAD_MAX_NUMBER_FIELDS:,} fields; send fewer.", 400)
             except SuspiciousOperation as exc:  # Django's other refusals of a malformed request
                 return error("bad_request", f"The request was refused: {exc}", 400)
+            except DataError:  # PostgreSQL: a NUL character, or text longer than its column
+                return error("bad_request", DATA_ERROR_MESSAGE, 400)
 
         return wrapper
 

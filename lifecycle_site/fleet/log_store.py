@@ -41,11 +41,16 @@ def insert_logs(rows: list[LogRow]) -> list[int]:
     lock before anything is read, so no other writer can come in before the commit. The other
     rows get the ids that follow, written explicitly: the ids returned are the ids stored, and
     a clash would fail the batch rather than push wrong ids. (Python's sqlite3 returns no rows
-    from ``executemany`` with ``RETURNING``.) Other databases (PostgreSQL) use ``bulk_create``,
-    which returns the ids there.
+    from ``executemany`` with ``RETURNING``.)
+
+    On PostgreSQL the rows go in through one binary COPY, about 3 times as fast as ``bulk_create``
+    from 100 rows a batch on (32-41k against 10-13k records/s; multi-row INSERTs: 11k). Other
+    databases use ``bulk_create``.
     """
     if not rows:
         return []
+    if connection.vendor == "postgresql":
+        return _insert_logs_copy(rows)
     if connection.vendor != "sqlite":
         return _insert_logs_orm(rows)
     params = [(*row[:3], _stamp_for_db(row[3]), *row[4:]) for row in rows]
@@ -77,6 +82,41 @@ def _stamp_for_db(stamp: datetime):
 def _insert_logs_orm(rows: list[LogRow]) -> list[int]:
     saved = LogRecord.objects.bulk_create([LogRecord(**row._asdict()) for row in rows], batch_size=500)
     return [record.id for record in saved]
+
+
+def _reserve_ids(cursor, count: int) -> list[int]:
+    """``count`` ids from the table's own sequence, ascending: the rows get them in order."""
+    cursor.execute("SELECT nextval(pg_get_serial_sequence(%s, %s)) FROM generate_series(1, %s)",
+                   [LogRecord._meta.db_table, LogRecord._meta.pk.column, count])
+    return sorted(row[0] for row in cursor.fetchall())
+
+
+def _names() -> tuple[str, str]:
+    quote = connection.ops.quote_name
+    columns = [quote(LogRecord._meta.pk.column)]
+    columns += [quote(LogRecord._meta.get_field(name).column) for name in LogRow._fields]
+    return quote(LogRecord._meta.db_table), ", ".join(columns)
+
+
+# LogRow's columns as PostgreSQL types, the id first (binary COPY sends each value as its type).
+COPY_TYPES = ["bigint", "bigint", "bigint", "varchar", "timestamptz", "smallint", "text", "varchar", "varchar",
+              "integer"]
+
+
+def _insert_logs_copy(rows: list[LogRow]) -> list[int]:
+    """PostgreSQL: one binary COPY of the rows, with ids taken from the sequence first (COPY
+    returns none). The ids are the table's own, so the ORM's inserts never clash with them."""
+    table, columns = _names()
+    with transaction.atomic(), connection.cursor() as cursor:
+        ids = _reserve_ids(cursor, len(rows))
+        with cursor.cursor.copy(f"COPY {table} ({columns}) FROM STDIN (FORMAT BINARY)") as copy:
+            copy.set_types(COPY_TYPES)  # cursor.cursor: psycopg's own (Django's wrapper has no copy())
+            for row_id, row in zip(ids, rows, strict=True):
+                if not (isinstance(row.stamp, datetime) and timezone.is_aware(row.stamp)):
+                    # As the ORM would: made aware in the current time zone, with Django's warning.
+                    row = row._replace(stamp=LogRecord._meta.get_field("stamp").get_prep_value(row.stamp))
+                copy.write_row((row_id, *row))
+    return ids
 
 
 def prune_logs(keep_per_logger: int, keep_hours: float) -> int:

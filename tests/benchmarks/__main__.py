@@ -17,7 +17,7 @@ from pathlib import Path
 from types import ModuleType
 
 from tests.benchmarks import flood, load, networks, push, quiet, scale, timeline, transition
-from tests.benchmarks.harness import ROOT, BenchContext, Template
+from tests.benchmarks.harness import DATABASES, ROOT, BenchContext, Template
 from tests.benchmarks.report import ScenarioResult, machine, render_table, write_json
 from tests.benchmarks.system import loadavg
 
@@ -38,6 +38,9 @@ def parse(argv: list[str]) -> argparse.Namespace:
     parser.add_argument("--output", type=Path, default=ROOT / "bench-results.json")
     parser.add_argument("--profile", type=Path, metavar="DIR",
                         help="sample the gateway and daphne with py-spy while measuring; files go to DIR")
+    parser.add_argument("--database", choices=DATABASES, default="sqlite",
+                        help="the site's database: SQLite files, or a throw-away PostgreSQL cluster (Debian's "
+                             "postgresql), one database per scenario")
     parser.add_argument("--keep", action="store_true", help="keep the work dir (databases, process logs)")
     parser.add_argument("--strict", action="store_true", help="exit 1 when a target is missed")
     return parser.parse_args(argv)
@@ -47,18 +50,10 @@ def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt  # unwinds through every stack's teardown
 
 
-def main(argv: list[str]) -> int:
-    options = parse(argv)
-    signal.signal(signal.SIGTERM, _interrupt)
-    names = options.only or [name for name in SCENARIOS if name not in ON_REQUEST]
-    workdir = Path(tempfile.mkdtemp(prefix="lifecycle-bench-"))
-    print(f"benchmarks: {', '.join(names)}{' (quick)' if options.quick else ''}; work dir {workdir}", flush=True)
-    began = time.monotonic()
-    measured_on = machine()
+def _run_all(names: list[str], ctx: BenchContext) -> tuple[list[ScenarioResult], list[str]]:
+    """Every scenario named, in order: their results, and the names of those that could not run."""
     results: list[ScenarioResult] = []
     failed: list[str] = []
-    template = Template(workdir)
-    ctx = BenchContext(workdir, template, options.quick, options.profile)
     for name in names:
         module = SCENARIOS[name]
         started = time.monotonic()
@@ -72,7 +67,25 @@ def main(argv: list[str]) -> int:
         result.seconds = time.monotonic() - started
         results.append(result)
         print("\n" + render_table(result), flush=True)
-    write_json(options.output, results, {"quick": options.quick, "only": options.only}, measured_on)
+    return results, failed
+
+
+def main(argv: list[str]) -> int:
+    options = parse(argv)
+    signal.signal(signal.SIGTERM, _interrupt)
+    names = options.only or [name for name in SCENARIOS if name not in ON_REQUEST]
+    workdir = Path(tempfile.mkdtemp(prefix="lifecycle-bench-"))
+    print(f"benchmarks: {', '.join(names)}{' (quick)' if options.quick else ''} on {options.database}; "
+          f"work dir {workdir}", flush=True)
+    began = time.monotonic()
+    measured_on = machine()
+    template = Template(workdir, options.database)
+    try:
+        results, failed = _run_all(names, BenchContext(workdir, template, options.quick, options.profile))
+    finally:
+        template.close()
+    write_json(options.output, results, {"quick": options.quick, "only": options.only,
+                                         "database": options.database}, measured_on)
     missed = [f"{r.name}: {c.name}" for r in results for c in r.checks if not c.met]
     print(f"\n{len(results) - len(failed)} of {len(names)} scenarios ran in {time.monotonic() - began:.0f} s; "
           f"results in {options.output}")

@@ -1,4 +1,5 @@
-"""The real stack of one scenario: its own Redis, a fresh SQLite database, and as
+"""The real stack of one scenario: its own Redis, a fresh database (SQLite, or with
+``--database postgres`` a database of its own on a throw-away PostgreSQL cluster), and as
 subprocesses the site's ingest process, one registered gateway (with its own Redis user and
 no database) and daphne; robot processes on demand. Everything is stopped on exit.
 
@@ -30,6 +31,8 @@ USER, PASSWORD = "bench-operator", "bench-password-9431"
 CHANNEL_PREFIX = "lifecycle-bench"
 # The gateway gets a database it cannot open, as in the integration tests: it needs only Redis.
 GATEWAY_DATABASE_URL = "sqlite:////nonexistent-lifecycle-bench-dir/no-database-for-gateways.sqlite3"
+DATABASE_URL_FILE = "database-url"
+DATABASES = ("sqlite", "postgres")
 
 T = TypeVar("T")
 
@@ -85,13 +88,23 @@ class Child:
                 pass
 
 
+def database_url(data_dir: Path) -> str:
+    """The database of the stack in ``data_dir``: its SQLite file, or the PostgreSQL database
+    that ``Template.copy_to`` made for it (its URL in a file there, readable by root only)."""
+    url_file = data_dir / DATABASE_URL_FILE
+    if url_file.exists():
+        return url_file.read_text().strip()
+    return f"sqlite:///{data_dir / 'db.sqlite3'}"
+
+
 def environment(data_dir: Path, redis_port: int, **extra: str) -> dict[str, str]:
     """What every process of one stack shares: settings, data dir, Redis, DDS on loopback."""
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("LIFECYCLE_", "DJANGO_", "ROS_"))}
+    env = {k: v for k, v in os.environ.items()
+           if not k.startswith(("LIFECYCLE_", "DJANGO_", "ROS_")) and k != "DATABASE_URL"}
     env.update(
         DJANGO_SETTINGS_MODULE="lifecycle_site.settings",
         LIFECYCLE_DATA_DIR=str(data_dir),
-        DATABASE_URL=f"sqlite:///{data_dir / 'db.sqlite3'}",
+        DATABASE_URL=database_url(data_dir),
         REDIS_URL=f"redis://127.0.0.1:{redis_port}/0",
         LIFECYCLE_CHANNEL_PREFIX=CHANNEL_PREFIX,
         ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
@@ -125,22 +138,59 @@ def read_env_file(path: Path) -> dict[str, str]:
 
 
 class Template:
-    """A migrated database with the benchmark's operator and API token, copied per scenario."""
+    """A migrated database with the benchmark's operator and API token, copied per scenario.
+    On PostgreSQL it is a database on a cluster of the run's own, which ``close()`` removes."""
 
-    def __init__(self, workdir: Path) -> None:
+    def __init__(self, workdir: Path, database: str = "sqlite") -> None:
+        if database not in DATABASES:
+            raise BenchError(f"--database {database}: use one of {', '.join(DATABASES)}")
         self.dir = workdir / "template"
         self.dir.mkdir(parents=True)
-        env = environment(self.dir, 0)
-        run_manage(env, "migrate", "--noinput")
-        run_manage(env, "shell", "-c", SEED_USER)
-        # The token the way an operator makes one (docs/api.md).
-        self.token = run_manage(env, "create_api_token", USER, "--name", "benchmark").strip()
+        self.database = database
+        self.cluster = None
+        self._copies = 0
+        if database == "postgres":
+            from tests.postgres import Cluster
+
+            self.cluster = Cluster()
+        try:
+            if self.cluster is not None:
+                self._admin_url = self.cluster.start().rsplit("/", 1)[0] + "/postgres"
+                self._create_database("bench_template")
+            env = environment(self.dir, 0)
+            run_manage(env, "migrate", "--noinput")
+            run_manage(env, "shell", "-c", SEED_USER)
+            # The token the way an operator makes one (docs/api.md).
+            self.token = run_manage(env, "create_api_token", USER, "--name", "benchmark").strip()
+        except BaseException:
+            self.close()
+            raise
 
     def copy_to(self, data_dir: Path) -> None:
         data_dir.mkdir(parents=True)
+        if self.cluster is not None:
+            self._copies += 1
+            self._create_database(f"bench_{self._copies}", data_dir, template="bench_template")
         for path in self.dir.glob("db.sqlite3*"):
             shutil.copy(path, data_dir / path.name)
         shutil.copy(self.dir / "secret_key", data_dir / "secret_key")
+
+    def _create_database(self, name: str, data_dir: Path | None = None, template: str | None = None) -> None:
+        """A PostgreSQL database (a copy of ``template``), its URL written where
+        ``database_url`` finds it."""
+        import psycopg
+
+        with psycopg.connect(self._admin_url, autocommit=True) as admin:
+            admin.execute(f'CREATE DATABASE "{name}"' + (f' TEMPLATE "{template}"' if template else ""))
+        url_file = (data_dir or self.dir) / DATABASE_URL_FILE
+        url_file.touch(0o600)
+        url_file.write_text(self._admin_url.rsplit("/", 1)[0] + f"/{name}\n")
+
+    def close(self) -> None:
+        """Stop and remove the PostgreSQL cluster, if any."""
+        if self.cluster is not None:
+            self.cluster.stop()
+            self.cluster = None
 
 
 class Stack:
@@ -168,7 +218,7 @@ class Stack:
         self.gateway_name = f"bench-{name}"
         self.stats_path = self.dir / "gateway-stats.json"
         self.db_path = self.dir / "db.sqlite3"
-        self._db: sqlite3.Connection | None = None
+        self._db = None  # sqlite3 or psycopg connection, made on first use
         self._redis = None  # the harness's own Redis client (default user), made on first use
 
     # -- bring-up and teardown ------------------------------------------------------------
@@ -279,15 +329,22 @@ class Stack:
         queries, WAL lets them run beside its writes): log records ever stored (the highest id:
         pruning deletes old rows, never the newest), audit records by source, and the gateway
         row's accounts of what was lost on the way and its node count (copied from its beat)."""
-        if self._db is None:
+        url = database_url(self.dir)
+        if self._db is None and url.startswith("postgres"):
+            import psycopg
+
+            self._db = psycopg.connect(url, autocommit=True)
+        elif self._db is None:
             self._db = sqlite3.connect(self.db_path, timeout=10, isolation_level=None, check_same_thread=False)
         db = self._db
+        mark = "?" if isinstance(db, sqlite3.Connection) else "%s"
         stats: dict = {
             "logs_stored": db.execute("SELECT coalesce(max(id), 0) FROM fleet_logrecord").fetchone()[0],
-            "audit_records": dict(db.execute("SELECT source, count(*) FROM audit_transitionrecord GROUP BY source")),
+            "audit_records": dict(
+                db.execute("SELECT source, count(*) FROM audit_transitionrecord GROUP BY source").fetchall()),
         }
         columns = ("logs_lost", "logs_dropped", "facts_lost", "facts_rejected", "node_count")
-        row = db.execute(f"SELECT {', '.join(columns)} FROM fleet_gateway WHERE name = ?",
+        row = db.execute(f"SELECT {', '.join(columns)} FROM fleet_gateway WHERE name = {mark}",
                          (self.gateway_name,)).fetchone()
         if row is not None:
             stats.update(zip(columns, row, strict=True))

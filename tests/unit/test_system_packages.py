@@ -3,6 +3,7 @@ root nor sudo: it must not try to install, and must print the one command that w
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 import tempfile
@@ -60,3 +61,10 @@ def test_all_present_needs_no_privileges(script):
     assert done.returncode == 0, done
     assert done.stdout.strip() == "System packages the tests need: all present (bash dpkg)."
     assert took < 5
+
+
+def test_the_list_has_the_servers_the_tests_start():
+    """Redis, nginx and PostgreSQL (the second integration run's throw-away cluster,
+    tests/postgres.py) are started by the tests themselves; Chromium by the browser tests."""
+    listed = re.search(r"^PACKAGES=\(([^)]*)\)", SCRIPT.read_text(), re.MULTILINE).group(1).split()
+    assert {"redis-server", "nginx", "postgresql", "chromium"} <= set(listed), listed
