@@ -43,8 +43,9 @@ class CollapsedRobots:
 
     async def receive(self, text_data: str | None = None, bytes_data: bytes | None = None) -> None:
         """``{"open": [robot names], "resync": bool}`` from fleet.js: the robots the page shows
-        opened. After a toggle the page has fetched the section itself; on (re)connect
-        (``resync``) a robot shown otherwise than the page wants is sent again."""
+        opened. A robot just opened gets its rows again from here (the page fetched them before
+        the socket knew: a change in between would be lost); on (re)connect (``resync``) a robot
+        shown otherwise than the page wants is sent whole."""
         try:
             message = json.loads(text_data or "")
             wanted = {str(name) for name in message["open"][:100]}
@@ -60,10 +61,10 @@ class CollapsedRobots:
                     self.collapsed[name] = statuses[name]
                 else:
                     self.collapsed.pop(name, None)
-            if html:
+            if html.strip():
                 await self.send(text_data=html)
 
-    def toggle(self, changes: list[tuple[str, bool]], render: bool) -> tuple[str, dict[str, dict[str, str]]]:
+    def toggle(self, changes: list[tuple[str, bool]], whole: bool) -> tuple[str, dict[str, dict[str, str]]]:
         parts, statuses = [], {}
         with script_prefix(self.prefix):
             for name, collapse in changes:
@@ -74,9 +75,11 @@ class CollapsedRobots:
                 robot, rows = found
                 statuses[name] = getattr(robot, "statuses", {})
                 self.known.update(row["id"] for row in rows)
-                if render:
-                    parts.append(render_to_string("dashboard/_robot.html",
-                                                  {"robot": robot, "nodes": rows, "can_operate": self.can_operate}))
+                context = {"robot": robot, "nodes": rows, "can_operate": self.can_operate}
+                if whole:
+                    parts.append(render_to_string("dashboard/_robot.html", context))
+                elif rows:
+                    parts.append(render_to_string("dashboard/_node_row.html", {**context, "oob": "true"}))
         return "".join(parts), statuses
 
     async def send_summaries(self) -> None:

@@ -1,6 +1,7 @@
 """Plain-data snapshots that pages and consumers render (one query each, no N+1)."""
 from __future__ import annotations
 
+import os
 from datetime import datetime, timedelta, timezone
 from functools import lru_cache
 from typing import Collection, Iterable
@@ -63,9 +64,10 @@ def fleet_row(node: dict) -> dict:
 
 # A fleet of more than FLEET_ROWS_MAX nodes shows each robot of more than ROBOT_ROWS_MAX nodes
 # collapsed (its counts by state) until it is opened; the page keeps the opened ones in its
-# URL (?open=a,b). Rendering 1,000 rows took most of the page's time.
-FLEET_ROWS_MAX = 300
-ROBOT_ROWS_MAX = 25
+# URL (?open=a,b). Rendering 1,000 rows took most of the page's time. Both sizes can be set in
+# the site's environment (LIFECYCLE_FLEET_COLLAPSE_ABOVE, LIFECYCLE_ROBOT_COLLAPSE_ABOVE).
+FLEET_ROWS_MAX = int(os.environ.get("LIFECYCLE_FLEET_COLLAPSE_ABOVE", "300"))
+ROBOT_ROWS_MAX = int(os.environ.get("LIFECYCLE_ROBOT_COLLAPSE_ABOVE", "25"))
 FIND_MAX = 50  # matches the name filter lists from collapsed robots
 # One tuple per node, enough for a row (node_payload) or a collapsed robot's counts.
 NODE_FIELDS = ("robot_id", "key", "name", "state_id", "alive", "gone_reason", "last_seen")

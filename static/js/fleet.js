@@ -96,14 +96,19 @@
     }
     lastOpen = open;
   }
+  function socketState(state) {
+    var live = document.getElementById("fleet-live");
+    if (live) live.dataset.socket = state;
+  }
   document.addEventListener("htmx:wsOpen", function (e) {
     socket = e.detail.socketWrapper;
     syncOpen(true);
+    socketState("open");
   });
-  document.addEventListener("htmx:wsClose", function () { socket = null; });
+  document.addEventListener("htmx:wsClose", function () { socket = null; socketState("closed"); });
   document.addEventListener("htmx:afterSettle", function () { syncOpen(false); });
 
-  function remember() {
+  function rememberFilters() {
     var params = new URLSearchParams(window.location.search);
     var f = filters();
     Object.keys(f).forEach(function (k) { if (f[k]) params.set(k, f[k]); else params.delete(k); });
@@ -117,7 +122,7 @@
       form.addEventListener("submit", function (event) { event.preventDefault(); });
     });
     document.querySelectorAll("[data-filter]").forEach(function (el) {
-      el.addEventListener("input", function () { apply(); remember(); });
+      el.addEventListener("input", function () { apply(); rememberFilters(); });
     });
     apply();
   });

@@ -151,8 +151,11 @@ def test_the_live_page_counts_a_collapsed_robot_and_sends_rows_only_of_opened_on
             await layer.group_send(protocol.FLEET_GROUP, pushed(other, sm.INACTIVE))  # opened: its row
             row = await receive_until(communicator, 'id="node-big-6__big_6_n012"')
             assert "state-inactive" in row
-            # The page opens big-4 (it fetched the rows itself) and collapses big-6.
+            # The page opens big-4 (it fetched the rows itself; they come again from here, as
+            # a change may have come between) and collapses big-6.
             await communicator.send_to(text_data='{"open": ["big-4"]}')
+            rows = await receive_until(communicator, 'id="node-big-4__big_4_n099"')
+            assert rows.count('class="node-row') == PER_ROBOT and 'hx-swap-oob="true"' in rows
             await layer.group_send(protocol.FLEET_GROUP, pushed(node, sm.ACTIVE))
             row = await receive_until(communicator, 'id="node-big-4__big_4_n012"')
             assert "state-active" in row
