@@ -169,15 +169,20 @@ def measure_pages(fleet: Fleet, result: ScenarioResult) -> None:
     result.check(f"fleet page at {sizes.total} nodes, median", page.median, "< 100 ms", page.median < 100, "ms")
 
 
-def idle_cpu(fleet: Fleet, seconds: float, result: ScenarioResult) -> None:
+def idle_cpu(fleet: Fleet, robots: list[Child], seconds: float, result: ScenarioResult) -> None:
+    """CPU at rest of gateways, site, ingest, and of all robot processes together (the load
+    the other figures are taken under)."""
     stack = fleet.stack
     assert stack.site is not None and stack.ingest is not None
     pids = {f"gateway {n}": c.pid for n, c in fleet.gateways().items()}
     pids.update(site=stack.site.pid, ingest=stack.ingest.pid)
     before = {k: cpu_seconds(pid) for k, pid in pids.items()}
+    robots_before = sum(cpu_seconds(r.pid) for r in robots)
     time.sleep(seconds)
     for name, pid in pids.items():
         with_load(result, f"{name} CPU at rest", (cpu_seconds(pid) - before[name]) / seconds * 100, "% of a core")
+    robots_cpu = (sum(cpu_seconds(r.pid) for r in robots) - robots_before) / seconds * 100
+    with_load(result, f"{len(robots)} robot processes together, CPU at rest", robots_cpu, "% of a core")
 
 
 def all_robots(fleet: Fleet, operation: str, names: dict[str, list[str]]) -> float:
@@ -355,7 +360,7 @@ def run(ctx: BenchContext) -> ScenarioResult:
         robots = start_robots(fleet)
         watch_discovery(fleet, robots, result)
         time.sleep(1.0 if ctx.quick else 3.0)  # let the first state reads and pushes settle
-        idle_cpu(fleet, 3.0, result)
+        idle_cpu(fleet, robots, 3.0, result)
         with profiled(ctx, stack, NAME):
             measure_pages(fleet, result)
             peak = fleet.memory()
