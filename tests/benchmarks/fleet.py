@@ -118,6 +118,9 @@ def watch_discovery(fleet: Fleet, robots: list[Child], result: ScenarioResult) -
         dead = [r.name for r in robots if not r.alive()]
         if dead:
             raise BenchError(f"robot processes died: {dead}")
+        for name, child in fleet.gateways().items():
+            if not child.alive():
+                raise BenchError(f"gateway {name} ended during discovery:\n{child.output()[-1500:]}")
         alive = [n for n in stack.nodes() if n["alive"]]
         if "listed" not in marks and len(alive) >= total:
             marks["listed"] = now
