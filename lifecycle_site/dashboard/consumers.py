@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+from urllib.parse import parse_qs
 
 from channels.db import database_sync_to_async
 from channels.generic.websocket import AsyncWebsocketConsumer
@@ -16,6 +17,7 @@ from django.template.loader import render_to_string
 from redis.exceptions import RedisError
 
 from lifecycle_site.dashboard import snapshots, socket_checks
+from lifecycle_site.dashboard.collapse import CollapsedRobots
 from lifecycle_site.prefix import forwarded_prefix, script_prefix
 from ros_gateway.shared import protocol
 
@@ -211,7 +213,9 @@ class RunPanels:
                 await self.send_run(run)
 
 
-class FleetConsumer(RunPanels, LiveConsumer):
+class FleetConsumer(CollapsedRobots, RunPanels, LiveConsumer):
+    """The fleet page; the robots it shows collapsed get their counts instead of rows (collapse.py)."""
+
     groups_to_join = [protocol.FLEET_GROUP]
 
     def runs_in(self, run: dict) -> str:
@@ -223,20 +227,25 @@ class FleetConsumer(RunPanels, LiveConsumer):
         Read and rendered in a worker thread of its own: at 300 nodes that is ~30 ms which,
         on the event loop, every push to every page would wait for (and, in the one thread
         that consumers' database calls share, every other page's connect)."""
-        html, self.known = await database_sync_to_async(self.fleet_html, thread_sensitive=False)()
+        query = parse_qs(self.scope.get("query_string", b"").decode("latin-1"))
+        opened = [name for name in ",".join(query.get("open", [])).split(",") if name][:100]
+        html, self.known = await database_sync_to_async(self.fleet_html, thread_sensitive=False)(opened)
         await self.send(text_data=html)
 
-    def fleet_html(self) -> tuple[str, set[str]]:
+    def fleet_html(self, opened: list[str]) -> tuple[str, set[str]]:
         with script_prefix(self.prefix):
-            groups = snapshots.fleet()  # the links it puts in carry the prefix
+            # (the links it puts in carry the prefix)
+            groups = snapshots.fleet(opened) if opened else snapshots.fleet()
             html = render_to_string(
                 "dashboard/_robots.html", {"gateways": groups, "can_operate": self.can_operate, "oob": True}
             )
+        robots = [robot for g in groups for robot, _ in g["robots"]]
         self.heads = {g["gateway"]["name"]: _head(g["gateway"]) for g in groups}
         self.views = {g["gateway"]["name"]: g["gateway"] for g in groups}
         self.gateway_of = {robot.name: g["gateway"]["name"] for g in groups for robot, _ in g["robots"]}
-        self.run_ranks = {run["id"]: snapshots.run_rank(run)
-                          for g in groups for robot, _ in g["robots"] for run in robot.recent_runs}
+        self.run_ranks = {run["id"]: snapshots.run_rank(run) for robot in robots for run in robot.recent_runs}
+        self.collapsible = {robot.name for robot in robots if robot.collapsible}
+        self.collapsed: dict[str, dict[str, str]] = {r.name: r.statuses for r in robots if r.collapsed}
         return html, {n["id"] for group in groups for _, nodes in group["robots"] for n in nodes}
 
     def gateway_views(self) -> list[dict]:
@@ -255,18 +264,22 @@ class FleetConsumer(RunPanels, LiveConsumer):
                     await self.send_rows(view)
 
     async def send_rows(self, view: dict) -> None:
+        shown = [name for name in view["robots"] if name not in self.collapsed]
+
         def render() -> str:
             with script_prefix(self.prefix):
-                rows = snapshots.robot_rows(view["robots"], view)
+                rows = snapshots.robot_rows(shown, view)
                 return render_to_string("dashboard/_node_row.html",
                                         {"nodes": rows, "oob": "true", "can_operate": self.can_operate})
 
-        html = await database_sync_to_async(render, thread_sensitive=False)()
+        html = await database_sync_to_async(render, thread_sensitive=False)() if shown else ""
         if html.strip():
             await self.send(text_data=html)
 
     async def node_state(self, event: dict) -> None:
         node = event["node"]
+        if self.counted(node):  # its robot is shown collapsed: its counts follow, not its row
+            return
         new = node["id"] not in self.known
         self.known.add(node["id"])
         template = "dashboard/_node_row_new.html" if new else "dashboard/_node_row.html"
@@ -276,7 +289,6 @@ class FleetConsumer(RunPanels, LiveConsumer):
         if view is not None:
             snapshots.mark_gateway([row], view)
         await self.send_html(template, {"node": row, "nodes": [row], "oob": "true", "can_operate": self.can_operate})
-
 
 class NodeConsumer(RunPanels, LiveConsumer):
     async def prepare(self) -> bool:

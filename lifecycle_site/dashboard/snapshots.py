@@ -1,9 +1,10 @@
 """Plain-data snapshots that pages and consumers render (one query each, no N+1)."""
 from __future__ import annotations
 
+import os
 from datetime import datetime, timedelta, timezone
 from functools import lru_cache
-from typing import Iterable
+from typing import Collection, Iterable
 from urllib.parse import quote
 
 from django.core.cache import cache
@@ -61,20 +62,85 @@ def fleet_row(node: dict) -> dict:
     return row
 
 
-def fleet() -> list[dict]:
+# A fleet of more than FLEET_ROWS_MAX nodes shows each robot of more than ROBOT_ROWS_MAX nodes
+# collapsed (its counts by state) until it is opened; the page keeps the opened ones in its
+# URL (?open=a,b). Rendering 1,000 rows took most of the page's time. Both sizes can be set in
+# the site's environment (LIFECYCLE_FLEET_COLLAPSE_ABOVE, LIFECYCLE_ROBOT_COLLAPSE_ABOVE).
+FLEET_ROWS_MAX = int(os.environ.get("LIFECYCLE_FLEET_COLLAPSE_ABOVE", "300"))
+ROBOT_ROWS_MAX = int(os.environ.get("LIFECYCLE_ROBOT_COLLAPSE_ABOVE", "25"))
+FIND_MAX = 50  # matches the name filter lists from collapsed robots
+# One tuple per node, enough for a row (node_payload) or a collapsed robot's counts.
+NODE_FIELDS = ("robot_id", "key", "name", "state_id", "alive", "gone_reason", "last_seen")
+# A row's data-status for the states a transition is under way in (fleet.js counts them so).
+BUSY = {sm.state_label(s) for s in sm.STATE_LABELS if not sm.is_primary(s) and s != sm.UNKNOWN}
+# The order fleet.js lists counts in.
+COUNT_ORDER = ["active", "inactive", "unconfigured", "finalized", "busy", "lost", "waiting"]
+
+
+def status_of(alive: bool, label: str, seen: bool, gone_reason: str) -> str:
+    """A row's data-status (templatetags node_status, transition states as 'busy')."""
+    if alive:
+        return "busy" if label in BUSY else label
+    if not seen:
+        return "waiting"
+    return "unreachable" if gone_reason == "unreachable" else "lost"
+
+
+def row_status(node: dict) -> str:
+    return status_of(node["alive"], node["state"]["label"], node.get("last_seen") is not None,
+                     node.get("gone_reason", ""))
+
+
+def _tuple_status(t: tuple) -> str:
+    _, _, _, state_id, alive, gone_reason, last_seen = t
+    return status_of(alive, sm.state_label(state_id), last_seen is not None, gone_reason)
+
+
+def _tuple_payload(t: tuple, robot: str) -> dict:
+    _, key, name, state_id, alive, gone_reason, last_seen = t
+    return protocol.node_payload(key=key, robot=robot, name=name, state_id=state_id, alive=alive,
+                                 gone_reason=gone_reason, last_seen=last_seen.isoformat() if last_seen else None)
+
+
+def summary(statuses: Iterable[str]) -> dict:
+    """A collapsed robot's counts: ``{"counts": [(status, n)], "total": n, "alive": n}``."""
+    counts: dict[str, int] = {}
+    for status in statuses:
+        counts[status] = counts.get(status, 0) + 1
+    order = COUNT_ORDER + sorted(set(counts) - set(COUNT_ORDER))
+    alive = sum(n for s, n in counts.items() if s not in ("lost", "waiting", "unreachable"))
+    return {"counts": [(s, counts[s]) for s in order if counts.get(s)], "total": sum(counts.values()),
+            "alive": alive}
+
+
+def fleet(open_robots: Collection[str] = ()) -> list[dict]:
     """Every gateway (those without robots only once they have reported) with its status and
     its robots, each robot with its nodes as plain data, URLs included: three queries and one
     Redis round trip whatever the fleet size. Call it under the script prefix the links are for.
 
+    A robot collapsed (see FLEET_ROWS_MAX; not in ``open_robots``) comes without rows: it has
+    ``collapsed``, ``statuses`` (node key -> row status) and ``summary`` (summary()).
+    ``collapsible`` says whether it is collapsed unless opened.
+
     Each item: ``{"gateway": gateways.describe(...), "robots": [(robot, [node dicts])]}``."""
     rows = list(Gateway.objects.order_by("name"))
     robots = list(Robot.objects.order_by("name"))
-    by_robot: dict[int, list[dict]] = {r.id: [] for r in robots}
+    raw: dict[int, list[tuple]] = {r.id: [] for r in robots}
+    for t in ManagedNode.objects.order_by("name").values_list(*NODE_FIELDS):
+        raw[t[0]].append(t)
+    crowded = sum(len(nodes) for nodes in raw.values()) > FLEET_ROWS_MAX
+    by_robot: dict[int, list[dict]] = {}
     nodes = []
-    for node in ManagedNode.objects.select_related("robot").order_by("name"):
-        row = node_dict(node)
-        by_robot[node.robot_id].append(row)
-        nodes.append(row)
+    for robot in robots:
+        robot.collapsible = crowded and len(raw[robot.id]) > ROBOT_ROWS_MAX
+        robot.collapsed = robot.collapsible and robot.name not in open_robots
+        if robot.collapsed:
+            robot.statuses = {t[1]: _tuple_status(t) for t in raw[robot.id]}
+            robot.summary = summary(robot.statuses.values())
+            by_robot[robot.id] = []
+        else:
+            by_robot[robot.id] = [_tuple_payload(t, robot.name) for t in raw[robot.id]]
+            nodes.extend(by_robot[robot.id])
     with_links(nodes)
     by_gateway: dict[int, list[Robot]] = {}
     for robot in robots:
@@ -87,9 +153,56 @@ def fleet() -> list[dict]:
             view = gateways.describe(row, state, [r.name for r in mine])
             for robot in mine:
                 robot.recent_runs = runs.get(robot.name, [])
+                robot.gateway_view = view
                 mark_gateway(by_robot[robot.id], view)
             groups.append({"gateway": view, "robots": [(robot, by_robot[robot.id]) for robot in mine]})
     return groups
+
+
+def robot_section(name: str, opened: bool) -> tuple[Robot, list[dict]] | None:
+    """One robot as fleet() gives it, opened or collapsed (None if there is no such robot)."""
+    robot = Robot.objects.select_related("gateway").filter(name=name).first()
+    if robot is None:
+        return None
+    raw = list(ManagedNode.objects.filter(robot=robot).order_by("name").values_list(*NODE_FIELDS))
+    view = gateway_of(robot)
+    robot.gateway_view = view
+    robot.recent_runs = recent_runs(robot.id).get(robot.name, [])
+    robot.collapsible = True  # asked for by its button, which only collapsible robots have
+    robot.collapsed = not opened
+    if robot.collapsed:
+        robot.statuses = {t[1]: _tuple_status(t) for t in raw}
+        robot.summary = summary(robot.statuses.values())
+        return robot, []
+    rows = [_tuple_payload(t, robot.name) for t in raw]
+    with_links(rows)
+    mark_gateway(rows, view)
+    return robot, rows
+
+
+def robot_statuses(name: str) -> dict[str, str]:
+    """Node key -> row status of one robot's nodes (for a socket that shows it collapsed)."""
+    return {t[1]: _tuple_status(t) for t in
+            ManagedNode.objects.filter(robot__name=name).values_list(*NODE_FIELDS)}
+
+
+def find(query: str, state: str, robot_names: list[str]) -> tuple[list[dict], int]:
+    """Nodes of these (collapsed) robots whose name holds ``query`` and whose row status is
+    ``state`` (either may be empty): the first FIND_MAX by robot and name, with links, and how
+    many matched in all."""
+    rows = ManagedNode.objects.filter(robot__name__in=robot_names)
+    if query:
+        rows = rows.filter(name__icontains=query)
+    found: list[dict] = []
+    count = 0
+    for t in rows.order_by("robot__name", "name").values_list(*NODE_FIELDS, "robot__name"):
+        if state and _tuple_status(t[:-1]) != state:
+            continue
+        count += 1
+        if len(found) < FIND_MAX:
+            found.append(_tuple_payload(t[:-1], t[-1]))
+    with_links(found)
+    return found, count
 
 
 def mark_gateway(rows: Iterable[dict], view: dict) -> None:

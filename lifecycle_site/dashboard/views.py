@@ -28,9 +28,15 @@ def _can_operate(request: HttpRequest) -> bool:
     return request.user.has_perm("fleet.operate_node")
 
 
+def opened(request: HttpRequest) -> list[str]:
+    """The collapsed-by-size robots the page has opened (?open=a,b; fleet.js keeps it)."""
+    return [name for name in request.GET.get("open", "").split(",") if name][:100]
+
+
 @viewer_required
 def fleet(request: HttpRequest) -> HttpResponse:
-    groups = snapshots.fleet()
+    open_robots = opened(request)
+    groups = snapshots.fleet(open_robots)
     return render(
         request,
         "dashboard/fleet.html",
@@ -41,8 +47,35 @@ def fleet(request: HttpRequest) -> HttpResponse:
             "can_operate": _can_operate(request),
             "filter_states": FILTER_STATES,
             "filters": {k: request.GET.get(k, "") for k in ("robot", "state", "q")},
+            "open_param": ",".join(open_robots),
         },
     )
+
+
+@viewer_required
+def robot_section(request: HttpRequest, robot: str) -> HttpResponse:
+    """A robot of the fleet page opened (?open=1: all its rows) or collapsed (its counts), for
+    the button that toggles it (swapped in for the whole section)."""
+    found = snapshots.robot_section(robot, request.GET.get("open") == "1")
+    if found is None:
+        raise Http404(f"There is no robot {robot}.")
+    robot_obj, nodes = found
+    return render(request, "dashboard/_robot.html",
+                  {"robot": robot_obj, "nodes": nodes, "can_operate": _can_operate(request)})
+
+
+@viewer_required
+def fleet_find(request: HttpRequest) -> HttpResponse:
+    """Nodes of the page's collapsed robots that the name (and state) filter matches, as links:
+    at most snapshots.FIND_MAX, and how many more there are."""
+    query = request.GET.get("q", "").strip()[:100]
+    state = request.GET.get("state", "")
+    names = [name for name in request.GET.get("robots", "").split(",") if name][:100]
+    if not names or not (query or state):
+        return HttpResponse("")
+    found, count = snapshots.find(query, state if state in FILTER_STATES else "", names)
+    return render(request, "dashboard/_fleet_matches.html",
+                  {"found": found, "count": count, "more": count - len(found), "query": query, "state": state})
 
 
 def node_or_404(key: str) -> ManagedNode:

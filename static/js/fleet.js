@@ -14,11 +14,18 @@
 
   function apply() {
     var f = filters();
-    var shown = 0, total = 0;
+    var shown = 0, total = 0, collapsed = [];
     document.querySelectorAll("section.robot").forEach(function (section) {
       var robot = section.dataset.robot;
       section.hidden = !!f.robot && f.robot !== robot;
       var counts = {}, alive = 0;
+      // A collapsed robot (a large fleet) has no rows: its counts come from the server.
+      var summary = section.dataset.collapsed ? section.querySelector(".robot-summary") : null;
+      if (summary) {
+        alive = Number(summary.dataset.alive || 0);
+        total += Number(summary.dataset.total || 0);
+        if (!section.hidden) collapsed.push(robot);
+      }
       section.querySelectorAll("tr.node-row").forEach(function (row) {
         var status = row.dataset.status;
         counts[status] = (counts[status] || 0) + 1;
@@ -30,10 +37,10 @@
         total += 1;
         if (visible) shown += 1;
       });
-      var summary = STATES.filter(function (s) { return counts[s]; })
+      var text = STATES.filter(function (s) { return counts[s]; })
         .map(function (s) { return counts[s] + " " + s; }).join(" · ");
       var countsEl = section.querySelector("[data-counts-for]");
-      if (countsEl) countsEl.textContent = summary || "no nodes";
+      if (countsEl) countsEl.textContent = summary ? "" : (text || "no nodes");
       var onlineEl = section.querySelector("[data-online-for]");
       if (onlineEl && onlineEl.textContent !== "disabled") {
         var group = section.closest("section.gateway");
@@ -45,10 +52,63 @@
       }
     });
     var totalEl = document.querySelector(".fleet-total");
-    if (totalEl) totalEl.textContent = shown === total ? total + " nodes" : shown + " of " + total + " nodes";
+    var filtering = f.q || f.state || f.robot;
+    if (totalEl) totalEl.textContent = !filtering ? total + " nodes" :
+      shown + " of " + total + " nodes" + (collapsed.length ? " (and matches in collapsed robots)" : "");
+    find(f, collapsed);
   }
 
-  function remember() {
+  // The name and state filters reach the nodes of collapsed robots through the server
+  // (views.fleet_find: at most 50 links), asked a moment after the last keystroke.
+  var findTimer = null, lastFind = "";
+  function find(f, collapsed) {
+    var live = document.getElementById("fleet-live"), box = document.getElementById("fleet-matches");
+    if (!live || !box) return;
+    var query = (f.q || f.state) && collapsed.length ?
+      "?" + new URLSearchParams({ q: f.q || "", state: f.state || "", robots: collapsed.join(",") }).toString() : "";
+    if (query === lastFind) return;
+    lastFind = query;
+    clearTimeout(findTimer);
+    if (!query) { box.innerHTML = ""; return; }
+    findTimer = setTimeout(function () {
+      htmx.ajax("GET", live.dataset.findUrl + query, { target: box, swap: "innerHTML" });
+    }, 250);
+  }
+
+  // The robots opened beyond their collapsed default: in the URL (a reload keeps them open)
+  // and told to the page's socket, which then sends their rows instead of their counts.
+  var socket = null, lastOpen = null;
+  function openRobots() {
+    return Array.prototype.map.call(
+      document.querySelectorAll("section.robot[data-collapsible]:not([data-collapsed])"),
+      function (section) { return section.dataset.robot; });
+  }
+  function syncOpen(resync) {
+    var open = openRobots().join(",");
+    if (open !== lastOpen) {
+      var params = new URLSearchParams(window.location.search);
+      if (open) params.set("open", open); else params.delete("open");
+      var query = params.toString();
+      window.history.replaceState(null, "", window.location.pathname + (query ? "?" + query : ""));
+    }
+    if (socket && (resync || open !== lastOpen)) {
+      socket.send(JSON.stringify({ open: open ? open.split(",") : [], resync: !!resync }));
+    }
+    lastOpen = open;
+  }
+  function socketState(state) {
+    var live = document.getElementById("fleet-live");
+    if (live) live.dataset.socket = state;
+  }
+  document.addEventListener("htmx:wsOpen", function (e) {
+    socket = e.detail.socketWrapper;
+    syncOpen(true);
+    socketState("open");
+  });
+  document.addEventListener("htmx:wsClose", function () { socket = null; socketState("closed"); });
+  document.addEventListener("htmx:afterSettle", function () { syncOpen(false); });
+
+  function rememberFilters() {
     var params = new URLSearchParams(window.location.search);
     var f = filters();
     Object.keys(f).forEach(function (k) { if (f[k]) params.set(k, f[k]); else params.delete(k); });
@@ -62,7 +122,7 @@
       form.addEventListener("submit", function (event) { event.preventDefault(); });
     });
     document.querySelectorAll("[data-filter]").forEach(function (el) {
-      el.addEventListener("input", function () { apply(); remember(); });
+      el.addEventListener("input", function () { apply(); rememberFilters(); });
     });
     apply();
   });

@@ -16,13 +16,13 @@ import traceback
 from pathlib import Path
 from types import ModuleType
 
-from tests.benchmarks import flood, load, networks, push, quiet, scale, timeline, transition
+from tests.benchmarks import fleet, flood, load, networks, push, quiet, scale, timeline, transition
 from tests.benchmarks.harness import DATABASES, ROOT, BenchContext, Template
 from tests.benchmarks.report import ScenarioResult, machine, render_table, write_json
 from tests.benchmarks.system import loadavg
 
 SCENARIOS: dict[str, ModuleType] = {
-    m.NAME: m for m in (transition, push, scale, flood, networks, load, quiet, timeline)
+    m.NAME: m for m in (transition, push, scale, flood, networks, load, quiet, timeline, fleet)
 }
 ON_REQUEST = {quiet.NAME}  # long: run only with --only
 

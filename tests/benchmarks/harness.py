@@ -220,6 +220,8 @@ class Stack:
         self.db_path = self.dir / "db.sqlite3"
         self._db = None  # sqlite3 or psycopg connection, made on first use
         self._redis = None  # the harness's own Redis client (default user), made on first use
+        self.more_gateways: dict[str, Child] = {}  # add_gateway(): name -> process
+        self.more_domains: list[int] = []
 
     # -- bring-up and teardown ------------------------------------------------------------
     def __enter__(self) -> "Stack":
@@ -282,6 +284,7 @@ class Stack:
             self.redis.terminate()
             self.redis.wait(10)
         domains.release(sorted({domain for _, domain in self.robots}))
+        domains.release(self.more_domains)
 
     def spawn(self, name: str, argv: list[str], env: dict[str, str] | None = None, **kwargs: int) -> Child:
         child = Child(name, argv, env or self.env, self.log_dir, **kwargs)
@@ -301,6 +304,35 @@ class Stack:
         if not child.alive():
             raise BenchError(f"{child.name} exited on start:\n{child.output()[-3000:]}")
 
+    # -- more gateways (the fleet scenario) ------------------------------------------------
+    def add_gateway(self, name: str, robots: list[tuple[str, int]]) -> Child:
+        """Another gateway with robots of its own, registered as the first one (one Django start
+        for all its ``add_gateway``/``add_robot`` commands), its counters in gateway_stats(name)."""
+        wanted = sorted({domain for _, domain in robots})
+        try:
+            domains.claim(wanted)
+        except domains.DomainInUse as exc:
+            raise BenchError(f"{exc}: wait for the other benchmark run to end") from None
+        self.more_domains.extend(wanted)
+        env_file = self.dir / f"gateway-{name}.env"
+        commands = [f"call_command('add_gateway', {name!r}, env_file={str(env_file)!r})"] + [
+            f"call_command('add_robot', {robot!r}, domain={domain}, gateway={name!r})" for robot, domain in robots]
+        run_manage(self.env, "shell", "-c", "from django.core.management import call_command\n" + "\n".join(commands))
+        gateway_env = dict(self.env, DATABASE_URL=GATEWAY_DATABASE_URL, **read_env_file(env_file))
+        child = self.spawn(f"gateway-{name}", [PYTHON, "-m", "tests.benchmarks.gateway_main", name,
+                                               str(self.dir / f"gateway-stats-{name}.json")], env=gateway_env)
+        self.more_gateways[name] = child
+        names = {robot for robot, _ in robots}
+
+        def online() -> bool:
+            listed = self.api.get("/api/v1/robots")
+            return listed.status == 200 and all(r["gateway_online"] for r in listed.json()["robots"]
+                                                if r["name"] in names)
+
+        wait_for(lambda: online() or not child.alive(), 60, f"the heartbeat of gateway {name}")
+        self._require_alive(child)
+        return child
+
     # -- robots ---------------------------------------------------------------------------
     def start_robot(self, name: str, domain: int, generic: int, prefix: str, nodes: str = "",
                     wait: bool = True) -> Child:
@@ -317,10 +349,12 @@ class Stack:
         self._require_alive(child)
 
     # -- what the stack reports -----------------------------------------------------------
-    def gateway_stats(self) -> dict:
-        """Counters the gateway wrapper writes every half second (see gateway_main.py)."""
+    def gateway_stats(self, name: str | None = None) -> dict:
+        """Counters the gateway wrapper writes every half second (see gateway_main.py); ``name``:
+        one added by add_gateway()."""
+        path = self.dir / f"gateway-stats-{name}.json" if name else self.stats_path
         try:
-            return json.loads(self.stats_path.read_text())
+            return json.loads(path.read_text())
         except (OSError, ValueError):
             return {}
 
