@@ -15,6 +15,7 @@ has been open for CONNECTION_LIFETIME_S. docs/performance.md has the figures.
 from __future__ import annotations
 
 import asyncio
+import os
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -28,7 +29,9 @@ from lifecycle_site.fleet import live_updates
 
 # Requests served at once. A transition waits for its gateway (seconds, if a node hangs), so
 # the pool is wide; threads (and their connections) are only made when all others are busy.
-WORKERS = 64
+# Lower it where the database limits connections: PostgreSQL's max_connections must cover
+# WORKERS x site instances + the ingest process and commands (docker/README.md).
+WORKERS = int(os.environ.get("LIFECYCLE_HTTP_WORKERS", "64"))
 CONNECTION_LIFETIME_S = 300.0
 
 _opened = threading.local()  # per worker: connection alias -> when this thread opened it

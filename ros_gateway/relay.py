@@ -55,6 +55,9 @@ def safe_url(url: str) -> str:
 DELETE_IF = "if redis.call('get', KEYS[1]) == ARGV[1] then return redis.call('del', KEYS[1]) end return 0"
 
 
+PUBLISH_CONCURRENCY = 20  # messages; each goes to a few groups (node, robot, fleet)
+
+
 class Relay:
     def __init__(self, gateway: str, redis_url: str, prefix: str, quiet: float = 30.0, instance: str = "") -> None:
         self.gateway = gateway
@@ -68,6 +71,9 @@ class Relay:
         self._last_complaint = 0.0
         self.published = 0
         self.publish_failures = 0
+        # Updates sent at once: a burst (discovery of a whole robot) beyond the channel layer's
+        # Redis pool of 100 connections failed with "Too many connections" and was lost.
+        self._publishing = asyncio.Semaphore(PUBLISH_CONCURRENCY)
 
     def key(self, what: str) -> str:
         return protocol.gateway_key(self.prefix, self.gateway, what)
@@ -82,7 +88,9 @@ class Relay:
     async def publish(self, groups: list[str], message: dict) -> None:
         """Send ``message`` to the groups (together: one round trip's wait, not one per group);
         a failure is counted, never raised."""
-        results = await asyncio.gather(*(self.layer.group_send(g, message) for g in groups), return_exceptions=True)
+        async with self._publishing:
+            results = await asyncio.gather(*(self.layer.group_send(g, message) for g in groups),
+                                           return_exceptions=True)
         for result in results:
             if isinstance(result, Exception):  # Redis down, message too large: the gateway goes on
                 self.publish_failures += 1
@@ -162,10 +170,12 @@ class Relay:
         provably dead (lease.py) is replaced at once rather than waited out."""
         key = self.key("lease")
         mine = json.dumps(lease.identity(instance))
-        for _ in range(2):
+        for _ in range(3):
             if await self.redis.set(key, mine, nx=True, px=int(ttl * 1000)):
                 return None
             current = await self.redis.get(key)
+            if current is None:  # it ran out between SET NX and GET: nobody holds it, try again
+                continue
             holder = _parse(current)
             if holder.get("instance") == instance:
                 await self.redis.pexpire(key, int(ttl * 1000))

@@ -169,7 +169,7 @@ def watch_node(request: HttpRequest, robot: str) -> HttpResponse:
             node.delete()
             ok, message = True, f"No longer watching {name} on {robot}."
             row_html = f'<tr id="{dom_id(key)}" hx-swap-oob="delete"></tr>'
-    elif not ROS_NAME.match(name) or "__" in name:
+    elif not ROS_NAME.match(name) or "__" in name or len(name) > ManagedNode._meta.get_field("name").max_length:
         message = f"{name or 'An empty name'} is not a ROS node name (e.g. /lidar_driver)."
     else:
         node, created = ManagedNode.objects.get_or_create(robot=robot_obj, name=name)

@@ -219,10 +219,10 @@ def _parameter(known: KnownRecords, fact: dict, at: datetime, applied: Applied) 
         fact_id=fact_id,
         node=known.node(robot, fact["node"]) if robot else None,
         robot_name=str(fact["robot"]),
-        node_name=str(fact["node"]),
-        name=str(fact["name"]),
-        old_value=fact.get("old"),
-        new_value=fact.get("new"),
+        node_name=_text(fact["node"], 255),
+        name=_text(fact["name"], 255),
+        old_value=_json_value(fact.get("old")),
+        new_value=_json_value(fact.get("new")),
         outcome=outcome,
         reason=str(fact.get("reason") or ""),
         source=source,
@@ -232,6 +232,28 @@ def _parameter(known: KnownRecords, fact: dict, at: datetime, applied: Applied) 
     if not _save_once(known, record):
         record = ParameterRecord.objects.get(fact_id=fact_id)
     applied.parameters[fact_id] = record
+
+
+def _storable(text: str) -> str:
+    """A string inside a JSON value as every database stores it: PostgreSQL's jsonb refuses NUL
+    characters and lone UTF-16 surrogates (SQLite keeps both, escaped); they become U+FFFD."""
+    return text.replace("\x00", "\ufffd").encode("utf-8", "surrogatepass").decode("utf-8", "replace")
+
+
+def _text(value: object, max_length: int) -> str:
+    """Text cut to its column's length (PostgreSQL enforces it, SQLite does not)."""
+    return str(value)[:max_length]
+
+
+def _json_value(value: Any) -> Any:
+    """A parameter value with its strings storable (see _storable)."""
+    if isinstance(value, str):
+        return _storable(value)
+    if isinstance(value, list):
+        return [_json_value(item) for item in value]
+    if isinstance(value, dict):
+        return {_storable(str(key)): _json_value(item) for key, item in value.items()}
+    return value
 
 
 def _save_once(known: KnownRecords, record: TransitionRecord | ParameterRecord) -> bool:
