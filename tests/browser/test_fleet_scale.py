@@ -10,6 +10,7 @@ import sys
 import pytest
 from playwright.sync_api import expect
 
+from lifecycle_site.fleet.models import Robot
 from tests import stack
 from tests.browser.conftest import ARTIFACTS, _answers, submit_login
 from tests.integration.conftest import register, wait_node
@@ -41,6 +42,7 @@ def big_robots(gateway):
     finally:
         for process in processes:
             process.stop()
+        Robot.objects.filter(name__in=list(BIG)).delete()  # later modules see the fleet without them
 
 
 @pytest.fixture(scope="module")

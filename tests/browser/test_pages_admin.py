@@ -31,7 +31,7 @@ def test_a_robots_nodes_keep_their_names_and_link_to_their_pages(admin_page: Pag
     robot = Robot.objects.get(name=ROBOT)
     lidar = ManagedNode.objects.get(key=f"{ROBOT}.lidar_driver")
     page.goto(f"{site}admin/fleet/robot/{robot.pk}/change/")
-    row = page.locator("tr.form-row", has=page.locator(f'input[value="{lidar.pk}"]'))
+    row = page.locator("tr.form-row", has=page.locator(f'input[name$="-id"][value="{lidar.pk}"]'))
     name = row.locator('input[name$="-name"]')
     expect(name).to_be_disabled()
     expect(name).to_have_value("/lidar_driver")
