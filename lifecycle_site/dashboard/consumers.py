@@ -16,7 +16,7 @@ from channels.generic.websocket import AsyncWebsocketConsumer
 from django.template.loader import render_to_string
 from redis.exceptions import RedisError
 
-from lifecycle_site.dashboard import snapshots, socket_checks
+from lifecycle_site.dashboard import fragments, snapshots, socket_checks
 from lifecycle_site.dashboard.collapse import CollapsedRobots
 from lifecycle_site.prefix import forwarded_prefix, script_prefix
 from ros_gateway.shared import protocol
@@ -283,12 +283,19 @@ class FleetConsumer(CollapsedRobots, RunPanels, LiveConsumer):
         new = node["id"] not in self.known
         self.known.add(node["id"])
         template = "dashboard/_node_row_new.html" if new else "dashboard/_node_row.html"
-        with script_prefix(self.prefix):
-            row = snapshots.fleet_row(node)  # its links carry the prefix
         view = self.views.get(self.gateway_of.get(node["robot"], ""))
-        if view is not None:
-            snapshots.mark_gateway([row], view)
-        await self.send_html(template, {"node": row, "nodes": [row], "oob": "true", "can_operate": self.can_operate})
+
+        def render() -> str:
+            with script_prefix(self.prefix):
+                row = snapshots.fleet_row(node)  # its links carry the prefix
+                if view is not None:
+                    snapshots.mark_gateway([row], view)
+                return render_to_string(template, {"node": row, "nodes": [row], "oob": "true",
+                                                   "can_operate": self.can_operate})
+
+        gateway = (view["name"], view["online"], view.get("last_beat")) if view is not None else None
+        html = fragments.rendered((template, self.prefix, self.can_operate, gateway, node), render)
+        await self.send(text_data=html)
 
 class NodeConsumer(RunPanels, LiveConsumer):
     async def prepare(self) -> bool:
@@ -324,12 +331,15 @@ class NodeConsumer(RunPanels, LiveConsumer):
             await self.send_snapshot()
 
     async def node_state(self, event: dict) -> None:
-        panel = snapshots.state_panel(event["node"], self.gateway_offline)
-        context = {**panel, "can_operate": self.can_operate, "oob": True}
-        with script_prefix(self.prefix):
-            html = render_to_string("dashboard/_node_state.html", context) + render_to_string(
-                "dashboard/_node_restart.html", context)
-        await self.send(text_data=html)
+        def render() -> str:
+            panel = snapshots.state_panel(event["node"], self.gateway_offline)
+            context = {**panel, "can_operate": self.can_operate, "oob": True}
+            with script_prefix(self.prefix):
+                return render_to_string("dashboard/_node_state.html", context) + render_to_string(
+                    "dashboard/_node_restart.html", context)
+
+        key = ("node-state", self.prefix, self.can_operate, self.gateway_offline, event["node"])
+        await self.send(text_data=fragments.rendered(key, render))
 
     async def audit_record(self, event: dict) -> None:
         await self.send_html("dashboard/_audit_row_oob.html", {"record": event["record"]})

@@ -9,12 +9,15 @@ def fresh_site_caches():
     from django.core.cache import cache
 
     from lifecycle_site.api.grants import forget
+    from lifecycle_site.dashboard import fragments
     from lifecycle_site.fleet import gateways
 
     forget()
     gateways.forget()
+    fragments.forget()
     cache.clear()  # what live sockets share (dashboard.socket_checks, snapshots)
     yield
     forget()
     gateways.forget()
+    fragments.forget()
     cache.clear()
