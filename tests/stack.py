@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -240,11 +241,7 @@ def start_site(name: str = "daphne", **env: str) -> tuple[Process, str]:
                "lifecycle_site.asgi:application"], environment(**env), log_dir(),
     )
 
-    def listening() -> bool:
-        with socket.socket() as probe:
-            return probe.connect_ex(("127.0.0.1", port)) == 0
-
-    wait_for(lambda: listening() or not process.alive(), 30, f"{name} to listen")
+    wait_for(lambda: listens(port) or not process.alive(), 30, f"{name} to listen")
     assert process.alive(), process.output()
     return process, f"http://127.0.0.1:{port}"
 
@@ -298,3 +295,34 @@ def start_robot(
     wait_for(lambda: "demo robot ready" in process.output() or not process.alive(), 30, f"robot {name} to start")
     assert process.alive(), f"robot {name} died on start:\n{process.output()}"
     return process
+
+
+@contextmanager
+def nginx(workdir: Path, port: int, http: str):
+    """A real nginx (Debian's) listening on 127.0.0.1:``port`` with the ``http`` block's upstreams,
+    maps and server (its temp and log paths under ``workdir``), stopped on leaving."""
+    binary = shutil.which("nginx") or "/usr/sbin/nginx"
+    assert Path(binary).exists(), "nginx is not installed (Debian package nginx); .ci/system-packages installs it"
+    (workdir / "logs").mkdir(parents=True, exist_ok=True)
+    paths = "\n".join(f"    {kind}_temp_path {workdir}/{kind.split('_')[0]};"
+                      for kind in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi"))
+    (workdir / "nginx.conf").write_text(
+        f"daemon off;\nworker_processes 1;\npid {workdir}/nginx.pid;\nerror_log {workdir}/logs/error.log warn;\n"
+        f"events {{ worker_connections 256; }}\nhttp {{\n    access_log {workdir}/logs/access.log;\n{paths}\n"
+        f"    map $http_upgrade $connection_upgrade {{ default upgrade; '' close; }}\n{http}\n}}\n"
+    )
+    process = subprocess.Popen([binary, "-p", str(workdir), "-c", str(workdir / "nginx.conf")],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+    try:
+        wait_for(lambda: listens(port) or process.poll() is not None, 15, "nginx to listen")
+        assert process.poll() is None, (workdir / "logs" / "error.log").read_text()
+        yield process
+    finally:
+        process.terminate()
+        process.wait(10)
+
+
+def listens(port: int) -> bool:
+    """Whether something accepts connections on 127.0.0.1:``port``."""
+    with socket.socket() as probe:
+        return probe.connect_ex(("127.0.0.1", port)) == 0

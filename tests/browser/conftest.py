@@ -4,9 +4,6 @@ under /lifecycle/ the way an Industrial Edge device does."""
 from __future__ import annotations
 
 import os
-import shutil
-import socket
-import subprocess
 import sys
 import textwrap
 from contextlib import contextmanager
@@ -93,62 +90,35 @@ def site(gateway):  # noqa: F811
         stack.log_dir(),
     )
     base = f"http://127.0.0.1:{port}/"
-    stack.wait_for(lambda: _answers(port) or not process.alive(), 30, "daphne to listen")
+    stack.wait_for(lambda: stack.listens(port) or not process.alive(), 30, "daphne to listen")
     assert process.alive(), process.output()
     yield base
     process.stop()
 
 
-def _answers(port: int) -> bool:
-    with socket.socket() as probe:
-        return probe.connect_ex(("127.0.0.1", port)) == 0
-
 
 @pytest.fixture(scope="module")
 def proxied_site(site):
     """A real nginx that strips /lifecycle/ and passes WebSocket upgrades, like the device's."""
-    nginx = shutil.which("nginx") or "/usr/sbin/nginx"
-    assert Path(nginx).exists(), "nginx is not installed (Debian package nginx); .ci/run installs it"
     port, upstream = stack.free_port(), site.rstrip("/")
-    workdir = Path(settings.DATA_DIR) / "nginx"
-    (workdir / "logs").mkdir(parents=True, exist_ok=True)
-    (workdir / "nginx.conf").write_text(textwrap.dedent(f"""
-        daemon off;
-        worker_processes 1;
-        pid {workdir}/nginx.pid;
-        error_log {workdir}/logs/error.log warn;
-        events {{ worker_connections 256; }}
-        http {{
-            access_log {workdir}/logs/access.log;
-            client_body_temp_path {workdir}/body;
-            proxy_temp_path {workdir}/proxy;
-            fastcgi_temp_path {workdir}/fastcgi;
-            uwsgi_temp_path {workdir}/uwsgi;
-            scgi_temp_path {workdir}/scgi;
-            map $http_upgrade $connection_upgrade {{ default upgrade; '' close; }}
-            server {{
-                listen 127.0.0.1:{port};
-                location = /lifecycle {{ return 301 /lifecycle/; }}
-                location ~* ^/lifecycle/ {{
-                    rewrite ^/lifecycle/(.*)$ /$1 break;
-                    proxy_pass {upstream};
-                    proxy_http_version 1.1;
-                    proxy_set_header Upgrade $http_upgrade;
-                    proxy_set_header Connection $connection_upgrade;
-                    proxy_set_header Host $host:$server_port;
-                    proxy_set_header X-Forwarded-Prefix /lifecycle;
-                    proxy_read_timeout 120s;
-                }}
+    server = textwrap.dedent(f"""
+        server {{
+            listen 127.0.0.1:{port};
+            location = /lifecycle {{ return 301 /lifecycle/; }}
+            location ~* ^/lifecycle/ {{
+                rewrite ^/lifecycle/(.*)$ /$1 break;
+                proxy_pass {upstream};
+                proxy_http_version 1.1;
+                proxy_set_header Upgrade $http_upgrade;
+                proxy_set_header Connection $connection_upgrade;
+                proxy_set_header Host $host:$server_port;
+                proxy_set_header X-Forwarded-Prefix /lifecycle;
+                proxy_read_timeout 120s;
             }}
         }}
-    """))
-    process = subprocess.Popen([nginx, "-p", str(workdir), "-c", str(workdir / "nginx.conf")],
-                               stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
-    stack.wait_for(lambda: _answers(port) or process.poll() is not None, 15, "nginx to listen")
-    assert process.poll() is None, (workdir / "logs" / "error.log").read_text()
-    yield f"http://127.0.0.1:{port}/lifecycle/"
-    process.terminate()
-    process.wait(10)
+    """)
+    with stack.nginx(Path(settings.DATA_DIR) / "nginx", port, server):
+        yield f"http://127.0.0.1:{port}/lifecycle/"
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,7 @@ from playwright.sync_api import expect
 
 from lifecycle_site.fleet.models import Robot
 from tests import stack
-from tests.browser.conftest import ARTIFACTS, _answers, submit_login
+from tests.browser.conftest import ARTIFACTS, submit_login
 from tests.integration.conftest import register, wait_node
 
 BIG = {"bs-big-1": 27, "bs-big-2": 28}  # robot -> offset of its ROS domain
@@ -56,7 +56,7 @@ def small_site(gateway):
         stack.environment(LIFECYCLE_FLEET_COLLAPSE_ABOVE="10", LIFECYCLE_ROBOT_COLLAPSE_ABOVE="8"),
         stack.log_dir(),
     )
-    stack.wait_for(lambda: _answers(port) or not process.alive(), 30, "daphne to listen")
+    stack.wait_for(lambda: stack.listens(port) or not process.alive(), 30, "daphne to listen")
     assert process.alive(), process.output()
     yield f"http://127.0.0.1:{port}/"
     process.stop()

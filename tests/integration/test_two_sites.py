@@ -12,9 +12,6 @@ import asyncio
 import http.client
 import json
 import re
-import shutil
-import socket
-import subprocess
 import textwrap
 from dataclasses import dataclass
 from pathlib import Path
@@ -61,58 +58,29 @@ def sites(gateway):
 @pytest.fixture(scope="module")
 def nginx(sites):
     """One nginx in front of both instances: its port, and each instance's upstream address."""
-    binary = shutil.which("nginx") or "/usr/sbin/nginx"
-    assert Path(binary).exists(), "nginx is not installed (Debian package nginx); .ci/system-packages installs it"
     port = stack.free_port()
     upstreams = {name: base.removeprefix("http://") for name, base in sites.items()}
-    workdir = Path(settings.DATA_DIR) / "two-sites-nginx"
-    (workdir / "logs").mkdir(parents=True, exist_ok=True)
-    (workdir / "nginx.conf").write_text(textwrap.dedent(f"""
-        daemon off;
-        worker_processes 1;
-        pid {workdir}/nginx.pid;
-        error_log {workdir}/logs/error.log warn;
-        events {{ worker_connections 256; }}
-        http {{
-            access_log {workdir}/logs/access.log;
-            client_body_temp_path {workdir}/body;
-            proxy_temp_path {workdir}/proxy;
-            fastcgi_temp_path {workdir}/fastcgi;
-            uwsgi_temp_path {workdir}/uwsgi;
-            scgi_temp_path {workdir}/scgi;
-            upstream site {{ server {upstreams['a']}; server {upstreams['b']}; }}
-            upstream site_a {{ server {upstreams['a']}; }}
-            upstream site_b {{ server {upstreams['b']}; }}
-            map $http_x_instance $pick {{ default site; a site_a; b site_b; }}
-            map $http_upgrade $connection_upgrade {{ default upgrade; '' close; }}
-            server {{
-                listen 127.0.0.1:{port};
-                location / {{
-                    proxy_pass http://$pick;
-                    proxy_http_version 1.1;
-                    proxy_set_header Upgrade $http_upgrade;
-                    proxy_set_header Connection $connection_upgrade;
-                    proxy_set_header Host $host:$server_port;
-                    proxy_read_timeout 120s;
-                    add_header X-Upstream $upstream_addr always;
-                }}
+    http = textwrap.dedent(f"""
+        upstream site {{ server {upstreams['a']}; server {upstreams['b']}; }}
+        upstream site_a {{ server {upstreams['a']}; }}
+        upstream site_b {{ server {upstreams['b']}; }}
+        map $http_x_instance $pick {{ default site; a site_a; b site_b; }}
+        server {{
+            listen 127.0.0.1:{port};
+            location / {{
+                proxy_pass http://$pick;
+                proxy_http_version 1.1;
+                proxy_set_header Upgrade $http_upgrade;
+                proxy_set_header Connection $connection_upgrade;
+                proxy_set_header Host $host:$server_port;
+                proxy_read_timeout 120s;
+                add_header X-Upstream $upstream_addr always;
             }}
         }}
-    """))
-    process = subprocess.Popen([binary, "-p", str(workdir), "-c", str(workdir / "nginx.conf")],
-                               stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
-    try:
-        stack.wait_for(lambda: _answers(port) or process.poll() is not None, 15, "nginx to listen")
-        assert process.poll() is None, (workdir / "logs" / "error.log").read_text()
+    """)
+    with stack.nginx(Path(settings.DATA_DIR) / "two-sites-nginx", port, http):
         yield port, upstreams
-    finally:
-        process.terminate()
-        process.wait(10)
 
-
-def _answers(port: int) -> bool:
-    with socket.socket() as probe:
-        return probe.connect_ex(("127.0.0.1", port)) == 0
 
 
 @dataclass
