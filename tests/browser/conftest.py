@@ -39,20 +39,29 @@ def submit_login(page, username: str, password: str = PASSWORD) -> None:
 
 
 @contextmanager
-def logged_in_page(browser, site: str, username: str = "bruno-operator", **context_options):
-    """A page in a browser context of its own, logged in as ``username`` and showing the fleet
-    page; errors on its console are kept in ``page.console_errors``."""
+def watched_page(browser, page_errors: bool = False, **context_options):
+    """A page in a browser context of its own; errors on its console (and, with
+    ``page_errors``, uncaught script errors) are kept in ``page.console_errors``."""
     context = browser.new_context(**{"viewport": {"width": 1280, "height": 900}, **context_options})
     page = context.new_page()
     page.console_errors = []
     page.on("console", lambda m: page.console_errors.append(m.text) if m.type == "error" else None)
+    if page_errors:
+        page.on("pageerror", lambda e: page.console_errors.append(str(e)))
     try:
+        yield page
+    finally:
+        context.close()
+
+
+@contextmanager
+def logged_in_page(browser, site: str, username: str = "bruno-operator", **context_options):
+    """A watched page logged in as ``username`` and showing the fleet page."""
+    with watched_page(browser, **context_options) as page:
         page.goto(site + "login/")
         submit_login(page, username)
         expect(page.locator("h2", has_text=ROBOT)).to_be_visible(timeout=20_000)
         yield page
-    finally:
-        context.close()
 
 
 def pytest_collection_modifyitems(items):

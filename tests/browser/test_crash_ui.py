@@ -13,7 +13,7 @@ from playwright.sync_api import Page, expect
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.fleet.models import Robot
 from tests import stack
-from tests.browser.conftest import ARTIFACTS, submit_login
+from tests.browser.conftest import ARTIFACTS, submit_login, watched_page
 from tests.integration.conftest import register, wait_node
 
 ROBOT = "br-crash"
@@ -40,13 +40,8 @@ def crashing(gateway):
 
 @pytest.fixture
 def page(browser):
-    context = browser.new_context(viewport={"width": 1280, "height": 1000})
-    page = context.new_page()
-    page.console_errors = []
-    page.on("console", lambda m: page.console_errors.append(m.text) if m.type == "error" else None)
-    page.on("pageerror", lambda e: page.console_errors.append(str(e)))
-    yield page
-    context.close()
+    with watched_page(browser, page_errors=True, viewport={"width": 1280, "height": 1000}) as page:
+        yield page
 
 
 def test_a_crash_during_activate_and_the_new_instance_on_the_node_page(page: Page, site, crashing, operator):

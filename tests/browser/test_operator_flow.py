@@ -7,7 +7,7 @@ import pytest
 from playwright.sync_api import Page, expect
 
 from lifecycle_site.audit.models import TransitionRecord
-from tests.browser.conftest import ARTIFACTS, ROBOT, submit_login
+from tests.browser.conftest import ARTIFACTS, ROBOT, submit_login, watched_page
 
 WAIT_MS = 20_000
 
@@ -23,13 +23,8 @@ def base_url(request, site, proxied_site, robot, operator):
 
 @pytest.fixture
 def page(browser):
-    context = browser.new_context(viewport={"width": 1280, "height": 900})
-    page = context.new_page()
-    page.console_errors = []
-    page.on("console", lambda m: page.console_errors.append(m.text) if m.type == "error" else None)
-    page.on("pageerror", lambda e: page.console_errors.append(str(e)))
-    yield page
-    context.close()
+    with watched_page(browser, page_errors=True) as page:
+        yield page
 
 
 def log_in(page: Page, base: str) -> None:
