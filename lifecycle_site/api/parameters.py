@@ -9,6 +9,7 @@ from lifecycle_site.api.views import get_node
 from lifecycle_site.audit.models import ParameterRecord
 from lifecycle_site.fleet.facts import apply_facts
 from lifecycle_site.fleet.gateway_client import GatewayError, call_gateway
+from lifecycle_site.fleet.live_updates import AUDIT_STORED, push, record_messages
 from lifecycle_site.fleet.param_files import dump
 from ros_gateway.shared import protocol
 
@@ -30,16 +31,24 @@ def apply(node, values: dict, user, source: str) -> list[dict]:
                              values=values, user_id=user_id, source=source)
     except GatewayError as exc:
         if exc.facts:
-            apply_facts(gateway, exc.facts)
+            _store(gateway, exc.facts)
         elif exc.carried_out is False:
             for name, value in values.items():
                 ParameterRecord(node=node, robot_name=node.robot.name, node_name=node.name, name=name,
                                 new_value=protocol.finite(value), outcome="rejected", reason=exc.message,
                                 source=source, requested_by_id=user_id, at=exc.requested_at).save()
+            push([AUDIT_STORED])
         raise
     if reply.get("facts"):
-        apply_facts(gateway, reply["facts"])
+        _store(gateway, reply["facts"])
     return reply["results"]
+
+
+def _store(gateway: str, facts: list) -> None:
+    """Apply a reply's facts and tell the open audit pages (the ingest process will find them
+    stored already)."""
+    applied = apply_facts(gateway, facts)
+    push(record_messages(applied.created, applied.created_parameters))
 
 
 @api_view(methods=("GET", "PATCH"))

@@ -6,15 +6,15 @@ What the records tell, and what they cannot:
   ``completed_at`` on;
 - ManagedNode.state_changed is when the node's last state fact arrived: from then on it was in
   ManagedNode.state_label (state facts are sent on change only);
-- a node's appearing and vanishing (node.seen / node.gone) leave no history record: only the
-  current absence is known (since ManagedNode.last_seen), earlier absences are not;
+- a node's absences (node.gone to its return) are NodeAbsence records; a node away since before
+  they were kept is away since ManagedNode.last_seen;
 - where two neighbouring facts disagree (a record ends in ``active``, the next starts from
   ``unconfigured``: its process was restarted, or an event was lost), when the change happened
   is not known: that stretch is drawn as "unknown" instead of guessed.
 
 Reads are bounded: one indexed query for the state before the window, at most MAX_ROWS
-records of the window (newest first; what is older is drawn as "not read"), and one count
-per outcome.
+records and MAX_ABSENCES absences of the window (newest first; what is older is drawn as "not
+read"), and one count per outcome.
 """
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ from django.db.models import Count, OuterRef, Subquery
 from django.utils import timezone
 
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.fleet.models import ManagedNode, Robot
+from lifecycle_site.fleet.models import ManagedNode, NodeAbsence, Robot
 from ros_gateway.shared import state_machine as sm
 
 WINDOWS: dict[str, timedelta] = {"hour": timedelta(hours=1), "day": timedelta(days=1), "week": timedelta(weeks=1)}
@@ -36,6 +36,8 @@ DEFAULT_WINDOW = "day"
 # Records read per timeline at most (a node's page; a robot's page shares them among its nodes).
 MAX_ROWS = 3000
 MAX_ROWS_ROBOT = 5000
+MAX_ABSENCES = 1000
+MAX_ABSENCES_ROBOT = 2000
 
 # Outcomes that count as failures and as restarts. process_lost / process_restarted come from
 # crash detection; any other outcome the audit log may learn later is shown, not counted.
@@ -84,6 +86,21 @@ class Row(NamedTuple):
         return before
 
 
+class Absence(NamedTuple):
+    """A NodeAbsence as the timeline needs it."""
+
+    gone_at: datetime
+    back_at: datetime | None  # None: still away
+    reason: str
+
+    @property
+    def state(self) -> str:
+        return {"unreachable": UNREACHABLE, LOST_OUTCOME: LOST}.get(self.reason, GONE)
+
+
+ABSENCE_FIELDS = ("gone_at", "back_at", "reason")
+
+
 @dataclass
 class Segment:
     state: str
@@ -114,6 +131,7 @@ class Timeline:
     rows_read: int
     cut_before: datetime | None  # records older than this were not read
     notes: list[str] = field(default_factory=list)
+    absences: int = 0  # times the node went away within the window
 
     @property
     def seconds(self) -> float:
@@ -173,6 +191,7 @@ class Timeline:
                               for s, v in sorted(self.time_in_state.items(), key=lambda kv: -kv[1])],
             "failures": self.failures,
             "restarts": self.restarts,
+            "absences": self.absences,
             "outcomes": self.outcomes,
             "records_read": self.rows_read,
             "not_read_before": self.cut_before.isoformat() if self.cut_before else None,
@@ -242,10 +261,15 @@ def _enters(state: str, transition_state: str) -> bool:
 
 
 def build(node: ManagedNode, window: str, start: datetime, end: datetime, before: Row | None,
-          rows: list[Row], cut_before: datetime | None, outcomes: dict[str, int]) -> Timeline:
+          rows: list[Row], cut_before: datetime | None, outcomes: dict[str, int],
+          absences: Iterable[Absence] = ()) -> Timeline:
     """The timeline of ``node`` from its facts: ``before`` (the last record before ``start``),
-    ``rows`` (the records of the window that were read, any order) and the node's own row."""
+    ``rows`` (the records of the window that were read, any order), ``absences`` (those that
+    overlap the window) and the node's own row."""
     rows, read = sorted(rows, key=lambda r: r.requested_at), len(rows)
+    if cut_before is not None:  # the absences may have been cut later than the records
+        rows = [r for r in rows if r.requested_at >= cut_before]
+        absences = [a for a in absences if a.gone_at >= cut_before]
     initial, known_at = None, None
     if before is not None and before.ended_at > start:  # under way when the window began
         rows.insert(0, before)
@@ -264,16 +288,27 @@ def build(node: ManagedNode, window: str, start: datetime, end: datetime, before
     if initial == NOT_SEEN and first_seen is not None:
         builder.became(first_seen, UNKNOWN)
         builder.discovered = True
-    for row in rows:
-        if row.outcome in RESTART_OUTCOMES:
-            builder.became(max(row.requested_at, start), None)  # a new process: no "from" to check
-        elif row.start_state_id is not None:
-            builder.held(max(row.requested_at, start), sm.state_label(row.start_state_id))
-        builder.became(max(row.ended_at, start), row.state_after(builder.state))
-    if changed is not None and start < changed <= end and changed >= builder.at:
+    away_now = False
+    for _, kind, event in _events(rows, absences, start, end):
+        if kind == _GONE:
+            builder.became(max(event.gone_at, start), event.state)
+            away_now = event.back_at is None
+        elif kind == _BACK:
+            builder.became(event.back_at, UNKNOWN)
+            builder.discovered = True  # found again: its state was read then, not recorded
+        else:
+            if event.outcome in RESTART_OUTCOMES:
+                builder.became(max(event.requested_at, start), None)  # a new process: no "from" to check
+            elif event.start_state_id is not None:
+                builder.held(max(event.requested_at, start), sm.state_label(event.start_state_id))
+            builder.became(max(event.ended_at, start), event.state_after(builder.state))
+    if changed is not None and start < changed <= end and changed >= builder.at and not away_now:
         builder.held(changed, node.state_label)  # the node's last state fact
     notes: list[str] = []
-    if not node.alive and first_seen is not None:
+    if away_now and node.last_seen:
+        notes.append(f"Not seen since {node.last_seen:%Y-%m-%d %H:%M:%S} UTC"
+                     f"{' (its process stopped answering)' if node.gone_reason == 'unreachable' else ''}.")
+    elif not node.alive and first_seen is not None:  # away since before absences were recorded
         builder.close(max(node.last_seen or start, start))
         builder.state = UNREACHABLE if node.gone_reason == "unreachable" else GONE
         if node.last_seen:
@@ -284,7 +319,22 @@ def build(node: ManagedNode, window: str, start: datetime, end: datetime, before
         notes.append(f"Only the newest {read:,} records of the window were read; before "
                      f"{cut_before:%Y-%m-%d %H:%M:%S} UTC the timeline shows \"{NOT_READ}\". "
                      "The counts of failures and restarts cover the whole window.")
-    return Timeline(node, window, start, end, builder.segments, outcomes, read, cut_before, notes)
+    went = sum(1 for a in absences if a.gone_at >= start)
+    return Timeline(node, window, start, end, builder.segments, outcomes, read, cut_before, notes, went)
+
+
+_ROW, _GONE, _BACK = 0, 1, 2  # at equal times: a process_lost record before the node.gone it comes with
+
+
+def _events(rows: list[Row], absences: Iterable[Absence], start: datetime, end: datetime):
+    """Records and absence bounds in time order, as (time, kind, record or absence)."""
+    events: list[tuple[datetime, int, Row | Absence]] = [(r.requested_at, _ROW, r) for r in rows]
+    for absence in absences:
+        events.append((absence.gone_at, _GONE, absence))
+        if absence.back_at is not None and absence.back_at <= end:
+            events.append((max(absence.back_at, start), _BACK, absence))
+    events.sort(key=lambda e: (e[0], e[1]))
+    return events
 
 
 def _rows(values: Iterable[tuple]) -> list[Row]:
@@ -300,18 +350,39 @@ def _read_window(records, cap: int) -> tuple[list[tuple], datetime | None]:
     return found, found[-1][-len(ROW_FIELDS)]  # requested_at of the oldest one read
 
 
+def _overlapping(absences, start: datetime, end: datetime):
+    return absences.filter(gone_at__lte=end).exclude(back_at__lt=start)
+
+
+def _read_absences(absences, cap: int) -> tuple[list[tuple], datetime | None]:
+    """At most ``cap`` absences, newest first; the time before which older ones were left out."""
+    found = list(absences.order_by("-gone_at")[: cap + 1])
+    if len(found) <= cap:
+        return found, None
+    found = found[:cap]
+    return found, found[-1][-len(ABSENCE_FIELDS)]  # gone_at of the oldest one read
+
+
+def _later(a: datetime | None, b: datetime | None) -> datetime | None:
+    return max(a, b) if a is not None and b is not None else a or b
+
+
 def node_timeline(node: ManagedNode, window: str = DEFAULT_WINDOW, now: datetime | None = None,
-                  cap: int = MAX_ROWS) -> Timeline:
+                  cap: int = MAX_ROWS, absence_cap: int = MAX_ABSENCES) -> Timeline:
     start, end = window_bounds(window, now)
     records = TransitionRecord.objects.filter(node=node)
     inside = records.filter(requested_at__gte=start, requested_at__lte=end)
     values, cut_before = _read_window(inside.values_list(*ROW_FIELDS), cap)
+    away, absences_cut = _read_absences(
+        _overlapping(NodeAbsence.objects.filter(node=node), start, end).values_list(*ABSENCE_FIELDS), absence_cap)
+    cut_before = _later(cut_before, absences_cut)
     before = None
     if cut_before is None:
         found = records.filter(requested_at__lt=start).order_by("-requested_at").values_list(*ROW_FIELDS).first()
         before = Row(*found) if found else None
     outcomes = dict(inside.order_by().values_list("outcome").annotate(n=Count("id")))
-    return build(node, window, start, end, before, _rows(values), cut_before, outcomes)
+    return build(node, window, start, end, before, _rows(values), cut_before, outcomes,
+                 [Absence(*a) for a in away])
 
 
 @dataclass
@@ -353,7 +424,7 @@ class RobotTimeline:
 
 
 def robot_timeline(robot: Robot, window: str = DEFAULT_WINDOW, now: datetime | None = None,
-                   cap: int = MAX_ROWS_ROBOT) -> RobotTimeline:
+                   cap: int = MAX_ROWS_ROBOT, absence_cap: int = MAX_ABSENCES_ROBOT) -> RobotTimeline:
     start, end = window_bounds(window, now)
     last_before = TransitionRecord.objects.filter(node=OuterRef("pk"), requested_at__lt=start).order_by(
         "-requested_at")
@@ -364,6 +435,13 @@ def robot_timeline(robot: Robot, window: str = DEFAULT_WINDOW, now: datetime | N
     by_node: dict[int, list[Row]] = {}
     for node_id, *rest in values:
         by_node.setdefault(node_id, []).append(Row(*rest))
+    away, absences_cut = _read_absences(_overlapping(
+        NodeAbsence.objects.filter(node_id__in=[n.pk for n in nodes]), start, end
+    ).values_list("node_id", *ABSENCE_FIELDS), absence_cap)
+    cut_before = _later(cut_before, absences_cut)
+    away_by_node: dict[int, list[Absence]] = {}
+    for node_id, *rest in away:
+        away_by_node.setdefault(node_id, []).append(Absence(*rest))
     before: dict[int, Row] = {}
     if cut_before is None:
         ids = [n.before_id for n in nodes if n.before_id is not None]
@@ -375,7 +453,7 @@ def robot_timeline(robot: Robot, window: str = DEFAULT_WINDOW, now: datetime | N
         outcomes.setdefault(node_id, {})[outcome] = n
     timelines = [
         build(node, window, start, end, before.get(node.pk), by_node.get(node.pk, []), cut_before,
-              outcomes.get(node.pk, {}))
+              outcomes.get(node.pk, {}), away_by_node.get(node.pk, ()))
         for node in nodes
     ]
     return RobotTimeline(robot, window, start, end, timelines, cut_before)

@@ -26,6 +26,7 @@ class Applied:
     transitions: dict[str, TransitionRecord] = field(default_factory=dict)  # by fact id, made now or before
     parameters: dict[str, ParameterRecord] = field(default_factory=dict)
     created: list[TransitionRecord] = field(default_factory=list)  # made by this call (pages get them)
+    created_parameters: list[ParameterRecord] = field(default_factory=list)  # made by this call
     rejected: int = 0
 
     def transition_record(self, facts: Iterable[dict]) -> TransitionRecord | None:

@@ -17,6 +17,7 @@ from django.db.models import Q
 from django.db.models.functions import Coalesce
 
 from lifecycle_site.audit.models import ParameterRecord, TransitionRecord
+from lifecycle_site.fleet.absences import node_back, node_left
 from lifecycle_site.fleet.fact_context import Applied, FactRejected, Hints, KnownRecords, optional_time, parse_time
 from lifecycle_site.fleet.models import GroupRun, ManagedNode
 from ros_gateway.shared import protocol
@@ -90,6 +91,7 @@ def _node_seen(known: KnownRecords, fact: dict, at: datetime, applied: Applied) 
         return
     ManagedNode.objects.filter(pk=node.pk).update(alive=True, gone_reason="", last_seen=at,
                                                   first_seen=Coalesce("first_seen", at))
+    node_back([node.pk], at)
 
 
 def _node_gone(known: KnownRecords, fact: dict, at: datetime, applied: Applied) -> None:
@@ -98,6 +100,7 @@ def _node_gone(known: KnownRecords, fact: dict, at: datetime, applied: Applied) 
     if node is not None:
         reason = fact.get("reason") if fact.get("reason") in GONE_REASONS else ""
         ManagedNode.objects.filter(pk=node.pk).update(alive=False, gone_reason=reason, last_seen=at)
+        node_left([node.pk], at, reason)
         if reason == protocol.PROCESS_LOST:
             _process_seen(node, "lost", optional_time(fact.get("since"), "since") or at)
 
@@ -130,10 +133,12 @@ def _robot_nodes(known: KnownRecords, fact: dict, at: datetime, applied: Applied
     listed = fact["nodes"]
     if not isinstance(listed, list) or not all(isinstance(n, str) for n in listed):
         raise FactRejected("nodes must be a list of node names")
-    ManagedNode.objects.filter(robot=robot).exclude(name__in=listed).update(alive=False)
-    ManagedNode.objects.filter(robot=robot, name__in=listed).update(
-        alive=True, gone_reason="", last_seen=at, first_seen=Coalesce("first_seen", at)
-    )
+    unlisted = ManagedNode.objects.filter(robot=robot).exclude(name__in=listed)
+    node_left(unlisted.filter(alive=True).values_list("id", flat=True), at)
+    unlisted.update(alive=False)
+    present = ManagedNode.objects.filter(robot=robot, name__in=listed)
+    node_back(present.values_list("id", flat=True), at)
+    present.update(alive=True, gone_reason="", last_seen=at, first_seen=Coalesce("first_seen", at))
     known.load_robot(robot)
     for name in listed:  # a node.seen that was lost on the way
         if known.node(robot, name) is None:
@@ -229,7 +234,9 @@ def _parameter(known: KnownRecords, fact: dict, at: datetime, applied: Applied) 
         **_requester(known, fact.get("user_id")),
         at=at,
     )
-    if not _save_once(known, record):
+    if _save_once(known, record):
+        applied.created_parameters.append(record)
+    else:
         record = ParameterRecord.objects.get(fact_id=fact_id)
     applied.parameters[fact_id] = record
 

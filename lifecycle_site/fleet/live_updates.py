@@ -20,19 +20,21 @@ log = logging.getLogger(__name__)
 # Open audit history pages (dashboard/audit_consumer.py): told that records were stored, they
 # read what is new through their own filter.
 AUDIT_GROUP = "audit"
+# The word to them: they read what is new themselves.
+AUDIT_STORED = (AUDIT_GROUP, {"type": "audit.record", "record": {}})
 
 
-def record_messages(records: Iterable[TransitionRecord]) -> list[tuple[str, dict]]:
-    """The node pages' live audit rows for new records, and one word to the audit pages:
-    (group, message) pairs."""
+def record_messages(records: Iterable[TransitionRecord], parameters: Iterable[Any] = ()) -> list[tuple[str, dict]]:
+    """The node pages' live audit rows for new transition records, and one word to the audit
+    pages when transition or parameter records were stored: (group, message) pairs."""
     records = list(records)
     messages = [
         (protocol.node_group(record.node.key), {"type": "audit.record", "record": record.as_dict()})
         for record in records
         if record.node_id is not None and record.node is not None
     ]
-    if records:
-        messages.append((AUDIT_GROUP, {"type": "audit.record", "record": {}}))
+    if records or list(parameters):
+        messages.append(AUDIT_STORED)
     return messages
 
 

@@ -183,6 +183,33 @@ class ManagedNode(models.Model):
         return [t.as_dict() for t in sm.valid_transitions(self.state_id)]
 
 
+class NodeAbsence(models.Model):
+    """A stretch of time a node that had been seen was not running: from the gateway's node.gone
+    (or its robot's node list without it) to the node's return (node.seen, or the list again).
+
+    The state timeline draws these; ManagedNode keeps only the current absence. Pruned by the
+    ingest process after ABSENCE_KEEP_DAYS (longer than the widest timeline window)."""
+
+    REASONS = [("", "left"), ("process_lost", "process lost"), ("unreachable", "unreachable")]
+
+    node = models.ForeignKey(ManagedNode, on_delete=models.CASCADE, related_name="absences")
+    gone_at = models.DateTimeField()
+    back_at = models.DateTimeField(null=True, blank=True, help_text="Empty while the node is still away.")
+    reason = models.CharField(max_length=16, blank=True, default="", choices=REASONS)
+
+    class Meta:
+        ordering = ["-gone_at"]
+        indexes = [models.Index(fields=["node", "-gone_at"], name="absence_node_recent")]
+        constraints = [
+            # At most one open absence per node: a node.gone applied twice opens it once.
+            models.UniqueConstraint(fields=["node"], condition=models.Q(back_at__isnull=True),
+                                    name="one_open_absence_per_node"),
+        ]
+
+    def __str__(self) -> str:
+        return f"{self.node} away from {self.gone_at:%Y-%m-%d %H:%M:%S}"
+
+
 class LogRecord(models.Model):
     """One /rosout message. Pruned by the ingest process to a bounded count and age."""
 

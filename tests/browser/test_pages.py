@@ -3,6 +3,7 @@ parameters with a fixed list of values, and a state graph whose labels stay read
 from __future__ import annotations
 
 import re
+from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 from playwright.sync_api import Page, expect
@@ -114,4 +115,25 @@ def test_the_audit_page_shows_new_records_without_a_reload(browser, site, robot,
     expect(row).to_contain_text(f"{state} → {goal}")
     assert page.evaluate("window.__sameDocument") is True
     assert errors == []
+    context.close()
+
+
+def test_the_audit_pages_parameter_mode_shows_a_change_as_it_is_stored(browser, site, robot, operator, api):
+    """Pushed, not found by the socket's 3 s read: the row is there well inside that period."""
+    context = browser.new_context(viewport={"width": 1280, "height": 900})
+    page = context.new_page()
+    page.goto(site + "login/")
+    submit_login(page, "bruno-operator")
+    with page.expect_websocket(lambda ws: "/ws/audit/" in ws.url):
+        page.goto(f"{site}audit/?kind=parameters&robot={ROBOT}&node=camera_driver")
+    page.wait_for_timeout(500)  # the socket's first read is done
+    fps = 5.0 + ParameterRecord.objects.filter(name="fps").count() % 20  # a value it has not now
+    # From another thread, as a request of the server is (this one runs Playwright's event loop).
+    with ThreadPoolExecutor(1) as pool:
+        changed = pool.submit(api.patch, f"/api/v1/nodes/{ROBOT}.camera_driver/parameters", {"fps": fps},
+                              content_type="application/json").result()
+    assert changed.status_code == 200, changed.content
+    row = page.locator("#audit-rows tr").first
+    expect(row).to_contain_text("fps", timeout=1_500)
+    expect(row).to_contain_text(str(fps))
     context.close()

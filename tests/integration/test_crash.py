@@ -1,7 +1,7 @@
 """Crashes are crashes: a node process that dies during a transition, or by itself, is said to be
 lost at once (not a 'timed out' after the service timeout, nor 20 s later when its DDS lease
 runs out), in the answer, the audit log, the API and the page; a new instance of it is recorded
-as such, its state and parameters read from the new process."""
+as such, its state and parameters read from the new process; its absence stays on its timeline."""
 from __future__ import annotations
 
 import asyncio
@@ -141,5 +141,10 @@ def test_a_process_killed_between_transitions_is_lost_and_its_return_recorded(ap
         wait_node(api, KEY, alive=True, state="unconfigured", timeout=30)
         stack.wait_for(lambda: records("process_restarted", since), 10, "the restart's record")
         assert len(records("process_lost", since)) == 1
+        # The absence stays on the node's timeline after its return.
+        timeline = api.get(f"/api/v1/nodes/{KEY}/timeline", {"window": "hour"}).json()
+        assert timeline["absences"] == 1, timeline
+        assert "process lost" in [s["state"] for s in timeline["segments"]]
+        assert [s["state"] for s in timeline["segments"]][-1] == "unconfigured"
     finally:
         process.stop()

@@ -9,7 +9,7 @@ import pytest
 from lifecycle_site.audit.models import ParameterRecord, TransitionRecord
 from lifecycle_site.fleet.fact_context import Hints
 from lifecycle_site.fleet.facts import apply_facts
-from lifecycle_site.fleet.models import Gateway, GroupRun, ManagedNode, Robot
+from lifecycle_site.fleet.models import Gateway, GroupRun, ManagedNode, NodeAbsence, Robot
 from lifecycle_site.fleet.serializers import node_dict
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
@@ -75,6 +75,37 @@ def test_nodes_come_and_go_and_a_late_state_never_wins(cell):
     apply_facts("cell-f", [camera, listing])
     states = {n.name: (n.alive, n.state_label) for n in robot.nodes.all()}
     assert states == {"/lidar": (False, "active"), "/camera": (True, "unconfigured"), "/planner": (True, "unknown")}
+
+
+def test_absences_are_recorded_once_from_gone_to_back(cell):
+    part, robot = cell
+    seen = part.fact(protocol.NODE_SEEN, robot=robot.name, node="/lidar")
+    pinned = ManagedNode.objects.create(robot=robot, name="/pinned")  # watched by name, never seen
+    gone = part.fact(protocol.NODE_GONE, robot=robot.name, node="/lidar", reason="unreachable")
+    lost = part.fact(protocol.NODE_GONE, robot=robot.name, node="/lidar", reason=protocol.PROCESS_LOST)
+    never = part.fact(protocol.NODE_GONE, robot=robot.name, node="/pinned")
+    apply_facts("cell-f", [seen, gone, lost, never])
+    apply_facts("cell-f", [gone])  # applied twice
+    absence = NodeAbsence.objects.get()  # one, open, with the newer reason; none for /pinned
+    assert (absence.node, absence.gone_at, absence.back_at, absence.reason) == (
+        node(robot), datetime.fromisoformat(gone["at"]), None, protocol.PROCESS_LOST)
+    assert not pinned.absences.exists()
+
+    back = part.fact(protocol.NODE_SEEN, robot=robot.name, node="/lidar")
+    apply_facts("cell-f", [back, back])
+    absence.refresh_from_db()
+    assert absence.back_at == datetime.fromisoformat(back["at"])
+
+    # A robot's node list without a running node opens its absence; with it again, closes it.
+    camera = part.fact(protocol.NODE_SEEN, robot=robot.name, node="/camera")
+    without = part.fact(protocol.ROBOT_NODES, robot=robot.name, nodes=["/camera"])
+    apply_facts("cell-f", [camera, without])
+    opened = NodeAbsence.objects.get(back_at__isnull=True)
+    assert (opened.node.name, opened.gone_at, opened.reason) == ("/lidar", datetime.fromisoformat(without["at"]), "")
+    again = part.fact(protocol.ROBOT_NODES, robot=robot.name, nodes=["/camera", "/lidar"])
+    apply_facts("cell-f", [again])
+    assert not NodeAbsence.objects.filter(back_at__isnull=True).exists()
+    assert NodeAbsence.objects.count() == 2
 
 
 def test_runs_follow_their_facts_but_never_come_back_from_done(cell):

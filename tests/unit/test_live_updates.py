@@ -96,3 +96,5 @@ def test_stored_records_reach_their_node_pages_and_once_the_audit_pages(db):
     groups = [group for group, _ in live_updates.record_messages(records)]
     assert groups == [protocol.node_group(node.key)] * 2 + [live_updates.AUDIT_GROUP]
     assert live_updates.record_messages([]) == []
+    # Parameter records go to the audit pages only (their parameter mode).
+    assert live_updates.record_messages([], [object()]) == [live_updates.AUDIT_STORED]

@@ -1,7 +1,7 @@
 """The state timeline rebuilt from hand-made audit records with known answers: time in each
 state, availability, failures and restarts, the window's edges, a node found inside the
-window, stretches the records cannot tell, a gone node, the read cap, and that every query
-runs on an index."""
+window, stretches the records cannot tell, a gone node, absences before and inside the window,
+the read cap, and that every query runs on an index."""
 from __future__ import annotations
 
 from datetime import datetime, timedelta, timezone
@@ -12,7 +12,7 @@ from django.test.utils import CaptureQueriesContext
 
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.dashboard import timeline as tl
-from lifecycle_site.fleet.models import ManagedNode, Robot
+from lifecycle_site.fleet.models import ManagedNode, NodeAbsence, Robot
 from ros_gateway.shared import state_machine as sm
 
 NOW = datetime(2026, 11, 23, 12, 0, tzinfo=timezone.utc)
@@ -144,6 +144,49 @@ def test_a_gone_node_is_gone_since_it_was_last_seen(robot):
     assert minutes(tl.node_timeline(lost, "hour", now=NOW)) == {tl.UNREACHABLE: 60.0}
 
 
+def away(node: ManagedNode, gone: float, back: float | None, reason: str = "") -> NodeAbsence:
+    return NodeAbsence.objects.create(node=node, gone_at=ago(gone), back_at=ago(back) if back is not None else None,
+                                      reason=reason)
+
+
+def test_past_absences_are_drawn_and_counted(robot):
+    node = make_node(robot, state=A, changed=10)
+    record(node, 120, IN, A)
+    away(node, 200, 70)  # before the window: not drawn, not counted
+    away(node, 50, 40, "unreachable")
+    away(node, 30, 20, "process_lost")
+    record(node, 10, IN, A)  # after its return it was found inactive, and activated
+    timeline = tl.node_timeline(node, "hour", now=NOW)
+    assert [(s.state, round((s.end - s.start).total_seconds() / 60)) for s in timeline.segments] == [
+        ("active", 10), (tl.UNREACHABLE, 10), ("unknown", 10), (tl.LOST, 10), ("inactive", 10), ("active", 10)]
+    # back from unreachable at -40: its state was read, not recorded, and the next fact (lost at
+    # -30) says nothing about it; back from lost at -20: the record at -10 starts from inactive.
+    assert timeline.absences == 2 and timeline.as_dict()["absences"] == 2
+    assert timeline.availability == pytest.approx(20 / 60)
+
+
+def test_an_absence_from_before_the_window_and_one_still_open(robot):
+    node = make_node(robot, state=A, changed=100, alive=False, last_seen=15)
+    away(node, 90, 45)
+    record(node, 30, U, IN)
+    away(node, 15, None)
+    timeline = tl.node_timeline(node, "hour", now=NOW)
+    assert minutes(timeline) == {tl.GONE: 30.0, "unconfigured": 15.0, "inactive": 15.0}
+    assert timeline.absences == 1  # the one that began inside the window
+    assert "Not seen since 2026-11-23 11:45:00 UTC." in timeline.notes
+    shared = tl.robot_timeline(robot, "hour", now=NOW).nodes[0]
+    assert minutes(shared) == minutes(timeline) and shared.absences == 1
+
+
+def test_absences_are_read_up_to_their_cap(robot):
+    node = make_node(robot, state=A, changed=120)
+    for i in range(10):
+        away(node, 55 - 5 * i, 53 - 5 * i)
+    timeline = tl.node_timeline(node, "hour", now=NOW, absence_cap=4)
+    assert timeline.cut_before == ago(55 - 5 * 6) and timeline.segments[0].state == tl.NOT_READ
+    assert minutes(timeline)[tl.GONE] == 8.0 and timeline.absences == 4
+
+
 def test_no_records_and_state_older_than_the_window(robot):
     node = make_node(robot, state=A, changed=60 * 24 * 3, desired="")
     timeline = tl.node_timeline(node, "day", now=NOW)
@@ -195,13 +238,15 @@ def test_every_query_of_a_timeline_runs_on_an_index(robot):
         tl.robot_timeline(robot, "day", now=NOW)
     with connection.cursor() as cursor:
         for query in captured.captured_queries:
-            if "audit_transitionrecord" in query["sql"]:
+            if "audit_transitionrecord" in query["sql"] or "fleet_nodeabsence" in query["sql"]:
                 cursor.execute("EXPLAIN QUERY PLAN " + query["sql"])
                 plans.append((query["sql"], " | ".join(str(row[-1]) for row in cursor.fetchall())))
-    # node: window, before, counts; robot: its nodes (with their last record before), window, counts
-    assert len(plans) == 6, plans
+    # node: window, absences, before, counts; robot: its nodes (with their last record before),
+    # window, absences, counts
+    assert len(plans) == 8, plans
     for sql, plan in plans:
         assert "SCAN audit_transitionrecord" not in plan and "SCAN U0" not in plan, (sql, plan)
-        assert "INDEX audit_" in plan, (sql, plan)
+        assert "SCAN fleet_nodeabsence" not in plan, (sql, plan)
+        assert "INDEX audit_" in plan or "INDEX absence_" in plan, (sql, plan)
     counts = [plan for sql, plan in plans if "COUNT(" in sql]
     assert len(counts) == 2 and all("COVERING INDEX audit_" in plan for plan in counts), counts

@@ -30,6 +30,7 @@ from django.db import DatabaseError, InterfaceError, OperationalError, connectio
 from lifecycle_site.alerts.engine import Evaluator
 from lifecycle_site.fleet import gateways as gw
 from lifecycle_site.fleet import redis_users
+from lifecycle_site.fleet.absences import prune_absences
 from lifecycle_site.fleet.fact_context import FactRejected, parse_time
 from lifecycle_site.fleet.facts import apply_facts
 from lifecycle_site.fleet.live_updates import push, record_messages
@@ -164,6 +165,7 @@ class Ingest:
             deleted = prune_logs(config["LOG_KEEP_PER_NODE"], config["LOG_KEEP_HOURS"])
             if deleted:
                 log.info("pruned %d old log records", deleted)
+            prune_absences()
         return applied
 
     def is_due(self, what: str, every: float) -> bool:
@@ -308,7 +310,7 @@ class Ingest:
         applied = apply_facts(row.name, facts)
         self.alerts.observe(row.name, facts)
         row.facts_rejected += applied.rejected
-        return record_messages(applied.created)
+        return record_messages(applied.created, applied.created_parameters)
 
     def store_logs(self, row: Gateway, entries: list) -> list[tuple[str, dict]]:
         pushes: list[tuple[str, dict]] = []
