@@ -27,6 +27,10 @@ log = logging.getLogger(__name__)
 # How often every robot's full list of running nodes is reported (the site marks the rest lost).
 SNAPSHOT_EVERY_S = 30.0
 LEFT_GRAPH = "ended: its node left the ROS graph (or was shut down)"
+# Time per discovery pass spent looking for restarted processes (one graph query per node):
+# a few nodes are all checked every pass; a thousand are checked in turn, a slice per pass, so
+# a pass never stalls the event loop that also reads the nodes' logs.
+INCARNATION_BUDGET_S = 0.004
 
 DomainFactory = Callable[[int], RosDomain]
 # (domain, node name, processes known ended) -> whether the node's process is known not to answer
@@ -68,7 +72,7 @@ class Discovery:
         self.forget_parameters = forget_parameters
         self.holds_back = holds_back
         self.config_version: str | None = None
-        self._passes = 0
+        self._incarnation_cursor: dict[int, str] = {}  # domain id -> name of the last node checked
         self._snapshot_at: dict[int, float] = {}  # robot id -> when its node list was last reported
 
     # -- robots and domains -------------------------------------------------------------
@@ -107,12 +111,12 @@ class Discovery:
 
     # -- discovery ------------------------------------------------------------------------
     async def discover(self) -> None:
-        self._passes += 1
-        check_incarnations = self._passes % 4 == 0
+        deadline = time.monotonic() + INCARNATION_BUDGET_S
         for domain_id, domain in list(self.domains.items()):
             if self.processes.host is None:
                 self.processes.learn_host(domain.own_gid())
             present = domain.lifecycle_node_names(name for d, name in self.registry.nodes if d == domain_id)
+            settled: list[LiveNode] = []
             for name in present:
                 node = self.registry.nodes.get((domain_id, name))
                 if node is None or not node.seen:
@@ -121,8 +125,9 @@ class Discovery:
                         self._appeared(domain, robot, name)
                 elif not node.state_read:
                     spawn(self.read_state(node))
-                elif check_incarnations and not node.in_transition:  # a transition of ours watches it
-                    self._check_incarnation(domain, node)
+                elif not node.in_transition:  # a transition of ours watches it
+                    settled.append(node)
+            self._check_incarnations(domain, settled, deadline)
             if domain.settling():
                 continue
             # A transition of ours watches the process itself (and records its loss).
@@ -166,6 +171,21 @@ class Discovery:
         domain.watch_node(name)
         log.info("node %s appeared on %s", name, robot.name)
         spawn(self.read_state(node))
+
+    def _check_incarnations(self, domain: RosDomain, nodes: list[LiveNode], deadline: float) -> None:
+        """Check nodes in name order from where the last pass stopped, until ``deadline`` (at
+        least one per pass, so every node's turn comes)."""
+        if not nodes:
+            return
+        nodes.sort(key=lambda n: n.name)
+        last = self._incarnation_cursor.get(domain.domain_id, "")
+        start = next((i for i, n in enumerate(nodes) if n.name > last), 0)
+        for count, node in enumerate(nodes[start:] + nodes[:start]):
+            if count and time.monotonic() >= deadline:
+                break
+            if node.alive:  # an earlier check of this pass may have found it lost
+                self._check_incarnation(domain, node)
+            self._incarnation_cursor[domain.domain_id] = node.name
 
     def _check_incarnation(self, domain: RosDomain, node: LiveNode) -> None:
         """A new process under the node's name (restarted), or the one we knew gone from the

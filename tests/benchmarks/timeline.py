@@ -1,5 +1,5 @@
-"""Scenario 10: state timelines over a big audit log. 100,000 transition records over the last
-week for five nodes of one robot, written into the scenario's real SQLite database, then the
+"""Scenario 10: state timelines over a big audit log. 100,000 transition records and 1,000
+absences (a node gone for a moment) over the last week for five nodes of one robot, written into the scenario's real SQLite database, then the
 node timeline page, the robot timeline page and both timeline API calls, each asked for the last
 hour, day and week through daphne (the real HTTP server; the browser's session for the pages,
 a bearer token for the API), 30 times each.
@@ -21,11 +21,12 @@ from tests.benchmarks.report import ScenarioResult, percentile
 from tests.benchmarks.system import cpu_seconds, loadavg, tree
 
 NAME = "timeline"
-TITLE = "10. State timeline: node page, robot page and API over 100,000 audit records (a week, 5 nodes)"
+TITLE = "10. State timeline: node page, robot page and API over 100,000 audit records and 1,000 absences (a week, 5 nodes)"
 ROBOT = "bench-timeline"
 DOMAIN = 126  # registered only: no robot process runs; shared with load and quiet, run one after the other
 NODES = 5
 RECORDS = 100_000
+ABSENCE_EVERY = 100  # of a node's records: each node goes away 200 times in the week
 REQUESTS = 30
 TARGET_MS = 300.0
 WINDOWS = ("hour", "day", "week")
@@ -40,7 +41,7 @@ def seed(robot_name: str, nodes: int = NODES, records: int = RECORDS, days: floa
     from django.utils import timezone
 
     from lifecycle_site.audit.models import TransitionRecord
-    from lifecycle_site.fleet.models import ManagedNode, Robot
+    from lifecycle_site.fleet.models import ManagedNode, NodeAbsence, Robot
     from ros_gateway.shared import state_machine as sm
 
     now = timezone.now()
@@ -53,6 +54,7 @@ def seed(robot_name: str, nodes: int = NODES, records: int = RECORDS, days: floa
     rng = random.Random(13)
     step = timedelta(days=days) / records
     batch: list[TransitionRecord] = []
+    absences: list[NodeAbsence] = []
     position = [0] * nodes
     for i in range(records):
         n = i % nodes
@@ -80,10 +82,14 @@ def seed(robot_name: str, nodes: int = NODES, records: int = RECORDS, days: floa
             outcome=outcome, source=source, requested_at=at, completed_at=at + timedelta(seconds=took),
             duration_ms=took * 1000, requested_by_name="bench" if source == "api" else "",
         ))
+        if (i // nodes) % ABSENCE_EVERY == ABSENCE_EVERY - 1:  # away between two of its records
+            absences.append(NodeAbsence(node=node, gone_at=at + step * 0.2, back_at=at + step * 0.8,
+                                        reason=("", "unreachable", "process_lost")[rng.randrange(3)]))
         if len(batch) == 5000:
             TransitionRecord.objects.bulk_create(batch)
             batch.clear()
     TransitionRecord.objects.bulk_create(batch)
+    NodeAbsence.objects.bulk_create(absences)
     for node in made:  # its row says where the last record left it
         last = TransitionRecord.objects.filter(node=node).order_by("-requested_at").first()
         state = last.result_state_id if last and last.result_state_id is not None else sm.UNCONFIGURED
