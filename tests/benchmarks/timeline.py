@@ -1,8 +1,9 @@
 """Scenario 10: state timelines over a big audit log. 100,000 transition records and 1,000
-absences (a node gone for a moment) over the last week for five nodes of one robot, written into the scenario's real SQLite database, then the
-node timeline page, the robot timeline page and both timeline API calls, each asked for the last
-hour, day and week through daphne (the real HTTP server; the browser's session for the pages,
-a bearer token for the API), 30 times each.
+absences (a node gone for a moment) over the last week for five nodes of one robot, written
+into the scenario's real SQLite database, then the node timeline page, the robot timeline page
+and both timeline API calls, each asked for the last hour, day and week through daphne (the
+real HTTP server; the browser's session for the pages, a bearer token for the API), 30 times
+each.
 
 Target (issue 13, section 5): no page over 300 ms (checked on the p95 of each series).
 
@@ -21,7 +22,8 @@ from tests.benchmarks.report import ScenarioResult, percentile
 from tests.benchmarks.system import cpu_seconds, loadavg, tree
 
 NAME = "timeline"
-TITLE = "10. State timeline: node page, robot page and API over 100,000 audit records and 1,000 absences (a week, 5 nodes)"
+TITLE = ("10. State timeline: node page, robot page and API over 100,000 audit records and 1,000 absences "
+         "(a week, 5 nodes)")
 ROBOT = "bench-timeline"
 DOMAIN = 126  # registered only: no robot process runs; shared with load and quiet, run one after the other
 NODES = 5

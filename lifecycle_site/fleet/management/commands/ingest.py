@@ -12,14 +12,12 @@ are keyed by fact id.
 """
 from __future__ import annotations
 
-import json
 import logging
 import os
 import signal
 import socket
 import time
 import uuid
-from datetime import datetime, timezone
 from typing import Any
 
 import redis
@@ -31,12 +29,13 @@ from lifecycle_site.alerts.engine import Evaluator
 from lifecycle_site.fleet import gateways as gw
 from lifecycle_site.fleet import redis_users
 from lifecycle_site.fleet.absences import prune_absences
-from lifecycle_site.fleet.fact_context import FactRejected, parse_time
+from lifecycle_site.fleet.fact_context import FactRejected
 from lifecycle_site.fleet.facts import apply_facts
 from lifecycle_site.fleet.live_updates import push, record_messages
 from lifecycle_site.fleet.log_store import LogTargets, prune_logs, store_batch
 from lifecycle_site.fleet.models import Gateway
 from lifecycle_site.fleet.runs import fail_runs_of_silent_gateways
+from lifecycle_site.fleet.stream_entries import beat_fields, count_gap, decode, entry_id, is_after, text
 from ros_gateway.shared import protocol
 
 log = logging.getLogger("lifecycle_site.ingest")
@@ -61,45 +60,6 @@ SETTLE_S = 0.03
 
 RENEW = "if redis.call('get', KEYS[1]) == ARGV[1] then return redis.call('pexpire', KEYS[1], ARGV[2]) end return 0"
 RELEASE = "if redis.call('get', KEYS[1]) == ARGV[1] then return redis.call('del', KEYS[1]) end return 0"
-
-
-def _text(raw: bytes | str) -> str:
-    """A stream name or entry id as redis-py hands it over (bytes unless decoded) as text."""
-    return raw.decode() if isinstance(raw, bytes) else raw
-
-
-def entry_id(raw: bytes | str) -> tuple[int, int]:
-    ms, _, seq = _text(raw).partition("-")
-    return int(ms), int(seq or 0)
-
-
-def is_after(raw: bytes | str, cursor: str) -> bool:
-    return not cursor or entry_id(raw) > entry_id(cursor)
-
-
-def decode(fields: dict) -> dict:
-    """An entry's payload (field "f", JSON); raises FactRejected."""
-    raw = fields.get(b"f", fields.get("f"))
-    try:
-        data = json.loads(raw)
-    except (TypeError, ValueError) as exc:
-        raise FactRejected(f"an entry without a JSON field 'f' ({exc})") from None
-    if not isinstance(data, dict):
-        raise FactRejected("an entry's 'f' must be a JSON object")
-    return data
-
-
-def count_gap(instance: Any, seq: Any, last_instance: str, last_seq: int) -> tuple[int, str, int]:
-    """Entries missing before this one (trimmed from Redis before they were read), and the new
-    (instance, seq) to remember. Sequences start at 1 with every gateway process."""
-    if not isinstance(seq, int) or isinstance(seq, bool) or seq < 1 or not instance:
-        return 0, last_instance, last_seq
-    instance = str(instance)
-    if instance != last_instance:
-        return seq - 1, instance, seq
-    if seq <= last_seq:
-        return 0, last_instance, last_seq  # seen already
-    return seq - last_seq - 1, instance, seq
 
 
 class Ingest:
@@ -240,7 +200,7 @@ class Ingest:
         self.settle(replies or [])
         applied = 0
         for raw_stream, entries in replies or []:
-            stream = _text(raw_stream)
+            stream = text(raw_stream)
             if not entries:
                 self.catching_up.discard(stream)
                 continue
@@ -259,7 +219,7 @@ class Ingest:
         never longer than SETTLE_S, whatever the clocks say): the site applies a reply's facts
         first (see SETTLE_S)."""
         newest = max((entry_id(entries[-1][0])[0] for s, entries in replies
-                      if entries and self.streams.get(_text(s), ("", ""))[1] == "facts"), default=None)
+                      if entries and self.streams.get(text(s), ("", ""))[1] == "facts"), default=None)
         if newest is not None:
             time.sleep(min(max(SETTLE_S - (time.time() - newest / 1000), 0.0), SETTLE_S))
 
@@ -278,7 +238,7 @@ class Ingest:
             else:
                 pushes = self.store_logs(row, fresh)
             if fresh:
-                setattr(row, f"{kind}_cursor", _text(fresh[-1][0]))
+                setattr(row, f"{kind}_cursor", text(fresh[-1][0]))
             row.save(update_fields=[
                 f"{kind}_cursor", f"{kind}_instance", f"{kind}_seq", "facts_lost", "facts_rejected",
                 "logs_lost", "logs_dropped", "logs_received",
@@ -287,7 +247,7 @@ class Ingest:
         # Stored and acknowledged: Redis keeps only what is not (MAXLEN then bounds a backlog,
         # not a history), so a small Redis (Edge: 40 MB, noeviction) never fills up with it.
         if entries:
-            self.redis.xtrim(stream, minid=_text(entries[-1][0]))
+            self.redis.xtrim(stream, minid=text(entries[-1][0]))
         push(pushes)
         return len(fresh)
 
@@ -371,7 +331,7 @@ class Ingest:
                 lag = group.get("lag")
                 if lag is None:
                     last = group.get("last-delivered-id") or b"0-0"
-                    last = _text(last)
+                    last = text(last)
                     lag = len(self.redis.xrange(stream, f"({last}", "+", count=10_000))
                 totals[name] = totals.get(name, 0) + int(lag) + int(group.get("pending") or 0)
         return totals
@@ -392,33 +352,6 @@ class Ingest:
             if not redis_users.user_is_current(row, self.redis):
                 redis_users.apply_user(row, self.redis)
                 log.info("re-created the Redis user %s of gateway %s", row.redis_user, row.name)
-
-
-def beat_fields(beat: dict) -> dict[str, Any]:
-    """The Gateway row's copy of a heartbeat (what is malformed is left out)."""
-    fields: dict[str, Any] = {}
-    try:
-        fields["last_beat"] = datetime.fromtimestamp(float(beat["at"]), timezone.utc)
-    except (KeyError, TypeError, ValueError, OverflowError, OSError):
-        pass
-    try:
-        fields["started"] = parse_time(beat["started"])
-    except (KeyError, FactRejected):
-        pass
-    fields["stopped"] = bool(beat.get("stopped"))
-    for name, size in (("instance", 32), ("version", 64), ("host", 255)):
-        if isinstance(beat.get(name), str):
-            fields[name] = beat[name][:size]
-    if isinstance(beat.get("pid"), int) and beat["pid"] >= 0:
-        fields["pid"] = beat["pid"]
-    if isinstance(beat.get("nodes"), int) and beat["nodes"] >= 0:
-        fields["node_count"] = beat["nodes"]
-    if isinstance(beat.get("domains"), list):
-        fields["domains"] = [d for d in beat["domains"] if isinstance(d, int)]
-    for name in ("dds", "outbox"):
-        if isinstance(beat.get(name), dict):
-            fields[name] = beat[name]
-    return fields
 
 
 class Command(BaseCommand):

@@ -1,0 +1,75 @@
+"""What the ingest process reads from Redis, as plain values: stream entry ids, an entry's
+JSON payload, gaps in a gateway's fact sequence, and a heartbeat as a Gateway row's fields."""
+from __future__ import annotations
+
+import json
+from datetime import datetime, timezone
+from typing import Any
+
+from lifecycle_site.fleet.fact_context import FactRejected, parse_time
+
+
+def text(raw: bytes | str) -> str:
+    """A stream name or entry id as redis-py hands it over (bytes unless decoded) as text."""
+    return raw.decode() if isinstance(raw, bytes) else raw
+
+
+def entry_id(raw: bytes | str) -> tuple[int, int]:
+    ms, _, seq = text(raw).partition("-")
+    return int(ms), int(seq or 0)
+
+
+def is_after(raw: bytes | str, cursor: str) -> bool:
+    return not cursor or entry_id(raw) > entry_id(cursor)
+
+
+def decode(fields: dict) -> dict:
+    """An entry's payload (field "f", JSON); raises FactRejected."""
+    raw = fields.get(b"f", fields.get("f"))
+    try:
+        data = json.loads(raw)
+    except (TypeError, ValueError) as exc:
+        raise FactRejected(f"an entry without a JSON field 'f' ({exc})") from None
+    if not isinstance(data, dict):
+        raise FactRejected("an entry's 'f' must be a JSON object")
+    return data
+
+
+def count_gap(instance: Any, seq: Any, last_instance: str, last_seq: int) -> tuple[int, str, int]:
+    """Entries missing before this one (trimmed from Redis before they were read), and the new
+    (instance, seq) to remember. Sequences start at 1 with every gateway process."""
+    if not isinstance(seq, int) or isinstance(seq, bool) or seq < 1 or not instance:
+        return 0, last_instance, last_seq
+    instance = str(instance)
+    if instance != last_instance:
+        return seq - 1, instance, seq
+    if seq <= last_seq:
+        return 0, last_instance, last_seq  # seen already
+    return seq - last_seq - 1, instance, seq
+
+
+def beat_fields(beat: dict) -> dict[str, Any]:
+    """The Gateway row's copy of a heartbeat (what is malformed is left out)."""
+    fields: dict[str, Any] = {}
+    try:
+        fields["last_beat"] = datetime.fromtimestamp(float(beat["at"]), timezone.utc)
+    except (KeyError, TypeError, ValueError, OverflowError, OSError):
+        pass
+    try:
+        fields["started"] = parse_time(beat["started"])
+    except (KeyError, FactRejected):
+        pass
+    fields["stopped"] = bool(beat.get("stopped"))
+    for name, size in (("instance", 32), ("version", 64), ("host", 255)):
+        if isinstance(beat.get(name), str):
+            fields[name] = beat[name][:size]
+    if isinstance(beat.get("pid"), int) and beat["pid"] >= 0:
+        fields["pid"] = beat["pid"]
+    if isinstance(beat.get("nodes"), int) and beat["nodes"] >= 0:
+        fields["node_count"] = beat["nodes"]
+    if isinstance(beat.get("domains"), list):
+        fields["domains"] = [d for d in beat["domains"] if isinstance(d, int)]
+    for name in ("dds", "outbox"):
+        if isinstance(beat.get(name), dict):
+            fields[name] = beat[name]
+    return fields
