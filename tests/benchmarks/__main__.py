@@ -17,9 +17,11 @@ from pathlib import Path
 from types import ModuleType
 
 from tests.benchmarks import fleet, flood, load, networks, push, quiet, scale, timeline, transition
-from tests.benchmarks.harness import DATABASES, ROOT, BenchContext, Template
+from tests.benchmarks.harness import BenchContext
+from tests.benchmarks.processes import ROOT
 from tests.benchmarks.report import ScenarioResult, machine, render_table, write_json
 from tests.benchmarks.system import loadavg
+from tests.benchmarks.template import DATABASES, Template
 
 SCENARIOS: dict[str, ModuleType] = {
     m.NAME: m for m in (transition, push, scale, flood, networks, load, quiet, timeline, fleet)

@@ -16,7 +16,8 @@ from __future__ import annotations
 import statistics
 import time
 
-from tests.benchmarks.harness import BenchError, Stack
+from tests.benchmarks.harness import Stack
+from tests.benchmarks.processes import BenchError
 from tests.benchmarks.report import ScenarioResult, Series
 
 RUN_WAIT_S = 240

@@ -22,8 +22,9 @@ from types import SimpleNamespace
 
 from tests.benchmarks.bringup import RUN_WAIT_S, group_run, robot_nodes
 from tests.benchmarks.flood import Relayed, count_records
-from tests.benchmarks.harness import BenchContext, BenchError, Child, Stack
+from tests.benchmarks.harness import BenchContext, Stack
 from tests.benchmarks.probe import LineProcess
+from tests.benchmarks.processes import BenchError, Child
 from tests.benchmarks.profiling import profiled
 from tests.benchmarks.report import ScenarioResult
 from tests.benchmarks.system import cpu_seconds, loadavg, rss_mb

@@ -14,8 +14,9 @@ import json
 import threading
 import time
 
-from tests.benchmarks.harness import BenchContext, BenchError, Stack
+from tests.benchmarks.harness import BenchContext, Stack
 from tests.benchmarks.probe import LineProcess
+from tests.benchmarks.processes import BenchError
 from tests.benchmarks.profiling import profiled
 from tests.benchmarks.report import ScenarioResult, Series
 from tests.benchmarks.system import loadavg, rss_mb

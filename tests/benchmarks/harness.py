@@ -10,187 +10,29 @@ scenario claims its domains (tests/domains.py), so two runs on one machine canno
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import signal
 import socket
 import sqlite3
 import subprocess
-import sys
-import time
 from pathlib import Path
-from typing import Callable, TypeVar
 
 from tests import domains
+from tests.benchmarks.processes import (
+    CHANNEL_PREFIX,
+    PYTHON,
+    BenchError,
+    Child,
+    database_url,
+    environment,
+    read_env_file,
+    run_manage,
+    wait_for,
+)
 from tests.benchmarks.system import free_port
+from tests.benchmarks.template import PASSWORD, USER, Template
 from tests.benchmarks.web import Http
 
-ROOT = Path(__file__).resolve().parents[2]
-PYTHON = sys.executable
-USER, PASSWORD = "bench-operator", "bench-password-9431"
-CHANNEL_PREFIX = "lifecycle-bench"
 # The gateway gets a database it cannot open, as in the integration tests: it needs only Redis.
 GATEWAY_DATABASE_URL = "sqlite:////nonexistent-lifecycle-bench-dir/no-database-for-gateways.sqlite3"
-DATABASE_URL_FILE = "database-url"
-DATABASES = ("sqlite", "postgres")
-
-T = TypeVar("T")
-
-
-class BenchError(RuntimeError):
-    """A part of the stack did not come up or misbehaved; the message says which."""
-
-
-def wait_for(condition: Callable[[], T], timeout: float, what: str, interval: float = 0.1) -> T:
-    """Poll ``condition`` until it returns something truthy; BenchError after ``timeout``."""
-    deadline = time.monotonic() + timeout
-    while True:
-        result = condition()
-        if result:
-            return result
-        if time.monotonic() > deadline:
-            raise BenchError(f"timed out after {timeout:g} s waiting for {what}")
-        time.sleep(interval)
-
-
-class Child:
-    """A subprocess in its own process group, its output in a log file."""
-
-    def __init__(self, name: str, argv: list[str], env: dict[str, str], log_dir: Path, stdin: int | None = None,
-                 stdout: int | None = None) -> None:
-        self.name = name
-        self.log_path = log_dir / f"{name}.log"
-        with open(self.log_path, "ab") as log:
-            self.popen = subprocess.Popen(
-                argv, cwd=ROOT, env=env, stdin=stdin if stdin is not None else subprocess.DEVNULL,
-                stdout=stdout if stdout is not None else log, stderr=log, start_new_session=True,
-            )
-
-    @property
-    def pid(self) -> int:
-        return self.popen.pid
-
-    def output(self) -> str:
-        return self.log_path.read_text(errors="replace")
-
-    def alive(self) -> bool:
-        return self.popen.poll() is None
-
-    def stop(self, timeout: float = 15.0) -> None:
-        if self.alive():
-            try:
-                os.killpg(self.popen.pid, signal.SIGTERM)
-                self.popen.wait(timeout)
-            except subprocess.TimeoutExpired:
-                os.killpg(self.popen.pid, signal.SIGKILL)
-                self.popen.wait(5)
-            except ProcessLookupError:
-                pass
-
-
-def database_url(data_dir: Path) -> str:
-    """The database of the stack in ``data_dir``: its SQLite file, or the PostgreSQL database
-    that ``Template.copy_to`` made for it (its URL in a file there, readable by root only)."""
-    url_file = data_dir / DATABASE_URL_FILE
-    if url_file.exists():
-        return url_file.read_text().strip()
-    return f"sqlite:///{data_dir / 'db.sqlite3'}"
-
-
-def environment(data_dir: Path, redis_port: int, **extra: str) -> dict[str, str]:
-    """What every process of one stack shares: settings, data dir, Redis, DDS on loopback."""
-    env = {k: v for k, v in os.environ.items()
-           if not k.startswith(("LIFECYCLE_", "DJANGO_", "ROS_")) and k != "DATABASE_URL"}
-    env.update(
-        DJANGO_SETTINGS_MODULE="lifecycle_site.settings",
-        LIFECYCLE_DATA_DIR=str(data_dir),
-        DATABASE_URL=database_url(data_dir),
-        REDIS_URL=f"redis://127.0.0.1:{redis_port}/0",
-        LIFECYCLE_CHANNEL_PREFIX=CHANNEL_PREFIX,
-        ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-        ROS_DOMAIN_ID="129",  # anything that forgets its domain stays in ours
-        PYTHONUNBUFFERED="1",
-    )
-    env.update(extra)
-    return env
-
-
-def run_manage(env: dict[str, str], *args: str, timeout: float = 120.0) -> str:
-    done = subprocess.run([PYTHON, "manage.py", *args], cwd=ROOT, env=env, capture_output=True, text=True,
-                          timeout=timeout)
-    if done.returncode != 0:
-        raise BenchError(f"manage.py {args[0]} failed:\n{done.stdout}\n{done.stderr}")
-    return done.stdout
-
-
-SEED_USER = f"""
-from django.contrib.auth import get_user_model
-from django.contrib.auth.models import Group
-user = get_user_model().objects.create_user({USER!r}, password={PASSWORD!r})
-user.groups.add(Group.objects.get(name="operator"))
-"""
-
-
-def read_env_file(path: Path) -> dict[str, str]:
-    """KEY=VALUE lines, as ``manage.py add_gateway --env-file`` writes them."""
-    pairs = (line.partition("=") for line in path.read_text().splitlines() if "=" in line)
-    return {key.strip(): value.strip() for key, _, value in pairs}
-
-
-class Template:
-    """A migrated database with the benchmark's operator and API token, copied per scenario.
-    On PostgreSQL it is a database on a cluster of the run's own, which ``close()`` removes."""
-
-    def __init__(self, workdir: Path, database: str = "sqlite") -> None:
-        if database not in DATABASES:
-            raise BenchError(f"--database {database}: use one of {', '.join(DATABASES)}")
-        self.dir = workdir / "template"
-        self.dir.mkdir(parents=True)
-        self.database = database
-        self.cluster = None
-        self._copies = 0
-        if database == "postgres":
-            from tests.postgres import Cluster
-
-            self.cluster = Cluster()
-        try:
-            if self.cluster is not None:
-                self._admin_url = self.cluster.start().rsplit("/", 1)[0] + "/postgres"
-                self._create_database("bench_template")
-            env = environment(self.dir, 0)
-            run_manage(env, "migrate", "--noinput")
-            run_manage(env, "shell", "-c", SEED_USER)
-            # The token the way an operator makes one (docs/api.md).
-            self.token = run_manage(env, "create_api_token", USER, "--name", "benchmark").strip()
-        except BaseException:
-            self.close()
-            raise
-
-    def copy_to(self, data_dir: Path) -> None:
-        data_dir.mkdir(parents=True)
-        if self.cluster is not None:
-            self._copies += 1
-            self._create_database(f"bench_{self._copies}", data_dir, template="bench_template")
-        for path in self.dir.glob("db.sqlite3*"):
-            shutil.copy(path, data_dir / path.name)
-        shutil.copy(self.dir / "secret_key", data_dir / "secret_key")
-
-    def _create_database(self, name: str, data_dir: Path | None = None, template: str | None = None) -> None:
-        """A PostgreSQL database (a copy of ``template``), its URL written where
-        ``database_url`` finds it."""
-        import psycopg
-
-        with psycopg.connect(self._admin_url, autocommit=True) as admin:
-            admin.execute(f'CREATE DATABASE "{name}"' + (f' TEMPLATE "{template}"' if template else ""))
-        url_file = (data_dir or self.dir) / DATABASE_URL_FILE
-        url_file.touch(0o600)
-        url_file.write_text(self._admin_url.rsplit("/", 1)[0] + f"/{name}\n")
-
-    def close(self) -> None:
-        """Stop and remove the PostgreSQL cluster, if any."""
-        if self.cluster is not None:
-            self.cluster.stop()
-            self.cluster = None
 
 
 class Stack:

@@ -27,17 +27,8 @@ import time
 from pathlib import Path
 
 from tests import domains, netns
-from tests.benchmarks.harness import (
-    GATEWAY_DATABASE_URL,
-    PYTHON,
-    BenchContext,
-    BenchError,
-    Child,
-    environment,
-    read_env_file,
-    run_manage,
-    wait_for,
-)
+from tests.benchmarks.harness import GATEWAY_DATABASE_URL, BenchContext
+from tests.benchmarks.processes import PYTHON, BenchError, Child, environment, read_env_file, run_manage, wait_for
 from tests.benchmarks.report import ScenarioResult
 from tests.benchmarks.system import cpu_seconds, free_port, loadavg
 from tests.benchmarks.web import Http

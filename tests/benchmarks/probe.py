@@ -8,7 +8,8 @@ import subprocess
 import time
 from typing import Any
 
-from tests.benchmarks.harness import PYTHON, BenchError, Child, Stack
+from tests.benchmarks.harness import Stack
+from tests.benchmarks.processes import PYTHON, BenchError, Child
 
 
 class LineProcess:

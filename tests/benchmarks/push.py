@@ -17,8 +17,9 @@ import asyncio
 import re
 import time
 
-from tests.benchmarks.harness import BenchContext, BenchError, Stack
+from tests.benchmarks.harness import BenchContext, Stack
 from tests.benchmarks.probe import RosProbe
+from tests.benchmarks.processes import BenchError
 from tests.benchmarks.profiling import profiled
 from tests.benchmarks.report import ScenarioResult, Series
 from tests.benchmarks.system import loadavg

@@ -16,7 +16,8 @@ from dataclasses import dataclass
 
 from websockets.exceptions import ConnectionClosed
 
-from tests.benchmarks.harness import BenchContext, wait_for
+from tests.benchmarks.harness import BenchContext
+from tests.benchmarks.processes import wait_for
 from tests.benchmarks.report import ScenarioResult
 from tests.benchmarks.system import loadavg
 from tests.benchmarks.web import Http, ws_connect

@@ -11,7 +11,8 @@ import math
 import time
 
 from tests.benchmarks.bringup import measure_cold, measure_warm
-from tests.benchmarks.harness import BenchContext, BenchError, Child, Stack
+from tests.benchmarks.harness import BenchContext, Stack
+from tests.benchmarks.processes import BenchError, Child
 from tests.benchmarks.profiling import profiled
 from tests.benchmarks.report import ScenarioResult
 from tests.benchmarks.system import cpu_seconds, loadavg, rss_mb

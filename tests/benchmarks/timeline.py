@@ -17,7 +17,8 @@ import sys
 import time
 from datetime import timedelta
 
-from tests.benchmarks.harness import PYTHON, BenchContext, BenchError, run_manage
+from tests.benchmarks.harness import BenchContext
+from tests.benchmarks.processes import PYTHON, BenchError, run_manage
 from tests.benchmarks.report import ScenarioResult, percentile
 from tests.benchmarks.system import cpu_seconds, loadavg, tree
 

@@ -19,8 +19,9 @@ from __future__ import annotations
 import subprocess
 import time
 
-from tests.benchmarks.harness import PYTHON, ROOT, BenchContext, BenchError, Stack, wait_for
+from tests.benchmarks.harness import BenchContext, Stack
 from tests.benchmarks.probe import RosProbe
+from tests.benchmarks.processes import PYTHON, ROOT, BenchError, wait_for
 from tests.benchmarks.profiling import profiled
 from tests.benchmarks.report import ScenarioResult, Series
 from tests.benchmarks.system import loadavg
