@@ -8,7 +8,7 @@ from lifecycle_site.fleet import (
     accounts_admin,  # noqa: F401  (users and groups, limited by role)
     gateways,
 )
-from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
+from lifecycle_site.fleet.models import Gateway, ManagedNode, NodeAbsence, Robot
 
 
 def dashboard_url(node: ManagedNode) -> str:
@@ -58,12 +58,32 @@ class RobotAdmin(admin.ModelAdmin):
         return f"{reverse('dashboard:fleet')}?robot={obj.name}"
 
 
+class NodeAbsenceInline(admin.TabularInline):
+    """When the node was away (read-only: the ingest process writes these from the gateway's reports)."""
+
+    model = NodeAbsence
+    fields = ("gone_at", "back_at", "reason")
+    readonly_fields = fields
+    extra = 0
+    max_num = 0
+    can_delete = False
+    ordering = ("-gone_at",)
+    verbose_name_plural = "absences (newest first; the timeline page draws them)"
+
+    def get_queryset(self, request):
+        # A flapping node may have thousands: the newest 20 of the node shown are listed.
+        node_id = (request.resolver_match.kwargs if request.resolver_match else {}).get("object_id")
+        newest = NodeAbsence.objects.filter(node_id=node_id).order_by("-gone_at").values("pk")[:20]
+        return super().get_queryset(request).filter(pk__in=newest)
+
+
 @admin.register(ManagedNode)
 class ManagedNodeAdmin(admin.ModelAdmin):
     list_display = ("name", "robot", "order", "state_label", "desired_state", "alive", "last_seen", "dashboard")
     list_filter = ("robot", "alive", "state_label")
     search_fields = ("name",)
     readonly_fields = ("key", "state_id", "state_label", "alive", "first_seen", "last_seen", "state_changed")
+    inlines = [NodeAbsenceInline]
 
     def get_readonly_fields(self, request, obj=None):
         # A node's robot and ROS name are what it is: changing them would make it another node.

@@ -11,6 +11,7 @@ VIEW = [
     "fleet.view_robot",
     "fleet.view_managednode",
     "fleet.view_logrecord",
+    "fleet.view_nodeabsence",
     "audit.view_transitionrecord",
     "audit.view_parameterrecord",
     "alerts.view_alert",
