@@ -21,9 +21,12 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 
 from asgiref.sync import sync_to_async
-from django.core.handlers.asgi import ASGIHandler
+from django.core import signals
+from django.core.exceptions import RequestAborted
+from django.core.handlers.asgi import ASGIHandler, get_script_prefix
 from django.db import connections
 from django.http import HttpRequest, HttpResponseBase
+from django.urls import set_script_prefix
 
 from lifecycle_site.fleet import live_updates
 
@@ -59,6 +62,34 @@ class SyncChainHandler(ASGIHandler):
 
     def load_middleware(self, is_async: bool = False) -> None:
         super().load_middleware(is_async=False)
+
+    async def handle(self, scope, receive, send) -> None:
+        """Django's ASGI request cycle, with the view's work in one call to ``self.workers``.
+
+        Django runs each request in a ThreadSensitiveContext (``ASGIHandler.__call__``), which
+        gives the request a thread of its own once it makes a thread-sensitive call. Django's
+        own cycle makes two, its request_started receivers and ``response.close()``, so every
+        request started a thread, on the event loop, which waited for it to run (under load
+        several ms, ~100 times a second) and joined it after. Those calls are Django's own
+        receivers (reset_queries, close_old_connections, close_caches), which touch nothing on
+        the event loop's thread, so here they run there: only a streaming answer (sent through
+        ``sync_to_async``) still gets a thread. Nor does this listen for the client going away
+        while the view runs: a synchronous view cannot be stopped."""
+        try:
+            body_file = await self.read_body(receive)
+        except RequestAborted:
+            return
+        set_script_prefix(get_script_prefix(scope))
+        signals.request_started.send(sender=self.__class__, scope=scope)
+        request, error_response = self.create_request(scope, body_file)
+        response = error_response if request is None else await self.run_get_response(request)
+        try:
+            await self.send_response(response, send)
+        except asyncio.CancelledError:
+            pass  # the client went away while the answer was sent
+        finally:
+            response.close()  # request_finished
+            body_file.close()
 
     def respond(self, request: HttpRequest) -> HttpResponseBase:
         _keep_or_close_connections()
