@@ -9,6 +9,7 @@ from lifecycle_site.api.auth import api_view, error
 from lifecycle_site.api.limits import shown
 from lifecycle_site.api.views import get_node
 from lifecycle_site.dashboard import timeline as tl
+from lifecycle_site.dashboard.robot_timeline import robot_timeline as robot_timeline_of
 from lifecycle_site.fleet.models import Robot
 
 
@@ -35,4 +36,4 @@ def robot_timeline(request: HttpRequest, name: str) -> JsonResponse:
     robot = Robot.objects.filter(name=name).first()
     if robot is None:
         return error("not_found", f"There is no robot named {shown(name)}; GET /api/v1/robots lists them.", 404)
-    return JsonResponse(tl.robot_timeline(robot, window).as_dict())
+    return JsonResponse(robot_timeline_of(robot, window).as_dict())

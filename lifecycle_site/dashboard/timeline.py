@@ -1,4 +1,4 @@
-"""A node's (or a robot's nodes') states over a window, rebuilt from the audit log.
+"""A node's states over a window, rebuilt from the audit log (a robot's nodes together: robot_timeline.py).
 
 What the records tell, and what they cannot:
 - every transition attempt and every change made by another tool ("observed") is a
@@ -24,11 +24,11 @@ from datetime import datetime, timedelta
 from functools import cached_property
 from typing import Iterable, NamedTuple
 
-from django.db.models import Count, OuterRef, Subquery
+from django.db.models import Count
 from django.utils import timezone
 
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.fleet.models import ManagedNode, NodeAbsence, Robot
+from lifecycle_site.fleet.models import ManagedNode, NodeAbsence
 from ros_gateway.shared import state_machine as sm
 
 WINDOWS: dict[str, timedelta] = {"hour": timedelta(hours=1), "day": timedelta(days=1), "week": timedelta(weeks=1)}
@@ -341,7 +341,7 @@ def _rows(values: Iterable[tuple]) -> list[Row]:
     return [Row(*v) for v in values]
 
 
-def _read_window(records, cap: int) -> tuple[list[tuple], datetime | None]:
+def read_window(records, cap: int) -> tuple[list[tuple], datetime | None]:
     """At most ``cap`` records, newest first; the time before which older ones were left out."""
     found = list(records.order_by("-requested_at")[: cap + 1])
     if len(found) <= cap:
@@ -350,11 +350,11 @@ def _read_window(records, cap: int) -> tuple[list[tuple], datetime | None]:
     return found, found[-1][-len(ROW_FIELDS)]  # requested_at of the oldest one read
 
 
-def _overlapping(absences, start: datetime, end: datetime):
+def overlapping(absences, start: datetime, end: datetime):
     return absences.filter(gone_at__lte=end).exclude(back_at__lt=start)
 
 
-def _read_absences(absences, cap: int) -> tuple[list[tuple], datetime | None]:
+def read_absences(absences, cap: int) -> tuple[list[tuple], datetime | None]:
     """At most ``cap`` absences, newest first; the time before which older ones were left out."""
     found = list(absences.order_by("-gone_at")[: cap + 1])
     if len(found) <= cap:
@@ -363,7 +363,7 @@ def _read_absences(absences, cap: int) -> tuple[list[tuple], datetime | None]:
     return found, found[-1][-len(ABSENCE_FIELDS)]  # gone_at of the oldest one read
 
 
-def _later(a: datetime | None, b: datetime | None) -> datetime | None:
+def later(a: datetime | None, b: datetime | None) -> datetime | None:
     return max(a, b) if a is not None and b is not None else a or b
 
 
@@ -372,10 +372,10 @@ def node_timeline(node: ManagedNode, window: str = DEFAULT_WINDOW, now: datetime
     start, end = window_bounds(window, now)
     records = TransitionRecord.objects.filter(node=node)
     inside = records.filter(requested_at__gte=start, requested_at__lte=end)
-    values, cut_before = _read_window(inside.values_list(*ROW_FIELDS), cap)
-    away, absences_cut = _read_absences(
-        _overlapping(NodeAbsence.objects.filter(node=node), start, end).values_list(*ABSENCE_FIELDS), absence_cap)
-    cut_before = _later(cut_before, absences_cut)
+    values, cut_before = read_window(inside.values_list(*ROW_FIELDS), cap)
+    away, absences_cut = read_absences(
+        overlapping(NodeAbsence.objects.filter(node=node), start, end).values_list(*ABSENCE_FIELDS), absence_cap)
+    cut_before = later(cut_before, absences_cut)
     before = None
     if cut_before is None:
         found = records.filter(requested_at__lt=start).order_by("-requested_at").values_list(*ROW_FIELDS).first()
@@ -383,77 +383,3 @@ def node_timeline(node: ManagedNode, window: str = DEFAULT_WINDOW, now: datetime
     outcomes = dict(inside.order_by().values_list("outcome").annotate(n=Count("id")))
     return build(node, window, start, end, before, _rows(values), cut_before, outcomes,
                  [Absence(*a) for a in away])
-
-
-@dataclass
-class RobotTimeline:
-    robot: Robot
-    window: str
-    start: datetime
-    end: datetime
-    nodes: list[Timeline]
-    cut_before: datetime | None
-
-    @property
-    def availability(self) -> float | None:
-        """Time in the desired state over all nodes that have one, 0-1."""
-        wanted = [t for t in self.nodes if t.desired]
-        if not wanted:
-            return None
-        return sum(t.availability or 0.0 for t in wanted) / len(wanted)
-
-    @property
-    def failures(self) -> int:
-        return sum(t.failures for t in self.nodes)
-
-    @property
-    def restarts(self) -> int:
-        return sum(t.restarts for t in self.nodes)
-
-    def as_dict(self) -> dict:
-        availability = self.availability
-        return {
-            "robot": self.robot.name,
-            "window": {"name": self.window, "start": self.start.isoformat(), "end": self.end.isoformat()},
-            "availability_percent": None if availability is None else round(100 * availability, 3),
-            "failures": self.failures,
-            "restarts": self.restarts,
-            "not_read_before": self.cut_before.isoformat() if self.cut_before else None,
-            "nodes": [t.as_dict() for t in self.nodes],
-        }
-
-
-def robot_timeline(robot: Robot, window: str = DEFAULT_WINDOW, now: datetime | None = None,
-                   cap: int = MAX_ROWS_ROBOT, absence_cap: int = MAX_ABSENCES_ROBOT) -> RobotTimeline:
-    start, end = window_bounds(window, now)
-    last_before = TransitionRecord.objects.filter(node=OuterRef("pk"), requested_at__lt=start).order_by(
-        "-requested_at")
-    nodes = list(ManagedNode.objects.filter(robot=robot).select_related("robot").annotate(
-        before_id=Subquery(last_before.values("id")[:1])))
-    inside = TransitionRecord.objects.filter(robot_name=robot.name, requested_at__gte=start, requested_at__lte=end)
-    values, cut_before = _read_window(inside.values_list("node_id", *ROW_FIELDS), cap)
-    by_node: dict[int, list[Row]] = {}
-    for node_id, *rest in values:
-        by_node.setdefault(node_id, []).append(Row(*rest))
-    away, absences_cut = _read_absences(_overlapping(
-        NodeAbsence.objects.filter(node_id__in=[n.pk for n in nodes]), start, end
-    ).values_list("node_id", *ABSENCE_FIELDS), absence_cap)
-    cut_before = _later(cut_before, absences_cut)
-    away_by_node: dict[int, list[Absence]] = {}
-    for node_id, *rest in away:
-        away_by_node.setdefault(node_id, []).append(Absence(*rest))
-    before: dict[int, Row] = {}
-    if cut_before is None:
-        ids = [n.before_id for n in nodes if n.before_id is not None]
-        for node_id, *rest in TransitionRecord.objects.filter(id__in=ids).values_list("node_id", *ROW_FIELDS):
-            before[node_id] = Row(*rest)
-    outcomes: dict[int, dict[str, int]] = {}
-    counted = inside.filter(outcome__in=(*FAILURE_OUTCOMES, *RESTART_OUTCOMES)).order_by()
-    for node_id, outcome, n in counted.values_list("node_id", "outcome").annotate(n=Count("id")):
-        outcomes.setdefault(node_id, {})[outcome] = n
-    timelines = [
-        build(node, window, start, end, before.get(node.pk), by_node.get(node.pk, []), cut_before,
-              outcomes.get(node.pk, {}), away_by_node.get(node.pk, ()))
-        for node in nodes
-    ]
-    return RobotTimeline(robot, window, start, end, timelines, cut_before)

@@ -16,6 +16,7 @@ from django.utils.safestring import SafeString, mark_safe
 
 from lifecycle_site.dashboard import timeline as tl
 from lifecycle_site.dashboard.access import viewer_required
+from lifecycle_site.dashboard.robot_timeline import robot_timeline as robot_timeline_of
 from lifecycle_site.dashboard.views import node_or_404
 from lifecycle_site.fleet.models import Robot
 from ros_gateway.shared import state_machine as sm
@@ -232,7 +233,7 @@ def robot_timeline(request: HttpRequest, robot: str) -> HttpResponse:
     if found is None:
         raise Http404(f"There is no robot {robot}.")
     window, warning = _window(request)
-    timelines = tl.robot_timeline(found, window)
+    timelines = robot_timeline_of(found, window)
     availability = timelines.availability
     return render(request, "dashboard/timeline_robot.html", {
         **_context(window, warning, timelines.start, timelines.end),

@@ -12,6 +12,7 @@ from django.test.utils import CaptureQueriesContext
 
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.dashboard import timeline as tl
+from lifecycle_site.dashboard.robot_timeline import robot_timeline as robot_timeline_of
 from lifecycle_site.fleet.models import ManagedNode, NodeAbsence, Robot
 from ros_gateway.shared import state_machine as sm
 
@@ -174,7 +175,7 @@ def test_an_absence_from_before_the_window_and_one_still_open(robot):
     assert minutes(timeline) == {tl.GONE: 30.0, "unconfigured": 15.0, "inactive": 15.0}
     assert timeline.absences == 1  # the one that began inside the window
     assert "Not seen since 2026-11-23 11:45:00 UTC." in timeline.notes
-    shared = tl.robot_timeline(robot, "hour", now=NOW).nodes[0]
+    shared = robot_timeline_of(robot, "hour", now=NOW).nodes[0]
     assert minutes(shared) == minutes(timeline) and shared.absences == 1
 
 
@@ -218,7 +219,7 @@ def test_robot_timeline_sums_its_nodes(robot):
     record(camera, 300, U, IN)
     other = Robot.objects.create(name="tl-other", domain_id=62)
     record(make_node(other, "/lidar"), 10, IN, A, "failed")  # another robot's: not counted
-    timelines = tl.robot_timeline(robot, "hour", now=NOW)
+    timelines = robot_timeline_of(robot, "hour", now=NOW)
     by_name = {t.node.name: t for t in timelines.nodes}
     assert minutes(by_name["/lidar"]) == {"inactive": 30.0, "active": 30.0}
     assert minutes(by_name["/camera"]) == {"inactive": 60.0}
@@ -235,7 +236,7 @@ def test_every_query_of_a_timeline_runs_on_an_index(robot):
     plans = []
     with CaptureQueriesContext(connection) as captured:
         tl.node_timeline(node, "hour", now=NOW)
-        tl.robot_timeline(robot, "day", now=NOW)
+        robot_timeline_of(robot, "day", now=NOW)
     with connection.cursor() as cursor:
         for query in captured.captured_queries:
             if "audit_transitionrecord" in query["sql"] or "fleet_nodeabsence" in query["sql"]:
