@@ -12,6 +12,7 @@ import secrets
 
 from django.conf import settings
 from django.db import models, transaction
+from django.db.models.signals import pre_delete
 
 TOKEN_PREFIX = "lcm_"
 MAX_TOKENS_PER_USER = 20
@@ -61,6 +62,7 @@ class ApiToken(models.Model):
         others: api/grants.py) and put that on record."""
         with transaction.atomic():
             TokenEvent.note(TokenEvent.REVOKED, self, by, via)
+            self.noted = True  # for _token_deleted: on record already
             self.delete()
 
 
@@ -99,3 +101,20 @@ class TokenEvent(models.Model):
             owner_name=token.user.get_username(), actor=actor if getattr(actor, "pk", None) else None,
             actor_name=actor.get_username() if getattr(actor, "pk", None) else "", via=via,
         )
+
+
+# Deleted with its user (the admin's delete, a script's): no token leaves without a record.
+DELETED_WITH_USER = "deleted with its user"
+
+
+def _token_deleted(sender, instance: ApiToken, **kwargs) -> None:
+    if getattr(instance, "noted", False):
+        return
+    # The owner's row is being deleted in the same transaction: the event names it only by
+    # name (a reference would point at a deleted row).
+    TokenEvent.objects.create(action=TokenEvent.REVOKED, hint=instance.hint, token_name=instance.name,
+                              owner_name=instance.user.get_username(), via=DELETED_WITH_USER)
+
+
+pre_delete.connect(_token_deleted, sender=ApiToken, dispatch_uid="api.token_deleted")
+

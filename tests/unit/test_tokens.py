@@ -144,3 +144,15 @@ def test_the_command_line_token_is_on_record_too(db):
     call_command("create_api_token", "cli-user", "--name", "cron", stdout=out, stderr=io.StringIO())
     assert api_status(out.getvalue().strip()) == 200
     assert events() == [("created", "cli-user", "", "command line")]
+
+
+def test_deleting_a_user_puts_the_revocation_of_their_tokens_on_record(db):
+    root = get_user_model().objects.create_superuser("root-admin", password="a long root password 1")
+    olga = make_user("olga-operator", "operator")
+    _, token = ApiToken.issue(olga, "CI", by=olga, via="API tokens page")
+    done = logged_in(root).post(f"/admin/auth/user/{olga.pk}/delete/", {"post": "yes"})
+    assert done.status_code == 302 and not get_user_model().objects.filter(username="olga-operator").exists()
+    assert api_status(token) == 401
+    assert events() == [("created", "olga-operator", "olga-operator", "API tokens page"),
+                        ("revoked", "olga-operator", "", "deleted with its user")]
+    assert set(TokenEvent.objects.values_list("owner", flat=True)) == {None}  # the user's row is gone
