@@ -170,6 +170,9 @@ def test_robots_on_one_domain_are_told_apart_by_namespace(api, lan):
             listed = api.get(f"/api/v1/nodes?robot={name}").json()["nodes"]
             assert sorted(n["id"] for n in listed) == sorted(keys(name, prefix=prefix)), listed
             assert {n["name"] for n in listed} == {f"/{prefix[:-1]}/lidar_driver", f"/{prefix[:-1]}/camera_driver"}
+        # Alive comes before the state is read: both start unconfigured, and only the left one moves.
+        for key in ("ns-left.left.lidar_driver", "ns-right.right.lidar_driver"):
+            wait_node(None, key, alive=True, state="unconfigured", timeout=10)
         response = transition(api, "ns-left.left.lidar_driver", "configure")
         assert response.status_code == 200, response.json()
         assert ManagedNode.objects.get(key="ns-left.left.lidar_driver").state_label == "inactive"
