@@ -25,8 +25,7 @@ from lifecycle_site.dashboard.timeline import (
     build,
     later,
     overlapping,
-    read_absences,
-    read_window,
+    read_newest,
     window_bounds,
 )
 from lifecycle_site.fleet.models import ManagedNode, NodeAbsence, Robot
@@ -78,13 +77,13 @@ def robot_timeline(robot: Robot, window: str = DEFAULT_WINDOW, now: datetime | N
     nodes = list(ManagedNode.objects.filter(robot=robot).select_related("robot").annotate(
         before_id=Subquery(last_before.values("id")[:1])))
     inside = TransitionRecord.objects.filter(robot_name=robot.name, requested_at__gte=start, requested_at__lte=end)
-    values, cut_before = read_window(inside.values_list("node_id", *ROW_FIELDS), cap)
+    values, cut_before = read_newest(inside.values_list("node_id", *ROW_FIELDS), ROW_FIELDS, cap)
     by_node: dict[int, list[Row]] = {}
     for node_id, *rest in values:
         by_node.setdefault(node_id, []).append(Row(*rest))
-    away, absences_cut = read_absences(overlapping(
+    away, absences_cut = read_newest(overlapping(
         NodeAbsence.objects.filter(node_id__in=[n.pk for n in nodes]), start, end
-    ).values_list("node_id", *ABSENCE_FIELDS), absence_cap)
+    ).values_list("node_id", *ABSENCE_FIELDS), ABSENCE_FIELDS, absence_cap)
     cut_before = later(cut_before, absences_cut)
     away_by_node: dict[int, list[Absence]] = {}
     for node_id, *rest in away:

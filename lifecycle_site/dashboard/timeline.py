@@ -341,26 +341,18 @@ def _rows(values: Iterable[tuple]) -> list[Row]:
     return [Row(*v) for v in values]
 
 
-def read_window(records, cap: int) -> tuple[list[tuple], datetime | None]:
-    """At most ``cap`` records, newest first; the time before which older ones were left out."""
-    found = list(records.order_by("-requested_at")[: cap + 1])
+def read_newest(values, fields: tuple[str, ...], cap: int) -> tuple[list[tuple], datetime | None]:
+    """At most ``cap`` rows of ``values`` (a values_list ending in ``fields``, whose first is
+    the time), newest first; and the time before which older ones were left out."""
+    found = list(values.order_by(f"-{fields[0]}")[: cap + 1])
     if len(found) <= cap:
         return found, None
     found = found[:cap]
-    return found, found[-1][-len(ROW_FIELDS)]  # requested_at of the oldest one read
+    return found, found[-1][-len(fields)]  # the time of the oldest one read
 
 
 def overlapping(absences, start: datetime, end: datetime):
     return absences.filter(gone_at__lte=end).exclude(back_at__lt=start)
-
-
-def read_absences(absences, cap: int) -> tuple[list[tuple], datetime | None]:
-    """At most ``cap`` absences, newest first; the time before which older ones were left out."""
-    found = list(absences.order_by("-gone_at")[: cap + 1])
-    if len(found) <= cap:
-        return found, None
-    found = found[:cap]
-    return found, found[-1][-len(ABSENCE_FIELDS)]  # gone_at of the oldest one read
 
 
 def later(a: datetime | None, b: datetime | None) -> datetime | None:
@@ -372,9 +364,10 @@ def node_timeline(node: ManagedNode, window: str = DEFAULT_WINDOW, now: datetime
     start, end = window_bounds(window, now)
     records = TransitionRecord.objects.filter(node=node)
     inside = records.filter(requested_at__gte=start, requested_at__lte=end)
-    values, cut_before = read_window(inside.values_list(*ROW_FIELDS), cap)
-    away, absences_cut = read_absences(
-        overlapping(NodeAbsence.objects.filter(node=node), start, end).values_list(*ABSENCE_FIELDS), absence_cap)
+    values, cut_before = read_newest(inside.values_list(*ROW_FIELDS), ROW_FIELDS, cap)
+    away, absences_cut = read_newest(
+        overlapping(NodeAbsence.objects.filter(node=node), start, end).values_list(*ABSENCE_FIELDS), ABSENCE_FIELDS,
+        absence_cap)
     cut_before = later(cut_before, absences_cut)
     before = None
     if cut_before is None:
