@@ -7,12 +7,12 @@ import logging
 import threading
 from concurrent.futures import Future
 from contextvars import ContextVar
-from typing import Any, Iterable
+from typing import Any, Iterable, Sequence
 
 from asgiref.sync import async_to_sync
 from channels.layers import get_channel_layer
 
-from lifecycle_site.audit.models import TransitionRecord
+from lifecycle_site.audit.models import ParameterRecord, TransitionRecord
 from ros_gateway.shared import protocol
 
 log = logging.getLogger(__name__)
@@ -24,7 +24,8 @@ AUDIT_GROUP = "audit"
 AUDIT_STORED = (AUDIT_GROUP, {"type": "audit.record", "record": {}})
 
 
-def record_messages(records: Iterable[TransitionRecord], parameters: Iterable[Any] = ()) -> list[tuple[str, dict]]:
+def record_messages(records: Iterable[TransitionRecord], parameters: Sequence[ParameterRecord] = ()
+                    ) -> list[tuple[str, dict]]:
     """The node pages' live audit rows for new transition records, and one word to the audit
     pages when transition or parameter records were stored: (group, message) pairs."""
     records = list(records)
@@ -33,7 +34,7 @@ def record_messages(records: Iterable[TransitionRecord], parameters: Iterable[An
         for record in records
         if record.node_id is not None and record.node is not None
     ]
-    if records or list(parameters):
+    if records or parameters:
         messages.append(AUDIT_STORED)
     return messages
 
