@@ -111,8 +111,12 @@ class Liveness:
                 if self.unreachable.pop(process, None) is not None:
                     log.info("the process of %s on %s answers again", node.name, node.robot.name)
                 return
-            if process not in self.unreachable and any(n.alive for n in nodes):
-                self._lost(process, nodes)
+            # A node may have come back in a new process while its old one was probed (a
+            # restart under the same name): only those still in the silent process are lost.
+            still = [n for n in nodes if n.alive and process_of(n.robot.domain_id, n.name, n.live or n.incarnation)
+                     == process]
+            if process not in self.unreachable and still:
+                self._lost(process, still)
         finally:
             self._probing.discard(process)
 
