@@ -9,7 +9,6 @@ from concurrent.futures import Future
 from contextvars import ContextVar
 from typing import Any, Iterable, Sequence
 
-from asgiref.sync import async_to_sync
 from channels.layers import get_channel_layer
 
 from lifecycle_site.audit.models import ParameterRecord, TransitionRecord
@@ -50,12 +49,18 @@ server_loop: ContextVar[asyncio.AbstractEventLoop | None] = ContextVar("server_l
 MAX_PENDING = 500
 _pending = 0
 _pending_lock = threading.Lock()
+# Outside the server (the ingest process), pushes go through one kept loop and are waited for,
+# at most this long (Redis hanging): what was stored is on every page the next time it loads.
+SEND_TIMEOUT_S = 5.0
+_loop: asyncio.AbstractEventLoop | None = None
+_loop_lock = threading.Lock()
 
 
 def push(messages: list[tuple[str, dict]]) -> None:
     """Send (group, message) pairs to the Channels layer; a failure is logged, never raised
     (what was stored is there for the next page load). In a request of the server, returns at
-    once and the server's event loop sends them; elsewhere (the ingest process) waits for them."""
+    once and the server's event loop sends them; elsewhere (the ingest process) waits for them,
+    sent from a loop of this process's own."""
     if not messages:
         return
     layer = get_channel_layer()
@@ -65,11 +70,28 @@ def push(messages: list[tuple[str, dict]]) -> None:
     if loop is not None:
         _hand_over(loop, layer, messages)
         return
+    future = asyncio.run_coroutine_threadsafe(_send_all(layer, messages), _own_loop())
     try:
-        results = async_to_sync(_send_all)(layer, messages)
+        results = future.result(timeout=SEND_TIMEOUT_S)
+    except TimeoutError:
+        future.cancel()
+        results = [TimeoutError(f"not sent within {SEND_TIMEOUT_S:g} s")]
     except Exception as exc:  # noqa: BLE001 - the channel layer's errors are many; none must stop us
+        future.cancel()
         results = [exc]
     _report(results, len(messages))
+
+
+def _own_loop() -> asyncio.AbstractEventLoop:
+    """This process's event loop for pushes made outside the server, in a thread of its own and
+    kept: the channel layer keeps a Redis connection pool per loop, so a loop per call (as
+    ``async_to_sync`` makes) connected anew, and started a thread, for every push."""
+    global _loop
+    with _loop_lock:
+        if _loop is None or _loop.is_closed():
+            _loop = asyncio.new_event_loop()
+            threading.Thread(target=_loop.run_forever, name="live-updates", daemon=True).start()
+        return _loop
 
 
 async def _send_all(layer: Any, messages: list[tuple[str, dict]]) -> list:

@@ -12,6 +12,7 @@ from asgiref.sync import async_to_sync
 from channels.layers import get_channel_layer
 
 from lifecycle_site.fleet import live_updates
+from lifecycle_site.fleet.gateways import redis_client
 from ros_gateway.shared import protocol
 
 GROUP = "unit-live-updates"
@@ -76,6 +77,25 @@ def test_outside_the_server_a_push_is_sent_before_it_returns(redis_server):
     live_updates.push([(GROUP, {"type": "audit.record", "record": {"id": 1}})])
     assert live_updates.pending() == 0
     assert async_to_sync(asyncio.wait_for)(layer.receive(channel), 5)["record"] == {"id": 1}
+
+
+def test_outside_the_server_pushes_share_one_kept_loop_and_a_hung_one_is_bounded(redis_server, monkeypatch,
+                                                                                   caplog):
+    """One loop (and so one Redis connection pool) for every push of the process, not one per
+    push; a push that cannot go out within SEND_TIMEOUT_S is given up and logged."""
+    live_updates.push([(GROUP, {"type": "audit.record", "record": {"id": 2}})])
+    connections = redis_client().info("stats")["total_connections_received"]
+    for n in range(20):
+        live_updates.push([(GROUP, {"type": "audit.record", "record": {"id": n}})])
+    assert redis_client().info("stats")["total_connections_received"] - connections <= 2  # this test's own
+    loop = live_updates._own_loop()
+    monkeypatch.setattr(live_updates, "SEND_TIMEOUT_S", 0.2)
+    busy(loop, 1.0)
+    began = time.monotonic()
+    with caplog.at_level(logging.WARNING, logger="lifecycle_site.fleet.live_updates"):
+        live_updates.push([(GROUP, {"type": "audit.record", "record": {"id": 4}})])
+    assert time.monotonic() - began < 0.5
+    assert "could not push 1 of 1 live updates: not sent within 0.2 s" in caplog.text
 
 
 def test_stored_records_reach_their_node_pages_and_once_the_audit_pages(db):
