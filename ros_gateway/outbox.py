@@ -137,7 +137,7 @@ class Outbox:
                 return False
             try:
                 async with self.relay.redis.pipeline(transaction=True) as pipe:
-                    self._add(pipe, self.facts, batch)
+                    self._add(pipe, self.facts, batch, replied=True)
                     pipe.lpush(key, message)
                     pipe.expire(key, ttl)
                     await pipe.execute()
@@ -149,9 +149,10 @@ class Outbox:
         return True
 
     @staticmethod
-    def _add(pipe: Any, stream: _Stream, batch: list[dict]) -> None:
+    def _add(pipe: Any, stream: _Stream, batch: list[dict], replied: bool = False) -> None:
         for entry in batch:
-            pipe.xadd(stream.key, {"f": protocol.encode(entry)}, maxlen=stream.maxlen, approximate=True)
+            fields = {"f": protocol.encode(entry), **({protocol.REPLIED: "1"} if replied else {})}
+            pipe.xadd(stream.key, fields, maxlen=stream.maxlen, approximate=True)
 
     def _unreachable(self, what: str, exc: Exception) -> None:
         if self.unreachable_since is None:

@@ -1,5 +1,6 @@
 """What the ingest process reads from Redis, as plain values: stream entry ids, an entry's
-JSON payload, gaps in a gateway's fact sequence, and a heartbeat as a Gateway row's fields."""
+JSON payload, whether a reply carried it, gaps in a gateway's fact sequence, and a heartbeat
+as a Gateway row's fields."""
 from __future__ import annotations
 
 import json
@@ -7,6 +8,7 @@ from datetime import datetime, timezone
 from typing import Any
 
 from lifecycle_site.fleet.fact_context import FactRejected, parse_time
+from ros_gateway.shared import protocol
 
 
 def text(raw: bytes | str) -> str:
@@ -21,6 +23,11 @@ def entry_id(raw: bytes | str) -> tuple[int, int]:
 
 def is_after(raw: bytes | str, cursor: str) -> bool:
     return not cursor or entry_id(raw) > entry_id(cursor)
+
+
+def replied(fields: dict) -> bool:
+    """Whether a facts entry was handed over with a command's reply (protocol.REPLIED)."""
+    return bool(fields.get(protocol.REPLIED.encode(), fields.get(protocol.REPLIED)))
 
 
 def decode(fields: dict) -> dict:

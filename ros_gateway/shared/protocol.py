@@ -10,7 +10,8 @@ Every gateway has a name (``local`` on one machine) and its own Redis keys, all 
                       ``error: {"code", "message"}``), expiring after REPLY_TTL_S
 ``facts``     stream  gateway XADDs facts (below), trimmed at FACTS_MAXLEN; the site's
                       ingest process reads it with a consumer group and XACKs after its
-                      database commit
+                      database commit; entries XADDed together with a command's reply
+                      carry the field REPLIED too (the site applies their facts from the reply)
 ``logs``      stream  batches of /rosout records, trimmed at LOGS_MAXLEN, read the same way
 ``beat``      string  the gateway's heartbeat (JSON, see ``beat``), rewritten every few seconds
 ``config``    string  written by the site: the robots this gateway watches (JSON, ``config``)
@@ -38,6 +39,8 @@ GATEWAY_NAME_PATTERN = r"[a-z0-9][a-z0-9_-]{0,62}"
 GATEWAY_NAME_RE = re.compile(rf"^{GATEWAY_NAME_PATTERN}$")
 DEFAULT_GATEWAY = "local"
 INGEST_GROUP = "ingest"
+# The stream field ("1") of facts entries handed over in one round trip with a command's reply.
+REPLIED = "r"
 
 # Bounds. Commands queued per gateway, and how long an unread reply lives.
 COMMAND_QUEUE_LIMIT = 1000

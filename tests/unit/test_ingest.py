@@ -15,6 +15,7 @@ from django.test import Client
 
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.fleet import gateways, redis_users
+from lifecycle_site.fleet.management.commands import ingest as ingest_command
 from lifecycle_site.fleet.management.commands.ingest import Ingest
 from lifecycle_site.fleet.models import Gateway, LogRecord, ManagedNode, Robot
 from ros_gateway.shared import protocol
@@ -53,6 +54,25 @@ def test_facts_added_by_hand_are_stored_and_acknowledged(cell):
     row = Gateway.objects.get(name="cell-i")
     assert (row.facts_seq, row.facts_lost, row.facts_rejected) == (3, 0, 0)
     assert row.facts_cursor == group["last-delivered-id"].decode()
+
+
+def test_facts_a_reply_carried_settle_longer_than_others(cell, monkeypatch):
+    """Facts a reply carries are applied by the request first: ingest waits SETTLE_S for them.
+    Others (a node's own transitions, discovery) wait only SETTLE_OTHERS_S; old ones not at all."""
+    ingest = Ingest()
+    ingest.refresh()
+    stream = protocol.facts_stream(gateways.channel_prefix(), "cell-i").encode()
+    slept: list[float] = []
+    monkeypatch.setattr(ingest_command.time, "sleep", slept.append)
+    just_now = f"{int(time.time() * 1000)}-0".encode()
+    a_while_ago = f"{int(time.time() * 1000) - 1000}-0".encode()
+    replied = {b"f": b"{}", protocol.REPLIED.encode(): b"1"}
+    ingest.settle([(stream, [(a_while_ago, replied), (a_while_ago, {b"f": b"{}"})])])
+    assert slept == []
+    ingest.settle([(stream, [(just_now, {b"f": b"{}"})])])
+    assert len(slept) == 1 and ingest_command.SETTLE_OTHERS_S / 2 < slept[0] <= ingest_command.SETTLE_OTHERS_S
+    ingest.settle([(stream, [(just_now, {b"f": b"{}"}), (just_now, replied)])])
+    assert len(slept) == 2 and ingest_command.SETTLE_OTHERS_S < slept[1] <= ingest_command.SETTLE_S
 
 
 def test_a_second_ingest_process_stands_by(cell):

@@ -54,6 +54,9 @@ def test_a_reply_goes_over_with_the_facts_queued_before_it_in_order(clean):
 
     key = run(scenario())
     assert stream_seqs() == [1, 2, 3, 4]
+    # Those handed over with the reply are marked (the ingest process lets them settle).
+    entries = stack.redis_client().xrange(protocol.gateway_key(channel_prefix(), GATEWAY, "facts"))
+    assert [fields.get(protocol.REPLIED.encode()) for _, fields in entries] == [b"1", b"1", b"1", None]
     client = stack.redis_client()
     assert 0 < client.ttl(key) <= protocol.REPLY_TTL_S
     assert json.loads(client.lpop(key)) == {"request_id": "req-1", "ok": True}

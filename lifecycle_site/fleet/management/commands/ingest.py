@@ -35,7 +35,7 @@ from lifecycle_site.fleet.live_updates import push, record_messages
 from lifecycle_site.fleet.log_store import LogTargets, prune_logs, store_batch
 from lifecycle_site.fleet.models import Gateway
 from lifecycle_site.fleet.runs import fail_runs_of_silent_gateways
-from lifecycle_site.fleet.stream_entries import beat_fields, count_gap, decode, entry_id, is_after, text
+from lifecycle_site.fleet.stream_entries import beat_fields, count_gap, decode, entry_id, is_after, replied, text
 from ros_gateway.shared import protocol
 
 log = logging.getLogger("lifecycle_site.ingest")
@@ -52,11 +52,16 @@ CONFIG_EVERY_S = 60.0  # publish configs even when unchanged
 USERS_S = 10.0  # check the gateways' Redis users
 PRUNE_S = 60.0
 COMPLAIN_EVERY_S = 30.0
-# A gateway appends a request's facts to its stream just before its reply carries the same facts
-# to the site, which applies them at once. Reading them, ingest waits this long before applying
-# them, so that the two do not write at the same moment: SQLite takes one writer at a time and
-# the other sleeps in its busy handler (1, 2, 5, 10 ms ...), which the requester would wait for.
+# A gateway appends a request's facts to its stream (marked protocol.REPLIED) in one round trip
+# with its reply, which carries the same facts to the site, which applies them at once. Reading
+# them, ingest waits this long before applying them, so that the two do not write at the same
+# moment: SQLite takes one writer at a time and the other sleeps in its busy handler (1, 2, 5,
+# 10 ms ...), which the requester would wait for.
 SETTLE_S = 0.03
+# Facts no reply carries (a node's own transitions, discovery) wait less: this long after they
+# were added, the live push of the same event has reached the pages; stored at once, they took
+# the CPU from it on a small machine (push median 8 -> 10 ms on 2 cores, docs/performance.md).
+SETTLE_OTHERS_S = 0.01
 
 RENEW = "if redis.call('get', KEYS[1]) == ARGV[1] then return redis.call('pexpire', KEYS[1], ARGV[2]) end return 0"
 RELEASE = "if redis.call('get', KEYS[1]) == ARGV[1] then return redis.call('del', KEYS[1]) end return 0"
@@ -215,13 +220,19 @@ class Ingest:
         return applied
 
     def settle(self, replies: list) -> None:
-        """Wait until the newest facts entry read is SETTLE_S old (by its id, Redis's clock in ms;
-        never longer than SETTLE_S, whatever the clocks say): the site applies a reply's facts
-        first (see SETTLE_S)."""
-        newest = max((entry_id(entries[-1][0])[0] for s, entries in replies
-                      if entries and self.streams.get(text(s), ("", ""))[1] == "facts"), default=None)
-        if newest is not None:
-            time.sleep(min(max(SETTLE_S - (time.time() - newest / 1000), 0.0), SETTLE_S))
+        """Wait until every facts entry read is old enough (by its id, Redis's clock in ms;
+        never longer than its settle time, whatever the clocks say): SETTLE_S for those a
+        reply carried too (the site applies a reply's facts first), SETTLE_OTHERS_S for others."""
+        now, wait = time.time(), 0.0
+        for stream, entries in replies:
+            if self.streams.get(text(stream), ("", ""))[1] != "facts":
+                continue
+            for entry, fields in entries:
+                settle = SETTLE_S if replied(fields) else SETTLE_OTHERS_S
+                age = now - entry_id(entry)[0] / 1000
+                wait = max(wait, min(max(settle - age, 0.0), settle))
+        if wait:
+            time.sleep(wait)
 
     def apply(self, stream: str, entries: list) -> int:
         """Apply one stream's entries in one transaction, then acknowledge them."""
