@@ -139,6 +139,14 @@ def _server_address(text: str) -> bool:
     return bool(match) and (match.group(2) is None or 0 < int(match.group(2)) < 65536)
 
 
+def _matching(gateway: dict, key: str, pattern: re.Pattern, what: str) -> str:
+    """The gateway part's ``key`` ("" when not set); it must match ``pattern`` (``what`` says how)."""
+    value = _text(gateway.get(key))
+    if value and not pattern.fullmatch(value):
+        raise ConfigError(f"gateway.{key} {value!r}: {what}")
+    return value
+
+
 def gateway_env(config: dict, write_files: bool = False) -> dict[str, str]:
     """The gateway's own settings (parts "gateway" and "redis"): its name, the site's Redis
     URL with the gateway's credentials, the key prefix. Only the gateway role reads them, so a
@@ -146,17 +154,13 @@ def gateway_env(config: dict, write_files: bool = False) -> dict[str, str]:
     the CA certificate of a rediss:// URL is written to REDIS_CA_FILE."""
     gateway, redis = config.get("gateway", {}), config.get("redis", {})
     env = _log_env(gateway, "gateway")
-    name = _text(gateway.get("name"))
+    name = _matching(gateway, "name", GATEWAY_NAME, "lower-case letters, digits, '-' and '_' (e.g. cell-a), "
+                     "as registered on the site with manage.py add_gateway")
     if name:
-        if not GATEWAY_NAME.fullmatch(name):
-            raise ConfigError(f"gateway.name {name!r}: lower-case letters, digits, '-' and '_' (e.g. cell-a), "
-                              "as registered on the site with manage.py add_gateway")
         env["LIFECYCLE_GATEWAY_NAME"] = name
-    prefix = _text(gateway.get("channelPrefix"))
+    prefix = _matching(gateway, "channelPrefix", CHANNEL_PREFIX, "letters, digits, '.', '_' and '-' "
+                       "(the site's LIFECYCLE_CHANNEL_PREFIX, usually lifecycle)")
     if prefix:
-        if not CHANNEL_PREFIX.fullmatch(prefix):
-            raise ConfigError(f"gateway.channelPrefix {prefix!r}: letters, digits, '.', '_' and '-' "
-                              "(the site's LIFECYCLE_CHANNEL_PREFIX, usually lifecycle)")
         env["LIFECYCLE_CHANNEL_PREFIX"] = prefix
     url = _text(redis.get("url"))
     username = _text(redis.get("username"))
