@@ -213,7 +213,11 @@ class NodeRegistry:
         respawned = False
         if read:
             node.state_read = True
-            respawned, node.respawned = node.respawned, False
+            # A new instance is announced (and recovered) once it is alive: a read that ends
+            # after the node was called gone (unreachable meanwhile) leaves that for the read
+            # after it is back.
+            if node.alive:
+                respawned, node.respawned = node.respawned, False
         if state_id == node.state_id and not respawned:
             return None
         node.state_id = state_id

@@ -1,6 +1,7 @@
-"""A probe of a process that was killed may end after the node came back in a new process
-under the same name (its supervisor restarts it at once). The silent old process must not
-take the node of the new one with it: the new instance stays alive, and its recovery runs."""
+"""Races around a node whose process was killed and restarted at once (by its supervisor):
+a probe of the old process may end after the node came back in the new one, and the new one
+may answer only after liveness called it unreachable. Either way the new instance ends up
+alive and announced once, so that its recovery runs (and does not start while it is away)."""
 from __future__ import annotations
 
 import asyncio
@@ -41,3 +42,23 @@ def test_a_node_that_came_back_in_a_new_process_stays_alive_when_the_old_one_is_
     node, liveness = probe_while(monkeypatch, replace=True)
     assert node.alive and node.gone_reason == ""
     assert not liveness.unreachable
+
+
+def test_a_new_instance_read_while_the_node_is_called_gone_is_announced_once_it_is_back():
+    """The state of a restarted node may be read just after liveness called it unreachable (its
+    new process answered late): recovery must wait for the node to be back, not start and fail
+    at once, and must not be forgotten."""
+    registry = NodeRegistry(StateChanges())
+    announced: list[bool] = []
+    registry.changes.subscribe("test", lambda change: announced.append(change.respawned)
+                               if change.kind == "state" else None)
+    robot = RobotInfo(1, "agv", 5, "", True)
+    node = registry.appeared(5, robot, "/camera_driver", frozenset({OLD}))
+    registry.set_state(node, 3, read=True)  # active
+    node.respawned = True  # discovery saw a new process under the name
+    registry.vanished(node, reason=lv.UNREACHABLE)
+    registry.set_state(node, 1, read=True)  # unconfigured: read while it is called gone
+    assert announced == [False, False] and node.respawned
+    registry.appeared(5, robot, "/camera_driver", frozenset({NEW}))
+    registry.set_state(node, 1, read=True)
+    assert announced == [False, False, True] and not node.respawned
