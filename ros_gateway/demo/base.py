@@ -33,6 +33,7 @@ __all__ = [
     "SUCCESS",
     "DemoLifecycleNode",
     "LifecycleState",
+    "PeriodicNode",
     "TransitionCallbackReturn",
     "declare_parameter",
 ]
@@ -229,3 +230,45 @@ class DemoLifecycleNode(LifecycleNode):
             service.callback_group.entities.discard(weakref.ref(service))
             service.callback_group = group
             group.add_entity(service)
+
+
+class PeriodicNode(DemoLifecycleNode):
+    """A node that works on a timer while active, at the rate one of its parameters sets (a
+    change applies at once: the timer restarts), and publishes through ``self._pub``.
+
+    Subclasses name the parameter (``RATE_PARAMETER``), how the log calls the rate and its unit,
+    do one turn of work in ``tick()``, and register ``_on_params_set`` once their parameters are
+    declared (rclpy calls it for each declaration too)."""
+
+    RATE_PARAMETER: ClassVar[str]
+    RATE_NAME: ClassVar[str] = "rate"
+    RATE_UNIT: ClassVar[str] = "Hz"
+
+    def __init__(self, node_name: str, **kwargs: Any) -> None:
+        super().__init__(node_name, **kwargs)
+        self._pub: Optional[LifecyclePublisher] = None
+        self._timer: Optional[Timer] = None
+
+    def tick(self) -> None:
+        raise NotImplementedError
+
+    def start_ticking(self) -> None:
+        self.stop_timers()
+        self._timer = self.own_timer(1.0 / self.param(self.RATE_PARAMETER), self.tick)
+
+    def stop_ticking(self) -> None:
+        self.stop_timers()
+        self._timer = None
+
+    def _on_params_set(self, params: list) -> None:
+        if self._timer is not None and any(p.name == self.RATE_PARAMETER for p in params):
+            self.start_ticking()
+            self.get_logger().info(f"{self.RATE_NAME} now {self.param(self.RATE_PARAMETER)} {self.RATE_UNIT}")
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._pub = self._timer = None
+        return super().on_shutdown(state)
+
+    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._pub = self._timer = None
+        return super().on_error(state)

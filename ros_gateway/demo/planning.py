@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import random
 import time
-from typing import Any, Optional
+from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
@@ -13,13 +13,15 @@ from nav_msgs.msg import Path
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import LaserScan
 
-from .base import SUCCESS, DemoLifecycleNode, LifecycleState, TransitionCallbackReturn
+from .base import SUCCESS, LifecycleState, PeriodicNode, TransitionCallbackReturn
 
 SCAN_TIMEOUT_S = 2.0
 
 
-class Planner(DemoLifecycleNode):
+class Planner(PeriodicNode):
     """Lifecycle planner publishing a curved path towards a goal at a low rate."""
+
+    RATE_PARAMETER, RATE_NAME = "planner_frequency_hz", "planner frequency"
 
     def __init__(self, node_name: str = "planner", **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
@@ -32,8 +34,6 @@ class Planner(DemoLifecycleNode):
         self.declare("goal_y", 2.0, "Goal y in the global frame (m)", min_value=-50.0, max_value=50.0)
         self.add_post_set_parameters_callback(self._on_params_set)
         self._rng = random.Random()
-        self._pub: Optional[Any] = None
-        self._timer: Optional[Any] = None
         self._nearest = math.inf
         self._last_scan = 0.0
         self._plans = 0
@@ -53,7 +53,7 @@ class Planner(DemoLifecycleNode):
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Start replanning."""
         result = super().on_activate(state)
-        self._start_timer()
+        self.start_ticking()
         self.get_logger().info(
             f"activated: replanning at {self.param('planner_frequency_hz')} Hz towards "
             f"({self.param('goal_x')}, {self.param('goal_y')})"
@@ -62,8 +62,7 @@ class Planner(DemoLifecycleNode):
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Stop replanning."""
-        self.stop_timers()
-        self._timer = None
+        self.stop_ticking()
         self.get_logger().info(f"deactivated: stopped after {self._plans} plans")
         return super().on_deactivate(state)
 
@@ -75,32 +74,14 @@ class Planner(DemoLifecycleNode):
         self.get_logger().info(f"cleaned up: released {count} entities")
         return SUCCESS
 
-    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
-        """Release everything on the way to finalized."""
-        self._pub = self._timer = None
-        return super().on_shutdown(state)
-
-    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
-        """Release everything; back to unconfigured."""
-        self._pub = self._timer = None
-        return super().on_error(state)
-
-    def _start_timer(self) -> None:
-        self.stop_timers()
-        self._timer = self.own_timer(1.0 / self.param("planner_frequency_hz"), self._plan)
-
-    def _on_params_set(self, params: list) -> None:
-        if self._timer is not None and any(p.name == "planner_frequency_hz" for p in params):
-            self._start_timer()
-            self.get_logger().info(f"planner frequency now {self.param('planner_frequency_hz')} Hz")
-
     def _on_scan(self, msg: LaserScan) -> None:
         ranges = np.frombuffer(msg.ranges, dtype=np.float32)
         valid = ranges[(ranges >= msg.range_min) & (ranges <= msg.range_max)]
         self._nearest = float(valid.min()) if valid.size else math.inf
         self._last_scan = time.monotonic()
 
-    def _plan(self) -> None:
+    def tick(self) -> None:
+        """Plan once."""
         if self._pub is None:
             return
         log = self.get_logger()

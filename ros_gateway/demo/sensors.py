@@ -11,7 +11,7 @@ import numpy as np
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import Image, LaserScan
 
-from .base import SUCCESS, DemoLifecycleNode, LifecycleState, TransitionCallbackReturn
+from .base import SUCCESS, LifecycleState, PeriodicNode, TransitionCallbackReturn
 
 
 def room_ranges(
@@ -33,8 +33,10 @@ def room_ranges(
     return np.minimum(ranges, pillar).astype(np.float32)
 
 
-class LidarDriver(DemoLifecycleNode):
+class LidarDriver(PeriodicNode):
     """Lifecycle 2D lidar driver publishing synthetic ``scan`` (LaserScan) while active."""
+
+    RATE_PARAMETER, RATE_NAME = "scan_rate_hz", "scan rate"
 
     def __init__(self, node_name: str = "lidar_driver", **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
@@ -48,8 +50,6 @@ class LidarDriver(DemoLifecycleNode):
         )
         self.add_post_set_parameters_callback(self._on_params_set)
         self._rng = random.Random()
-        self._pub: Optional[Any] = None
-        self._timer: Optional[Any] = None
         self._base: Optional[np.ndarray] = None
         self._scans = 0
         self.get_logger().info("created (unconfigured)")
@@ -70,14 +70,13 @@ class LidarDriver(DemoLifecycleNode):
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Spin up the (simulated) motor and start publishing."""
         result = super().on_activate(state)
-        self._start_timer()
+        self.start_ticking()
         self.get_logger().info(f"activated: motor spinning, publishing at {self.param('scan_rate_hz')} Hz")
         return result
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Stop publishing and spin down."""
-        self.stop_timers()
-        self._timer = None
+        self.stop_ticking()
         self.get_logger().info(f"deactivated: motor stopped after {self._scans} scans")
         return super().on_deactivate(state)
 
@@ -88,26 +87,7 @@ class LidarDriver(DemoLifecycleNode):
         self.get_logger().info(f"cleaned up: released {count} entities")
         return SUCCESS
 
-    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
-        """Release everything (also when shut down from active)."""
-        self._pub = self._timer = None
-        return super().on_shutdown(state)
-
-    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
-        """Release everything; back to unconfigured."""
-        self._pub = self._timer = None
-        return super().on_error(state)
-
-    def _start_timer(self) -> None:
-        self.stop_timers()
-        self._timer = self.own_timer(1.0 / self.param("scan_rate_hz"), self._tick)
-
-    def _on_params_set(self, params: list) -> None:
-        if self._timer is not None and any(p.name == "scan_rate_hz" for p in params):
-            self._start_timer()
-            self.get_logger().info(f"scan rate now {self.param('scan_rate_hz')} Hz")
-
-    def _tick(self) -> None:
+    def tick(self) -> None:
         if self._pub is None or self._base is None:
             return
         log = self.get_logger()
@@ -144,8 +124,10 @@ class LidarDriver(DemoLifecycleNode):
         )
 
 
-class CameraDriver(DemoLifecycleNode):
+class CameraDriver(PeriodicNode):
     """Lifecycle camera driver publishing a moving mono8 test pattern on ``image_raw``."""
+
+    RATE_PARAMETER, RATE_NAME, RATE_UNIT = "fps", "frame rate", "fps"
 
     def __init__(self, node_name: str = "camera_driver", **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
@@ -156,8 +138,6 @@ class CameraDriver(DemoLifecycleNode):
         self.declare("exposure_ms", 10.0, "Exposure time; above 1000/fps frames drop", min_value=0.1, max_value=1000.0)
         self.add_post_set_parameters_callback(self._on_params_set)
         self._rng = random.Random()
-        self._pub: Optional[Any] = None
-        self._timer: Optional[Any] = None
         self._pattern: Optional[np.ndarray] = None
         self._frames = 0
         self.get_logger().info("created (unconfigured)")
@@ -178,14 +158,13 @@ class CameraDriver(DemoLifecycleNode):
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Start streaming."""
         result = super().on_activate(state)
-        self._start_timer()
+        self.start_ticking()
         self.get_logger().info(f"activated: streaming at {self.param('fps')} fps")
         return result
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Stop streaming."""
-        self.stop_timers()
-        self._timer = None
+        self.stop_ticking()
         self.get_logger().info(f"deactivated: stream stopped after {self._frames} frames")
         return super().on_deactivate(state)
 
@@ -196,16 +175,6 @@ class CameraDriver(DemoLifecycleNode):
         self.get_logger().info(f"cleaned up: device closed, released {count} entities")
         return SUCCESS
 
-    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
-        """Close the device on the way to finalized."""
-        self._pub = self._timer = None
-        return super().on_shutdown(state)
-
-    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
-        """Close the device; back to unconfigured."""
-        self._pub = self._timer = None
-        return super().on_error(state)
-
     def _check_exposure(self) -> None:
         period_ms = 1000.0 / self.param("fps")
         if self.param("exposure_ms") > period_ms:
@@ -214,19 +183,12 @@ class CameraDriver(DemoLifecycleNode):
                 f"{period_ms:.1f} ms: frames will be dropped"
             )
 
-    def _start_timer(self) -> None:
-        self.stop_timers()
-        self._timer = self.own_timer(1.0 / self.param("fps"), self._tick)
-
     def _on_params_set(self, params: list) -> None:
-        names = {p.name for p in params}
-        if names & {"fps", "exposure_ms"}:
+        if {p.name for p in params} & {"fps", "exposure_ms"}:
             self._check_exposure()
-        if self._timer is not None and "fps" in names:
-            self._start_timer()
-            self.get_logger().info(f"frame rate now {self.param('fps')} fps")
+        super()._on_params_set(params)
 
-    def _tick(self) -> None:
+    def tick(self) -> None:
         if self._pub is None or self._pattern is None:
             return
         log = self.get_logger()

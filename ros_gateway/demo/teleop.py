@@ -10,19 +10,21 @@ from geometry_msgs.msg import Twist
 from rclpy.node import Node
 from sensor_msgs.msg import Joy
 
-from .base import SUCCESS, DemoLifecycleNode, LifecycleState, TransitionCallbackReturn, declare_parameter
+from .base import SUCCESS, LifecycleState, PeriodicNode, TransitionCallbackReturn, declare_parameter
 
 JOY_AXES = 8
 JOY_BUTTONS = 12
 
 
-class JoyToVel(DemoLifecycleNode):
+class JoyToVel(PeriodicNode):
     """Lifecycle teleop node (like teleop_twist_joy): ``joy`` (Joy) -> ``cmd_vel`` (Twist).
 
     While active it publishes at ``publish_rate_hz`` the scaled stick axes when the deadman
     button is held, zero velocity once when it is released, and warns when the joystick has
     been silent for longer than ``joy_timeout_s``.
     """
+
+    RATE_PARAMETER, RATE_NAME = "publish_rate_hz", "publish rate"
 
     def __init__(self, node_name: str = "joy_to_vel", **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
@@ -40,8 +42,6 @@ class JoyToVel(DemoLifecycleNode):
             "joy_timeout_s", 1.0, "Joystick silence (s) after which the robot stops", min_value=0.1, max_value=10.0
         )
         self.add_post_set_parameters_callback(self._on_params_set)
-        self._pub: Optional[Any] = None
-        self._timer: Optional[Any] = None
         self._last_joy: Optional[Joy] = None
         self._last_joy_time = 0.0
         self._active_since = 0.0
@@ -69,7 +69,7 @@ class JoyToVel(DemoLifecycleNode):
         self._active_since = time.monotonic()
         self._stale = False
         self._deadman = False
-        self._start_timer()
+        self.start_ticking()
         self.get_logger().info(f"activated: publishing cmd_vel at {self.param('publish_rate_hz')} Hz")
         return result
 
@@ -77,8 +77,7 @@ class JoyToVel(DemoLifecycleNode):
         """Stop the robot (one zero Twist), stop the timer, disable the publisher."""
         if self._pub is not None:
             self._pub.publish(Twist())
-        self.stop_timers()
-        self._timer = None
+        self.stop_ticking()
         self.get_logger().info(f"deactivated: sent zero velocity, stopped publishing after {self._published} messages")
         return super().on_deactivate(state)
 
@@ -94,24 +93,9 @@ class JoyToVel(DemoLifecycleNode):
         if state.label == "active" and self._pub is not None:
             self._pub.publish(Twist())
             self.get_logger().info("shutdown while active: sent zero velocity")
-        self._pub = self._timer = None
         return super().on_shutdown(state)
 
-    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
-        """Release everything; the node returns to unconfigured."""
-        self._pub = self._timer = None
-        return super().on_error(state)
-
     # -- runtime ----------------------------------------------------------------------
-    def _start_timer(self) -> None:
-        self.stop_timers()
-        self._timer = self.own_timer(1.0 / self.param("publish_rate_hz"), self._tick)
-
-    def _on_params_set(self, params: list) -> None:
-        if self._timer is not None and any(p.name == "publish_rate_hz" for p in params):
-            self._start_timer()
-            self.get_logger().info(f"publish rate now {self.param('publish_rate_hz')} Hz")
-
     def _on_joy(self, msg: Joy) -> None:
         now = time.monotonic()
         if self._stale and self.state_label == "active":
@@ -121,7 +105,7 @@ class JoyToVel(DemoLifecycleNode):
         self._last_joy = msg
         self._last_joy_time = now
 
-    def _tick(self) -> None:
+    def tick(self) -> None:
         if self._pub is None:
             return
         log = self.get_logger()
