@@ -1,11 +1,41 @@
 from __future__ import annotations
 
+import time
+from pathlib import Path
+
 import pytest
 from django.contrib.auth import get_user_model
 from django.contrib.auth.models import Group
 from django.test import Client
 
 from tests import stack
+
+# Under a failed test, the last lines of every stack process's log written during it (gateway,
+# ingest, robots): a failure in CI leaves nothing but this output to find the cause in.
+FAILURE_LOG_LINES = 40
+_STARTED = pytest.StashKey[float]()
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_setup(item):
+    item.stash[_STARTED] = time.time()
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    outcome = yield
+    report = outcome.get_result()
+    if report.failed and report.when in ("setup", "call"):
+        for path in _logs_written_since(item.stash.get(_STARTED, 0.0)):
+            lines = path.read_text(errors="replace").splitlines()[-FAILURE_LOG_LINES:]
+            report.sections.append((f"{path.name}, last {len(lines)} lines", "\n".join(lines)))
+
+
+def _logs_written_since(started: float) -> list[Path]:
+    directory = stack.log_dir()
+    if not directory.is_dir():
+        return []
+    return sorted(p for p in directory.glob("*.log") if p.stat().st_mtime >= started)
 
 
 @pytest.fixture(scope="session")
