@@ -9,6 +9,11 @@ is unreachable: its nodes go (``node.gone``, reason "unreachable") and discovery
 back until a probe is answered again. At 1,000 nodes in 20 processes that is 20 small
 service calls per interval.
 
+A process new to the graph whose nodes' states have not been read yet is left alone for
+NEW_PROCESS_GRACE_S: DDS matches a new process's services both ways only after a moment (seconds
+on a busy host; requests meanwhile go unanswered), and discovery is reading its states anyway.
+A node restarted under the same name would otherwise flash "unreachable" just after it came back.
+
 A process busy in a transition (a node of it in a transition state, or one our command is
 driving) is not probed: a single-threaded robot cannot answer while its callback runs. Unless
 discovery found a node of it stuck in that state and silent (``suspect``): killed in the middle
@@ -29,6 +34,7 @@ from ros_gateway.tasks import spawn
 log = logging.getLogger(__name__)
 
 UNREACHABLE = "unreachable"
+NEW_PROCESS_GRACE_S = 5.0
 
 # (domain id, participant) -- or (domain id, node name) while a node's endpoints are unknown.
 Process = tuple[int, bytes | str]
@@ -53,6 +59,7 @@ class Liveness:
         self.unreachable: dict[Process, float] = {}  # process -> since (monotonic)
         self._probing: set[Process] = set()
         self._suspects: set[Process] = set()  # probed although busy: stuck in a transition, silent
+        self._first_seen: dict[Process, float] = {}  # process -> when a probe pass first found it (monotonic)
         self.probes = 0  # service calls made, for the gateway's statistics
 
     @property
@@ -89,9 +96,13 @@ class Liveness:
             if process not in groups:  # its nodes left the graph or our robots for good
                 del self.unreachable[process]
         self._suspects &= set(groups)
+        now = time.monotonic()
+        self._first_seen = {process: self._first_seen.get(process, now) for process in groups}
         for process, nodes in groups.items():
             if process in self._probing or process[0] not in self.domains or any(n.lock.locked() for n in nodes):
                 continue
+            if now - self._first_seen[process] < NEW_PROCESS_GRACE_S and not any(n.state_read for n in nodes):
+                continue  # new, and not heard from yet (see the module's docstring)
             if process not in self._suspects and any(n.alive and not sm.is_primary(n.state_id) for n in nodes):
                 continue  # busy in a transition: it may not answer until that is over
             self._probing.add(process)

@@ -1,7 +1,8 @@
 """Races around a node whose process was killed and restarted at once (by its supervisor):
 a probe of the old process may end after the node came back in the new one, and the new one
-may answer only after liveness called it unreachable. Either way the new instance ends up
-alive and announced once, so that its recovery runs (and does not start while it is away)."""
+may answer only after liveness called it unreachable (so a new process is not probed before
+it is heard from, for a grace). Either way the new instance ends up alive and announced once,
+so that its recovery runs (and does not start while it is away)."""
 from __future__ import annotations
 
 import asyncio
@@ -62,3 +63,34 @@ def test_a_new_instance_read_while_the_node_is_called_gone_is_announced_once_it_
     registry.appeared(5, robot, "/camera_driver", frozenset({NEW}))
     registry.set_state(node, 1, read=True)
     assert announced == [False, False, True] and not node.respawned
+
+
+def test_a_new_process_not_heard_from_yet_is_probed_only_after_a_grace(monkeypatch):
+    """DDS needs a moment to match a new process's services both ways; probed at once, a node
+    that just came back would be called unreachable although it is fine."""
+    registry = NodeRegistry(StateChanges())
+    robot = RobotInfo(1, "agv", 5, "", True)
+    node = registry.appeared(5, robot, "/camera_driver", frozenset({NEW}))
+    node.state_id = 3  # as its old process left it (active); the new one's not read yet
+    liveness = lv.Liveness(registry, {5: SimpleNamespace(domain_id=5)}, interval=1.0, timeout=0.01)
+    probed: list[str] = []
+
+    async def answering(domain, name, timeout):
+        probed.append(name)
+        return 1
+
+    monkeypatch.setattr(lv, "read_state", answering)
+
+    async def one_pass() -> None:
+        await liveness.probe()
+        await asyncio.sleep(0.01)  # the probes it started
+
+    asyncio.run(one_pass())
+    assert probed == []  # new, its state not read yet
+    liveness._first_seen[(5, NEW)] -= lv.NEW_PROCESS_GRACE_S
+    asyncio.run(one_pass())
+    assert probed == ["/camera_driver"]  # the grace is over
+    other = registry.appeared(5, robot, "/lidar_driver", frozenset({OLD}))
+    other.state_id, other.state_read = 3, True  # heard from: probed at once
+    asyncio.run(one_pass())
+    assert probed.count("/lidar_driver") == 1
