@@ -51,6 +51,11 @@ def process_of(domain_id: int, node_name: str, incarnation: frozenset) -> Proces
     return domain_id, min(participants(node_name, incarnation))  # all bytes, or the one name
 
 
+def process_now(node: LiveNode) -> Process:
+    """The process a node is probed with now: the one it is believed to run in."""
+    return process_of(node.robot.domain_id, node.name, node.live or node.incarnation)
+
+
 class Liveness:
     def __init__(self, registry: NodeRegistry, domains: dict[int, RosDomain], interval: float, timeout: float,
                  misses: int = 2) -> None:
@@ -78,7 +83,7 @@ class Liveness:
 
     def suspect(self, node: LiveNode) -> None:
         """Probe the node's process even though the node sits in a transition state."""
-        self._suspects.add(process_of(node.robot.domain_id, node.name, node.live or node.incarnation))
+        self._suspects.add(process_now(node))
 
     def _groups(self) -> dict[Process, list[LiveNode]]:
         """Watched nodes by process: the live ones, and those of unreachable processes."""
@@ -124,8 +129,7 @@ class Liveness:
                 return
             # A node may have come back in a new process while its old one was probed (a
             # restart under the same name): only those still in the silent process are lost.
-            still = [n for n in nodes if n.alive and process_of(n.robot.domain_id, n.name, n.live or n.incarnation)
-                     == process]
+            still = [n for n in nodes if n.alive and process_now(n) == process]
             if process not in self.unreachable and still:
                 self._lost(process, still)
         finally:
