@@ -95,9 +95,11 @@ class TokenEvent(models.Model):
         super().save(*args, **kwargs)
 
     @classmethod
-    def note(cls, action: str, token: ApiToken, actor, via: str) -> "TokenEvent":
+    def note(cls, action: str, token: ApiToken, actor, via: str, owner_deleted: bool = False) -> "TokenEvent":
+        """``owner_deleted``: the owner's row goes in the same transaction, so the event names
+        the owner only by name (a reference would point at a deleted row)."""
         return cls.objects.create(
-            action=action, hint=token.hint, token_name=token.name, owner=token.user,
+            action=action, hint=token.hint, token_name=token.name, owner=None if owner_deleted else token.user,
             owner_name=token.user.get_username(), actor=actor if getattr(actor, "pk", None) else None,
             actor_name=actor.get_username() if getattr(actor, "pk", None) else "", via=via,
         )
@@ -110,11 +112,7 @@ DELETED_WITH_USER = "deleted with its user"
 def _token_deleted(sender, instance: ApiToken, **kwargs) -> None:
     if getattr(instance, "noted", False):
         return
-    # The owner's row is being deleted in the same transaction: the event names it only by
-    # name (a reference would point at a deleted row).
-    TokenEvent.objects.create(action=TokenEvent.REVOKED, hint=instance.hint, token_name=instance.name,
-                              owner_name=instance.user.get_username(), via=DELETED_WITH_USER)
+    TokenEvent.note(TokenEvent.REVOKED, instance, None, DELETED_WITH_USER, owner_deleted=True)
 
 
 pre_delete.connect(_token_deleted, sender=ApiToken, dispatch_uid="api.token_deleted")
-
