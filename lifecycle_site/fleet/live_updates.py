@@ -88,7 +88,7 @@ def _own_loop() -> asyncio.AbstractEventLoop:
     ``async_to_sync`` makes) connected anew, and started a thread, for every push."""
     global _loop
     with _loop_lock:
-        if _loop is None or _loop.is_closed():
+        if _loop is None:  # never closed: it lives as long as the process
             _loop = asyncio.new_event_loop()
             threading.Thread(target=_loop.run_forever, name="live-updates", daemon=True).start()
         return _loop
