@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import os
 import threading
 import time
@@ -48,6 +49,19 @@ NODES_PER_SHARD = 12
 # while the set of running nodes changes and for a while after; otherwise this often.
 SERVICE_SCAN_SETTLE_S = 5.0
 SERVICE_SCAN_EVERY_S = 2.0
+# Services that only read: a request left unanswered is sent again. Fast DDS drops a
+# response when the server's response writer has not matched the caller's response reader
+# within 100 ms (its max_blocking_time; "client will not receive response"), which happens
+# to the first calls of a client made just now and to the first calls into a process that
+# restarted, on a busy machine: the call then waited its whole timeout (5 s) for nothing.
+# Calls that change a node (change_state, set_parameters) are never sent twice.
+READ_ONLY_SERVICES = frozenset({
+    "get_state", "get_available_states", "get_available_transitions", "get_transition_graph",
+    "list_parameters", "get_parameters", "describe_parameters", "get_parameter_types",
+})
+# A read is sent again after this long without an answer, then after twice as long, and so
+# on (a well node answers in milliseconds; 3 requests at most within a 5 s timeout).
+RESEND_AFTER_S = 1.0
 # /rosout messages taken per wake-up at most, so a flood cannot starve the thread's stop check.
 ROSOUT_BATCH = 1000
 
@@ -293,35 +307,55 @@ class RosDomain:
 
     # -- service calls --------------------------------------------------------------
     async def call(self, fqn: str, service: str, srv_type: Any, request: Any, timeout: float) -> Any:
-        """Call ``{fqn}/{service}``; raises ServiceUnavailable or ServiceTimeout within ``timeout``."""
+        """Call ``{fqn}/{service}``; raises ServiceUnavailable or ServiceTimeout within ``timeout``.
+        A read-only service's request is sent again while unanswered (READ_ONLY_SERVICES)."""
         deadline = time.monotonic() + timeout
         client = self._clients.get((fqn, service))
         if client is None:
             client = self._shard_for(fqn).node.create_client(srv_type, f"{fqn}/{service}")
             self._clients[(fqn, service)] = client
-        try:
-            # A fresh client needs a moment to match the server (about 0.25 s on loopback).
-            while not client.service_is_ready():
-                if time.monotonic() >= deadline:
-                    raise ServiceUnavailable(f"{fqn}/{service} is not available")
-                await asyncio.sleep(0.02)
-            result: asyncio.Future = self.loop.create_future()
+        result: asyncio.Future = self.loop.create_future()
 
-            def done(ros_future) -> None:
-                self.loop.call_soon_threadsafe(_settle, result, ros_future)
+        def done(ros_future) -> None:
+            self.loop.call_soon_threadsafe(_settle, result, ros_future)
 
+        sent: list = []
+
+        def send() -> None:
             ros_future = client.call_async(request)
-        except _rclpy.InvalidHandle:  # the node was forgotten (gone) meanwhile, and its client with it
-            raise ServiceUnavailable(f"{fqn}/{service} is no longer watched (the node went)") from None
-        ros_future.add_done_callback(done)
+            sent.append(ros_future)
+            ros_future.add_done_callback(done)
+
         try:
-            return await asyncio.wait_for(result, max(deadline - time.monotonic(), 0.001))
-        except asyncio.TimeoutError:
-            client.remove_pending_request(ros_future)
-            raise ServiceTimeout(f"{fqn}/{service} did not answer within {timeout:g} s") from None
-        except asyncio.CancelledError:  # the caller stopped waiting (the node's process ended)
-            client.remove_pending_request(ros_future)
-            raise
+            try:
+                # A fresh client needs a moment to match the server (about 0.25 s on loopback).
+                while not client.service_is_ready():
+                    if time.monotonic() >= deadline:
+                        raise ServiceUnavailable(f"{fqn}/{service} is not available")
+                    await asyncio.sleep(0.02)
+                send()
+            except _rclpy.InvalidHandle:  # the node was forgotten (gone) meanwhile, and its client with it
+                raise ServiceUnavailable(f"{fqn}/{service} is no longer watched (the node went)") from None
+            resend_after = RESEND_AFTER_S if service in READ_ONLY_SERVICES else math.inf
+            while True:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise ServiceTimeout(f"{fqn}/{service} did not answer within {timeout:g} s")
+                await asyncio.wait([result], timeout=min(left, resend_after))
+                if result.done():
+                    return result.result()
+                if time.monotonic() < deadline and resend_after < math.inf:
+                    log.debug("%s/%s unanswered after %g s: asked again", fqn, service, resend_after)
+                    try:
+                        send()
+                    except _rclpy.InvalidHandle:  # forgotten meanwhile: the requests sent may still be answered
+                        resend_after = math.inf
+                        continue
+                    resend_after *= 2
+        finally:  # the caller stopped waiting, or an answer came: the other requests are not awaited
+            for ros_future in sent:
+                if not ros_future.done():
+                    client.remove_pending_request(ros_future)
 
     # -- callbacks (executor thread) ------------------------------------------------
     def _hand_over(self, callback: Callable, *args: Any) -> None:
