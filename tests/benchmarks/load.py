@@ -52,13 +52,14 @@ class Tally:
             self.errors.append(what)
 
 
-def paced(rate: float, seconds: float, stop: threading.Event, lag: Series):
-    """Yield at ``rate`` per second for ``seconds``; a late tick is recorded, never made up for."""
-    interval, began = 1.0 / rate, time.monotonic()
+def paced(rate: float, seconds: float, stop: threading.Event, lag: Series, start: float, phase: float = 0.0):
+    """Yield at ``rate`` per second for ``seconds`` from ``start`` + ``phase`` (monotonic); a late
+    tick is recorded and sent at once."""
+    interval = 1.0 / rate
     tick = 0
     while not stop.is_set():
-        due = began + tick * interval
-        if due - began >= seconds:
+        due = start + phase + tick * interval
+        if due - start >= seconds:
             return
         now = time.monotonic()
         if now < due:
@@ -69,6 +70,13 @@ def paced(rate: float, seconds: float, stop: threading.Event, lag: Series):
         tick += 1
 
 
+def phases(clients: int, rate: float) -> list[float]:
+    """Each client's offset into its interval, spread evenly: clients that poll on their own
+    do not all ask in the same millisecond (in lockstep, 18 reads arrived together every
+    200 ms and waited for each other)."""
+    return [i / (clients * rate) for i in range(clients)]
+
+
 def read_paths(keys: list[str]) -> list[str]:
     paths = ["/api/v1/nodes", "/api/v1/robots", "/api/v1/gateways", "/api/v1/transitions?limit=20"]
     paths += [f"/api/v1/nodes/{key}" for key in keys[:3]]
@@ -77,10 +85,10 @@ def read_paths(keys: list[str]) -> list[str]:
 
 
 def reader(stack: Stack, paths: list[str], rate: float, seconds: float, stop: threading.Event, series: Series,
-           lag: Series, tally: Tally) -> None:
+           lag: Series, tally: Tally, start: float, phase: float) -> None:
     api = Http("127.0.0.1", stack.web_port, token=stack.token, timeout=10)
     try:
-        for i, _ in enumerate(paced(rate, seconds, stop, lag)):
+        for i, _ in enumerate(paced(rate, seconds, stop, lag, start, phase)):
             path = paths[i % len(paths)]
             try:
                 answer = api.get(path)
@@ -95,12 +103,12 @@ def reader(stack: Stack, paths: list[str], rate: float, seconds: float, stop: th
 
 
 def operator(stack: Stack, key: str, seconds: float, stop: threading.Event, series: Series, lag: Series,
-             tally: Tally) -> None:
+             tally: Tally, start: float, phase: float) -> None:
     """One node's transitions, one a second, round the cycle."""
     api = Http("127.0.0.1", stack.web_port, token=stack.token, timeout=30)
     sent: list[tuple[float, str]] = []
     try:
-        for i, _ in enumerate(paced(TRANSITIONS_PER_S / NODES, seconds, stop, lag)):
+        for i, _ in enumerate(paced(TRANSITIONS_PER_S / NODES, seconds, stop, lag, start, phase)):
             label = CYCLE[i % len(CYCLE)]
             began = time.monotonic()
             try:
@@ -189,10 +197,15 @@ def run(ctx: BenchContext) -> ScenarioResult:
             await asyncio.sleep(1.0)  # the snapshots on connect are not pushes
             stop_load = threading.Event()
             read_rate = (REQUESTS_PER_S - TRANSITIONS_PER_S) / READERS
+            start = time.monotonic() + 0.2  # every client's schedule counts from here
             threads = [threading.Thread(target=reader, args=(stack, read_paths(keys), read_rate, seconds, stop_load,
-                                                             reads, lag, tally)) for _ in range(READERS)]
-            threads += [threading.Thread(target=operator, args=(stack, key, seconds, stop_load, moves, lag, tally))
-                        for key in keys]
+                                                             reads, lag, tally, start, phase))
+                       for phase in phases(READERS, read_rate)]
+            # The transitions fall between the reads' slots (half a read slot later).
+            shift = 0.5 / (READERS * read_rate)
+            threads += [threading.Thread(target=operator, args=(stack, key, seconds, stop_load, moves, lag, tally,
+                                                                start, shift + phase))
+                        for key, phase in zip(keys, phases(NODES, TRANSITIONS_PER_S / NODES), strict=True)]
             began, cpu_began = time.monotonic(), time.process_time()
             cpu_before.update({name: tree_cpu_seconds(child.pid) for name, child in busy.items()})
             for thread in threads:
