@@ -328,7 +328,15 @@ def robot_rows(robot_names: list[str], view: dict) -> list[dict]:
 
 
 def one_node(key: str) -> dict:
-    return node_dict(ManagedNode.objects.select_related("robot").get(key=key))
+    return node_with_since(ManagedNode.objects.select_related("robot").get(key=key))
+
+
+def node_with_since(node: ManagedNode) -> dict:
+    """The node as pages show it, with when it entered its state (``state_changed``): a
+    transition under way counts its time from there, also on a page opened during it."""
+    payload = node_dict(node)
+    payload["state_changed"] = node.state_changed.isoformat() if node.state_changed else None
+    return payload
 
 
 @lru_cache(maxsize=64)
@@ -353,9 +361,9 @@ def state_panel(node: dict, gateway_offline: str = "") -> dict:
         "states": STATES,
         "gateway_offline": gateway_offline,
         "restart_refusal": refusal,
-        # A state is rendered when the node enters it (a push) or when the page loads: how long
-        # a transition has been under way counts from here (live.js, data-elapsed-from).
-        "state_since": datetime.now(timezone.utc).isoformat(),
+        # How long a transition has been under way (live.js, data-elapsed-from): from when the
+        # node entered its state as stored, else from now (a push: it entered it just now).
+        "state_since": node.get("state_changed") or datetime.now(timezone.utc).isoformat(),
     }
 
 

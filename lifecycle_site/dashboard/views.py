@@ -88,7 +88,7 @@ def node_or_404(key: str) -> ManagedNode:
 @viewer_required
 def node_detail(request: HttpRequest, key: str) -> HttpResponse:
     node = node_or_404(key)
-    payload = node_dict(node)
+    payload = snapshots.node_with_since(node)
     records = TransitionRecord.objects.filter(node=node).select_related("node")[:20]
     gateway = snapshots.gateway_of(node.robot)
     return render(
@@ -132,7 +132,7 @@ def node_transition(request: HttpRequest, key: str) -> HttpResponse:
         return render(request, answer, {**named, "ok": outcome.succeeded, "code": outcome.code,
                                         "message": outcome.message})
     node.refresh_from_db()
-    payload = node_dict(node)
+    payload = snapshots.node_with_since(node)
     if outcome.data.get("to"):  # the gateway's answer is fresher than the database write
         payload = {**payload, "state": outcome.data["to"],
                    "transitions": [t.as_dict() for t in sm.valid_transitions(outcome.data["to"]["id"])]}

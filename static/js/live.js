@@ -40,7 +40,7 @@
   document.addEventListener("htmx:wsOpen", function () { banner(false); });
   window.lifecycleBanner = banner;
 
-  // "for 12 s" beside a transition under way (data-elapsed-from: when the page saw it begin).
+  // "for 12 s" beside a transition under way (data-elapsed-from: when the node entered the state).
   setInterval(function () {
     document.querySelectorAll("[data-elapsed-from]").forEach(function (el) {
       var seconds = Math.max(0, Math.round((Date.now() - Date.parse(el.dataset.elapsedFrom)) / 1000));

@@ -2,14 +2,17 @@
 many nodes there are, filter and export the audit log, and carry a proxy's sub-path."""
 import csv
 import io
+from datetime import timedelta
 
 import pytest
 from django.test import Client
 from django.utils import timezone
 
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.fleet.models import LogRecord, ManagedNode, Robot
+from lifecycle_site.fleet import gateways
+from lifecycle_site.fleet.models import Gateway, LogRecord, ManagedNode, Robot
 from ros_gateway.shared import state_machine as sm
+from tests import stack
 from tests.conftest import make_user
 
 
@@ -136,9 +139,37 @@ def test_restart_is_not_offered_to_a_finalized_node(operator_client, fleet):
     assert "is finalized: a lifecycle restart cannot bring it back" in page
     refused = operator_client.post(f"/nodes/{node.key}/restart", HTTP_HX_REQUEST="true").content.decode()
     assert "is finalized" in refused
-    # No gateway has reported here: the fleet rows say their states are the last known ones.
+    # No gateway has reported here: the rows say so, and offer no time they were known at.
     fleet_page = operator_client.get("/").content.decode()
-    assert "last known" in fleet_page and "is offline" in fleet_page and "running" not in fleet_page
+    assert "has never reported" in fleet_page and "running" not in fleet_page
+    assert 'datetime="None"' not in fleet_page and "last known <time" not in fleet_page
+    assert "states never read from it and no command can be sent" in fleet_page  # the banner
+
+
+def test_rows_of_a_silent_gateway_show_when_their_states_were_last_known(operator_client, fleet):
+    node = fleet[1][1]
+    beat = timezone.now() - timedelta(minutes=3)
+    Gateway.objects.filter(pk=node.robot.gateway_id).update(last_beat=beat)
+    gateways.forget()  # the site keeps what it read of the gateways for a second
+    fleet_page = operator_client.get("/").content.decode()
+    assert f'last known <time datetime="{beat.isoformat()}">' in fleet_page
+    assert f'<span data-age="{beat.isoformat()}">3 min ago</span>): gateway {node.robot.gateway.name} is offline' \
+        in fleet_page
+    assert "has never reported" not in fleet_page
+
+
+def test_a_transition_under_way_counts_its_time_from_when_the_node_entered_it(operator_client, fleet, redis_server):
+    node = fleet[1][1]
+    stack.write_beat(node.robot.gateway.name)  # online
+    entered = timezone.now() - timedelta(seconds=42)
+    ManagedNode.objects.filter(pk=node.pk).update(alive=True, state_id=sm.CONFIGURING, state_label="configuring",
+                                                  state_changed=entered)
+    page = operator_client.get(f"/nodes/{node.key}/").content.decode()
+    # Opened during the transition: the page says how long it has run, not "0 s".
+    assert f'Transition in progress (configuring) for <span data-elapsed-from="{entered.isoformat()}">42 s</span>' \
+        in page or f'data-elapsed-from="{entered.isoformat()}">43 s</span>' in page
+    assert "No transition is possible" not in page and "<button" not in page.split('aria-label="Valid transitions"')[1]\
+        .split("</div>")[0]
 
 
 def test_audit_history_filters_pages_and_exports_csv(viewer_client, fleet):

@@ -113,6 +113,17 @@ def age(iso: str | None) -> str:
     return f"{seconds // 3600} h ago"
 
 
+@register.filter
+def elapsed(iso: str | None) -> str:
+    """'12 s', '3 min': how long since ``iso`` (live.js keeps it current in the page)."""
+    if not iso:
+        return "0 s"
+    from datetime import datetime, timezone
+
+    seconds = max(0, int((datetime.now(timezone.utc) - datetime.fromisoformat(iso)).total_seconds()))
+    return f"{seconds} s" if seconds < 120 else f"{seconds // 60} min"
+
+
 OUTCOME_LABELS = dict(TransitionRecord.Outcome.choices)
 
 
