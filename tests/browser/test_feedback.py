@@ -129,6 +129,15 @@ def test_shutdown_asks_first_and_a_finalized_node_offers_no_restart(browser, sit
     assert asked and "finalized" in asked[0], asked
     assert ManagedNode.objects.get(key=KEY).state_label == "active"  # nothing was sent
 
+    page.goto(f"{site}nodes/{KEY}/")  # the node page asks too
+    page.once("dialog", refuse)
+    page.locator("#node-state").get_by_role("button", name="shutdown").click()
+    page.wait_for_timeout(2_000)
+    assert len(asked) == 2 and "finalized" in asked[1], asked
+    assert ManagedNode.objects.get(key=KEY).state_label == "active"
+    page.goto(site)
+    expect(page.locator("html[data-live]")).to_have_count(1, timeout=WAIT_MS)
+
     page.once("dialog", lambda dialog: dialog.accept())
     row.get_by_role("button", name=re.compile("^shutdown")).click()
     expect(row.locator(".badge")).to_have_text("finalized", timeout=WAIT_MS)

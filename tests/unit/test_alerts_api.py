@@ -113,6 +113,19 @@ def test_admins_enter_a_receivers_secret_that_is_never_shown(db):
     bad = admin.post("/admin/alerts/receiver/add/", {**form, "name": "ftp", "url": "ftp://x.example.invalid/"})
     assert "Enter a valid URL" in bad.content.decode()
     assert admin.get("/admin/alerts/rule/add/").status_code == 200
+    rule = {"name": "drivers finalized", "enabled": "on", "kind": "state", "state": "finalized",
+            "for_seconds": "0", "keep_firing_seconds": "0", "node_pattern": "/agv1/*_driver",
+            "receivers": [str(receiver.pk)]}
+    assert admin.post("/admin/alerts/rule/add/", rule).status_code == 302
+    saved = Rule.objects.get(name="drivers finalized")
+    assert (saved.kind, saved.state, saved.node_pattern, list(saved.receivers.all())) == (
+        "state", "finalized", "/agv1/*_driver", [receiver])
+    no_state = admin.post("/admin/alerts/rule/add/", {**rule, "name": "no state", "state": ""})
+    assert "Choose the state this rule watches for." in no_state.content.decode()
+    gateway_pattern = admin.post("/admin/alerts/rule/add/", {**rule, "name": "gw", "kind": "gateway_offline",
+                                                              "state": ""})
+    assert "A gateway rule has no node pattern." in gateway_pattern.content.decode()
+    assert not Rule.objects.filter(name__in=["no state", "gw"]).exists()
     assert admin.get("/admin/alerts/delivery/").status_code == 200
     assert client_of("otto-operator", "operator").get("/admin/alerts/rule/").status_code == 302  # not staff
 

@@ -27,7 +27,8 @@ def metrics(text: str) -> dict[tuple[str, tuple], float]:
 
 @pytest.fixture
 def fleet(db, redis_server) -> Robot:
-    gateway = Gateway.objects.create(name="mon-cell")
+    gateway = Gateway.objects.create(name="mon-cell", backlog=7, logs_received=1200, logs_dropped=30, logs_lost=2,
+                                     facts_lost=1, facts_rejected=4)
     robot = Robot.objects.create(name="mon-agv", domain_id=44, gateway=gateway)
     now = timezone.now()
     for name, state, alive in (("/lidar", "active", True), ("/camera", "active", True),
@@ -87,7 +88,15 @@ def test_metrics_count_nodes_gateways_and_transitions(fleet, client: Client, set
         return samples.get(("lifecycle_nodes", tuple(sorted((*labels, ("state", state))))), 0)
 
     assert (nodes("active"), nodes("inactive"), nodes("not_running")) == (2, 1, 1)
-    assert samples[("lifecycle_gateway_online", (("gateway", "mon-cell"),))] == 0
+    cell = (("gateway", "mon-cell"),)
+    assert samples[("lifecycle_gateway_online", cell)] == 0
+    assert ("lifecycle_gateway_heartbeat_age_seconds", cell) not in samples  # it never beat
+    assert samples[("lifecycle_gateway_backlog", cell)] == 7
+    assert samples[("lifecycle_log_records_received_total", cell)] == 1200
+    assert samples[("lifecycle_log_records_dropped_total", cell)] == 30
+    assert samples[("lifecycle_log_batches_lost_total", cell)] == 2
+    assert samples[("lifecycle_gateway_facts_lost_total", cell)] == 1
+    assert samples[("lifecycle_gateway_facts_rejected_total", cell)] == 4
     assert samples[("lifecycle_transitions_total", (("outcome", "succeeded"), ("source", "api")))] == 2
     assert samples[("lifecycle_transitions_total", (("outcome", "rejected"), ("source", "api")))] == 1
     # Rejected attempts never reached a node: three durations, 3 ms, 40 ms, 700 ms.
