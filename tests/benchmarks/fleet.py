@@ -8,8 +8,9 @@ page at that size (collapsed, one robot opened, every robot opened = the page be
 collapsed) and the filter that finds a node in a collapsed robot; a group bring-up of one
 robot (100 nodes) and of all robots at once (1,000), time per node and its growth; the
 resident memory of each gateway, daphne and the ingest process; log records stored and relayed
-per second while one node behind each gateway logs as fast as it can, memory before, at the
-peak and after.
+per second while one node behind each gateway logs at a third of a little more than the target
+rate (LOG_TARGET_PER_S; three Python senders at full speed would take more than the machine's
+2 cores themselves), memory before, at the peak and after.
 """
 from __future__ import annotations
 
@@ -38,6 +39,8 @@ DISCOVERY_TIMEOUT_S = 300.0
 DRAIN_TIMEOUT_S = 120.0
 STABLE_S = 2.0
 FLAT_MB = 5.0  # "memory flat once buffers are full": growth from the first drop to the flood's end
+LOG_TARGET_PER_S = 20_000  # records stored and relayed per second, from 3 gateways at once
+LOG_OFFERED_PER_S = 24_000  # what the three senders offer together
 POLL_S = 0.5
 
 
@@ -287,7 +290,8 @@ async def flood_measure(fleet: Fleet, flooders: dict[str, LineProcess], result: 
     observer = threading.Thread(target=observe, args=(fleet, samples, done), daemon=True)
     observer.start()
     began = time.monotonic()
-    answers = await asyncio.gather(*(asyncio.to_thread(f.call, "flood", seconds + 30, seconds=seconds)
+    answers = await asyncio.gather(*(asyncio.to_thread(f.call, "flood", seconds + 30, seconds=seconds,
+                                                       rate=LOG_OFFERED_PER_S / len(flooders))
                                      for f in flooders.values()))
     load = loadavg()[0]
     stored_after, stored_done = await asyncio.to_thread(wait_drained, fleet, relayed)
@@ -320,9 +324,9 @@ async def flood_measure(fleet: Fleet, flooders: dict[str, LineProcess], result: 
         result.figure(f"{process} RSS peak during the flood", peak, "MB")
         result.figure(f"{process} RSS after draining", memory_after[process], "MB")
     result.check("log records stored per second, 3 gateways at once", stored_rate, ">= 20,000 /s",
-                 stored_rate >= 20000, "/s")
+                 stored_rate >= LOG_TARGET_PER_S, "/s")
     result.check("log records relayed per second, 3 gateways at once", relay_rate, ">= 20,000 /s",
-                 relay_rate >= 20000, "/s")
+                 relay_rate >= LOG_TARGET_PER_S, "/s")
     ended = began + flood_s
     for name in fleet.gateways():
         full = next((s[0] for s in samples if s[2].get(name, 0) > drops_before.get(name, 0)), None)

@@ -1,7 +1,7 @@
-"""A lifecycle node that logs as fast as it can when told to (JSON lines on stdin).
+"""A lifecycle node that logs as fast as it can, or at a given rate, when told to (JSON lines on stdin).
 
     python -m tests.benchmarks.flooder DOMAIN NODE_NAME
-    -> {"op": "flood", "seconds": 10, "via": "rosout"}   <- {"sent": 123456, "seconds": 10.0}
+    -> {"op": "flood", "seconds": 10, "via": "rosout", "rate": 0}   <- {"sent": 123456, "seconds": 10.0}
 
 ``via: "rosout"`` (the scenario's way) publishes rcl_interfaces/Log records on /rosout under
 the node's logger name with rcl's own /rosout QoS, which is what rcutils does for a C++ node:
@@ -31,13 +31,20 @@ ROSOUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability
                         durability=DurabilityPolicy.TRANSIENT_LOCAL, lifespan=Duration(seconds=10))
 
 
-def flood(node: LifecycleNode, rosout, seconds: float, via: str = "rosout") -> dict:
+def flood(node: LifecycleNode, rosout, seconds: float, via: str = "rosout", rate: float = 0.0) -> dict:
+    """Log for ``seconds``: as fast as possible, or ``rate`` records per second (in bursts of
+    BURST, each sent when it is due)."""
     logger = node.get_logger()
     clock = node.get_clock()
     sent = 0
     began = time.monotonic()
     end = began + seconds
-    while time.monotonic() < end:
+    while (now := time.monotonic()) < end:
+        if rate > 0:
+            due = began + sent / rate
+            if due > now:
+                time.sleep(min(due, end) - now)
+                continue
         for _ in range(BURST):
             if via == "logger":
                 logger.info(TEXT.format(sent))
@@ -70,7 +77,8 @@ def main(domain: int, name: str) -> int:
         command = json.loads(line)
         if command.get("op") != "flood":
             break
-        print(json.dumps(flood(node, rosout, float(command["seconds"]), command.get("via", "rosout"))), flush=True)
+        print(json.dumps(flood(node, rosout, float(command["seconds"]), command.get("via", "rosout"),
+                               float(command.get("rate", 0.0)))), flush=True)
     executor.shutdown(timeout_sec=1.0)
     node.destroy_node()
     context.try_shutdown()
