@@ -21,3 +21,14 @@ def fresh_site_caches():
     gateways.forget()
     fragments.forget()
     cache.clear()
+
+
+@pytest.fixture
+def gateway_environ(monkeypatch):
+    """For a test that starts a RosDomain in this process: RosDomain.start sets the gateway's
+    Fast DDS profile in the process's environment, as the gateway process wants; here that
+    would reach every process later tests start (a gateway given an interface white list then
+    refuses to start, "not both"). monkeypatch puts the environment back afterwards."""
+    from ros_gateway.domain import FASTDDS_PROFILES
+
+    monkeypatch.setenv("FASTRTPS_DEFAULT_PROFILES_FILE", str(FASTDDS_PROFILES))

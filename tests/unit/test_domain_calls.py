@@ -76,7 +76,7 @@ class HoldingServer:
 
 
 @pytest.fixture
-def server_and_domain():
+def server_and_domain(gateway_environ):
     domain_id = stack.domain(DOMAIN_OFFSET)
     server = HoldingServer(domain_id)
     loop = asyncio.new_event_loop()
