@@ -233,19 +233,21 @@ class RosDomain:
         the graph after X is gone, so the node must also be listed as a running node. The
         node list is cheap and read every time; the service list only when needed (above).
 
-        ``known`` nodes that still publish their transition events count as running even when
-        the node list lacks them: rmw_fastrtps does not list again the nodes of a participant
-        that was dropped for its lease (a host away longer than ~20 s) and then found again.
+        A node that still publishes its transition events counts as running even when the node
+        list lacks it. The node list comes from one message per process (ros_discovery_info)
+        and can stay behind: rmw_fastrtps does not list again the nodes of a participant that
+        was dropped for its lease (a host away longer than ~20 s) and then found again, and a
+        process that made 50 nodes at once on a loaded machine was seen listed with 21 of them
+        for minutes. Endpoints are discovered on their own, so a publisher on
+        ``X/transition_event`` (which our own clients never make) is proof of life. Checked for
+        ``known`` nodes and for every node offering GetState that the list lacks.
         """
-        running = {
+        listed = {
             f"{namespace.rstrip('/')}/{name}" for name, namespace in self.node.get_node_names_and_namespaces()
         }
-        running |= {
-            fqn for fqn in known if fqn not in running and self.node.count_publishers(f"{fqn}/transition_event")
-        }
         now = time.monotonic()
-        if running != self._running:
-            self._running, self._last_change = running, now
+        if listed != self._running:
+            self._running, self._last_change = listed, now
         if now - self._last_change < SERVICE_SCAN_SETTLE_S or now - self._last_scan >= SERVICE_SCAN_EVERY_S:
             self._last_scan = now
             self._lifecycle = {
@@ -253,7 +255,9 @@ class RosDomain:
                 for service, types in self.node.get_service_names_and_types()
                 if GET_STATE_TYPE in types and service.endswith("/get_state")
             }
-        return self._lifecycle & running
+        unlisted = (self._lifecycle | set(known)) - listed
+        publishing = {fqn for fqn in unlisted if self.node.count_publishers(f"{fqn}/transition_event")}
+        return (self._lifecycle & listed) | publishing
 
     def _shard_for(self, fqn: str) -> _Shard:
         """The node's shard: where it was placed, else the least loaded one with room, else a new one."""
