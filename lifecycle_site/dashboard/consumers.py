@@ -321,24 +321,27 @@ class NodeConsumer(RunPanels, LiveConsumer):
         await self.node_state({"node": node})
 
     gateway_offline = ""  # the node's gateway's name while it is offline
+    gateway_known_at: str | None = None  # and its last heartbeat: the states shown are as of then
 
     async def send_gateway_status(self, offline: list[dict]) -> None:
         """Besides the banner: while the gateway is offline the panel offers no command."""
         await super().send_gateway_status(offline)
         now_offline = offline[0]["name"] if offline else ""
-        if now_offline != self.gateway_offline:
-            self.gateway_offline = now_offline
+        known_at = offline[0].get("last_beat") if offline else None
+        if (now_offline, known_at) != (self.gateway_offline, self.gateway_known_at):
+            self.gateway_offline, self.gateway_known_at = now_offline, known_at
             await self.send_snapshot()
 
     async def node_state(self, event: dict) -> None:
         def render() -> str:
-            panel = snapshots.state_panel(event["node"], self.gateway_offline)
+            panel = snapshots.state_panel(event["node"], self.gateway_offline, self.gateway_known_at)
             context = {**panel, "can_operate": self.can_operate, "oob": True}
             with script_prefix(self.prefix):
                 return render_to_string("dashboard/_node_state.html", context) + render_to_string(
                     "dashboard/_node_restart.html", context)
 
-        key = ("node-state", self.prefix, self.can_operate, self.gateway_offline, event["node"])
+        key = ("node-state", self.prefix, self.can_operate, self.gateway_offline, self.gateway_known_at,
+               event["node"])
         await self.send(text_data=fragments.rendered(key, render))
 
     async def audit_record(self, event: dict) -> None:

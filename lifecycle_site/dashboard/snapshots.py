@@ -347,10 +347,11 @@ def graph_svg(state_id: int, alive: bool) -> str:
     return mark_safe(render_to_string("dashboard/_graph.html", context))
 
 
-def state_panel(node: dict, gateway_offline: str = "") -> dict:
+def state_panel(node: dict, gateway_offline: str = "", known_at: str | None = None) -> dict:
     """Context of the node page's live part: state, valid transitions, graph, whether a
     restart can work. ``gateway_offline``: the name of the node's gateway while it is offline
-    (the state shown is then the last known one, and no command can be sent)."""
+    (the state shown is then the last known one, as of ``known_at``, its last heartbeat, and
+    no command can be sent)."""
     refusal = restart_refusal(node)
     if gateway_offline and not refusal:
         refusal = f"The gateway {gateway_offline} is offline: no command can be sent until it is back."
@@ -360,6 +361,7 @@ def state_panel(node: dict, gateway_offline: str = "") -> dict:
         "busy": node["alive"] and not sm.is_primary(node["state"]["id"]),
         "states": STATES,
         "gateway_offline": gateway_offline,
+        "known_at": known_at if gateway_offline else None,
         "restart_refusal": refusal,
         # How long a transition has been under way (live.js, data-elapsed-from): from when the
         # node entered its state as stored, else from now (a push: it entered it just now).

@@ -95,7 +95,7 @@ def node_detail(request: HttpRequest, key: str) -> HttpResponse:
         request,
         "dashboard/node.html",
         {
-            **snapshots.state_panel(payload, "" if gateway["online"] else gateway["name"]),
+            **snapshots.state_panel(payload, "" if gateway["online"] else gateway["name"], gateway.get("last_beat")),
             "node_obj": node,
             "records": [r.as_dict() for r in records],
             "runs": snapshots.recent_runs(node.robot_id, node.name).get(node.robot.name, []),

@@ -196,15 +196,4 @@
     choices = null;
   });
 
-  // "3 min ago" next to a last known state stays true while the page is open.
-  function ages() {
-    document.querySelectorAll("[data-age]").forEach(function (el) {
-      var when = Date.parse(el.dataset.age);
-      if (isNaN(when)) return;  // no time known: the server's text stays
-      var seconds = Math.max(0, Math.round((Date.now() - when) / 1000));
-      el.textContent = seconds < 60 ? seconds + " s ago" : seconds < 3600 ? Math.floor(seconds / 60) + " min ago"
-        : Math.floor(seconds / 3600) + " h ago";
-    });
-  }
-  setInterval(ages, 10000);
 })();

@@ -48,6 +48,17 @@
     });
   }, 1000);
 
+  // "3 min ago" beside a last known state (fleet rows, the node page) stays true while the page is open.
+  setInterval(function () {
+    document.querySelectorAll("[data-age]").forEach(function (el) {
+      var when = Date.parse(el.dataset.age);
+      if (isNaN(when)) return;  // no time known: the server's text stays
+      var seconds = Math.max(0, Math.round((Date.now() - when) / 1000));
+      el.textContent = seconds < 60 ? seconds + " s ago" : seconds < 3600 ? Math.floor(seconds / 60) + " min ago"
+        : Math.floor(seconds / 3600) + " h ago";
+    });
+  }, 10000);
+
   // Run panels (templates/dashboard/_run.html) come wrapped to go first into their page's run
   // list. A run already shown is replaced in place instead, unless the panel shown is further
   // along (data-rank): a push, the database and a request's answer arrive in any order.

@@ -159,6 +159,9 @@ def test_rows_say_last_known_and_take_no_command_while_the_gateway_is_offline(br
         expect(node_page.locator("#gateway-banner")).to_be_visible(timeout=20_000)
         expect(restart).to_be_disabled(timeout=10_000)
         expect(node_page.locator("#node-restart")).to_contain_text("gateway local is offline")
+        state = node_page.locator("#node-state")  # pushed: the state is last known, with its age
+        expect(state).to_contain_text("Last known state, as of", timeout=10_000)
+        expect(state.locator("[data-age]")).to_contain_text("ago")
         expect(page.locator("#gateway-banner")).to_be_visible(timeout=20_000)
         expect(row.locator(".seen")).not_to_contain_text("running", timeout=10_000)
         expect(row.locator(".seen")).to_contain_text("last known")

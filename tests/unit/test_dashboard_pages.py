@@ -144,6 +144,9 @@ def test_restart_is_not_offered_to_a_finalized_node(operator_client, fleet):
     assert "has never reported" in fleet_page and "running" not in fleet_page
     assert 'datetime="None"' not in fleet_page and "last known <time" not in fleet_page
     assert "states never read from it and no command can be sent" in fleet_page  # the banner
+    ManagedNode.objects.filter(pk=node.pk).update(state_id=sm.ACTIVE, state_label="active")
+    node_page = operator_client.get(f"/nodes/{node.key}/").content.decode()
+    assert f"Not read yet: the gateway {node.robot.gateway.name} is offline" in node_page
 
 
 def test_rows_of_a_silent_gateway_show_when_their_states_were_last_known(operator_client, fleet):
@@ -156,6 +159,12 @@ def test_rows_of_a_silent_gateway_show_when_their_states_were_last_known(operato
     assert f'<span data-age="{beat.isoformat()}">3 min ago</span>): gateway {node.robot.gateway.name} is offline' \
         in fleet_page
     assert "has never reported" not in fleet_page
+    # The node's own page says the same beside its state.
+    ManagedNode.objects.filter(pk=node.pk).update(alive=True, state_id=sm.ACTIVE, state_label="active")
+    node_page = operator_client.get(f"/nodes/{node.key}/").content.decode()
+    assert f'Last known state, as of <time datetime="{beat.isoformat()}">' in node_page
+    assert f'(<span data-age="{beat.isoformat()}">3 min ago</span>): the gateway {node.robot.gateway.name} is ' \
+           "offline" in node_page
 
 
 def test_a_transition_under_way_counts_its_time_from_when_the_node_entered_it(operator_client, fleet, redis_server):
