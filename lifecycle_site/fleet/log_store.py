@@ -174,6 +174,7 @@ def to_rows(targets: LogTargets, records: list[Any]) -> tuple[list[LogRow], list
 def push_messages(rows: list[LogRow], ids: list[int], keys: list[str | None]) -> list[tuple[str, dict]]:
     """What the log consoles get for stored rows: per robot and per node group, in chunks."""
     per_group: dict[str, list[dict]] = {}
+    groups: dict[str, str] = {}  # node key -> its group, worked out once a batch
     for row, row_id, key in zip(rows, ids, keys, strict=True):
         # LogRecord.as_dict() of the stored record, plus the node's key (no model instances).
         payload = {
@@ -189,7 +190,8 @@ def push_messages(rows: list[LogRow], ids: list[int], keys: list[str | None]) ->
         }
         per_group.setdefault(protocol.robot_group(row.robot_id), []).append(payload)
         if key is not None:
-            per_group.setdefault(protocol.node_group(key), []).append(payload)
+            group = groups.get(key) or groups.setdefault(key, protocol.node_group(key))
+            per_group.setdefault(group, []).append(payload)
     return [
         (group, {"type": "node.logs", "records": records[start : start + PUSH_CHUNK]})
         for group, records in per_group.items()

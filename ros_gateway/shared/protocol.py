@@ -169,10 +169,12 @@ def robot_group(robot_id: int) -> str:
     return f"robot.{robot_id}"
 
 
+_GROUP_UNSAFE = re.compile(r"[^a-zA-Z0-9._-]")
+
+
 def node_group(node_key: str) -> str:
     """Group of one node; Channels allows only [a-zA-Z0-9._-] and < 100 characters."""
-    safe = re.sub(r"[^a-zA-Z0-9._-]", "_", node_key)
-    return f"node.{safe}"[:99]
+    return f"node.{_GROUP_UNSAFE.sub('_', node_key)}"[:99]
 
 
 def node_key(robot_name: str, node_name: str) -> str:
