@@ -216,9 +216,11 @@ class LogRecord(models.Model):
     DEBUG, INFO, WARN, ERROR, FATAL = 10, 20, 30, 40, 50
     LEVELS = [(DEBUG, "DEBUG"), (INFO, "INFO"), (WARN, "WARN"), (ERROR, "ERROR"), (FATAL, "FATAL")]
 
-    robot = models.ForeignKey(Robot, on_delete=models.CASCADE, related_name="log_records")
+    # No index of their own: the indexes below begin with them (each index is written with
+    # every record, and a log flood writes 20,000 a second).
+    robot = models.ForeignKey(Robot, on_delete=models.CASCADE, related_name="log_records", db_index=False)
     node = models.ForeignKey(
-        ManagedNode, null=True, blank=True, on_delete=models.SET_NULL, related_name="log_records"
+        ManagedNode, null=True, blank=True, on_delete=models.SET_NULL, related_name="log_records", db_index=False
     )
     logger = models.CharField(max_length=255)
     stamp = models.DateTimeField()

@@ -289,12 +289,19 @@ async def flood_measure(fleet: Fleet, flooders: dict[str, LineProcess], result: 
     done = threading.Event()
     observer = threading.Thread(target=observe, args=(fleet, samples, done), daemon=True)
     observer.start()
+    assert stack.site is not None and stack.ingest is not None
+    pids = {f"gateway {n}": c.pid for n, c in fleet.gateways().items()}
+    pids.update(site=stack.site.pid, ingest=stack.ingest.pid)
+    pids.update({f"sender {key}": f.pid for key, f in flooders.items()})
+    cpu_before = {k: cpu_seconds(pid) for k, pid in pids.items()}
     began = time.monotonic()
     answers = await asyncio.gather(*(asyncio.to_thread(f.call, "flood", seconds + 30, seconds=seconds,
                                                        rate=LOG_OFFERED_PER_S / len(flooders))
                                      for f in flooders.values()))
     load = loadavg()[0]
     stored_after, stored_done = await asyncio.to_thread(wait_drained, fleet, relayed)
+    busy_s = max(stored_done - began, 1e-3)
+    cpu = {k: (cpu_seconds(pid) - cpu_before[k]) / busy_s * 100 for k, pid in pids.items()}
     done.set()
     observer.join(5)
     stop.set()
@@ -318,6 +325,8 @@ async def flood_measure(fleet: Fleet, flooders: dict[str, LineProcess], result: 
     result.figure("  stored in the database (ingest)", stored, "records")
     result.figure("  relayed to the log consoles' WebSockets", relayed_n, "records")
     result.figure("  load average at the flood's end", load, "")
+    for process, percent in cpu.items():  # where the 2 cores went until the last record was stored
+        result.figure(f"  {process} CPU, flood and drain", percent, "% of a core")
     for process, mb in memory_before.items():
         peak = max((s[1][process] for s in samples), default=float("nan"))
         result.figure(f"{process} RSS before the flood", mb, "MB")
