@@ -64,11 +64,7 @@ class CommandHandler:
     @staticmethod
     def _current(command: dict) -> bool:
         """False for a command whose requester has stopped waiting."""
-        try:
-            deadline = float(command.get("deadline", 0))
-        except (TypeError, ValueError):
-            deadline = 0.0
-        return deadline > time.time()  # also False for NaN
+        return _float(command.get("deadline")) > time.time()  # also False for NaN
 
     def _not_carried_out(self, command: dict, why: str) -> None:
         """Put a command that will not be carried out on record (as not carried out, at the time
@@ -142,7 +138,7 @@ class CommandHandler:
             return {"ok": True, "domains": sorted(parts.domains), "nodes": len(parts.registry.nodes)}
         if name == protocol.START_RUN:
             return parts.runs.start(command.get("run"))
-        node = await self._node(command)
+        node = await self._node(command, timeout)
         domain = parts.domains[node.robot.domain_id]
         try:
             if name == protocol.GET_STATE:
@@ -171,16 +167,19 @@ class CommandHandler:
             return await self.change_state(node, command, timeout)
         raise CommandError("unknown_command", f"The gateway has no command {name!r}.")
 
-    async def _node(self, command: dict) -> LiveNode:
+    async def _node(self, command: dict, timeout: float) -> LiveNode:
         robot_name, name = command.get("robot"), command.get("node")
         robot = self.parts.registry.robot_named(str(robot_name))
         if robot is None:
             raise CommandError("robot_not_watched", f"Robot {robot_name!r} is not watched (unknown or disabled).")
         node = self.parts.registry.find(robot.name, name)
         # Just after this gateway (or the robot's domain) started, discovery has not had its
-        # chance yet: wait for it (bounded) rather than call a running node "not running".
+        # chance yet: wait for it rather than call a running node "not running", bounded by the
+        # domain's settling and by the requester's deadline: the wait takes the place of the
+        # first call, the others keep their time.
         domain = self.parts.domains.get(robot.domain_id)
-        while (node is None or not node.alive) and domain is not None and domain.settling():
+        give_up = _float(command.get("deadline")) - (protocol.CALLS_PER_COMMAND - 1) * timeout
+        while (node is None or not node.alive) and domain is not None and domain.settling() and time.time() < give_up:
             await asyncio.sleep(0.1)
             node = self.parts.registry.find(robot.name, name)
         if node is None or not node.alive:
@@ -234,6 +233,13 @@ def _timeout(value: object, default: float) -> float:
     except (TypeError, ValueError):
         return default
     return timeout if 0 < timeout <= 60 else default
+
+
+def _float(value: object) -> float:
+    try:
+        return float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return 0.0
 
 
 def _user(command: dict) -> int | None:

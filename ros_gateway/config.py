@@ -147,10 +147,14 @@ def interface_addresses(spec: str, dds: Mapping[str, str]) -> list[str]:
     return addresses
 
 
+# How often the gateway's participant announces itself (fastdds_gateway.xml says why).
+ANNOUNCEMENT_PERIOD_S = 1
+
+
 def interfaces_profile(addresses: list[str]) -> str:
     """A Fast DDS profile whose participants use UDP on these addresses only; it also keeps the
-    gateway's own endpoints from pre-allocating samples, as ros_gateway/fastdds_gateway.xml does
-    (it replaces that file)."""
+    gateway's announcement period and its endpoints from pre-allocating samples, as
+    ros_gateway/fastdds_gateway.xml does (it replaces that file)."""
     listed = "".join(f"<address>{escape(a)}</address>" for a in addresses)
     unallocated = "<topic><resourceLimitsQos><allocated_samples>0</allocated_samples></resourceLimitsQos></topic>"
     return (
@@ -161,6 +165,8 @@ def interfaces_profile(addresses: list[str]) -> str:
         f"    <interfaceWhiteList>{listed}</interfaceWhiteList>\n"
         "  </transport_descriptor></transport_descriptors>\n"
         '  <participant profile_name="lifecycle_gateway" is_default_profile="true"><rtps>\n'
+        "    <builtin><discovery_config><leaseAnnouncement>"
+        f"<sec>{ANNOUNCEMENT_PERIOD_S}</sec><nanosec>0</nanosec></leaseAnnouncement></discovery_config></builtin>\n"
         "    <userTransports><transport_id>lifecycle_udp</transport_id></userTransports>\n"
         "    <useBuiltinTransports>false</useBuiltinTransports>\n"
         "  </rtps></participant>\n"

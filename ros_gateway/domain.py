@@ -42,7 +42,11 @@ GET_STATE_TYPE = "lifecycle_msgs/srv/GetState"
 # The gateway's Fast DDS defaults (see the file for why); read when the first Context starts.
 FASTDDS_PROFILES = Path(__file__).with_name("fastdds_gateway.xml")
 # After a domain starts, discovery needs a moment before "not in the graph" means "gone".
-DISCOVERY_SETTLE_S = 3.0
+# The gateway announces itself 5 times 100 ms apart, then every second (fastdds_gateway.xml);
+# the robots every 3 s. Seen in CI: a restarted gateway found the robots 3.03 s after it started
+# and called a running node "not running". A robot process started in those first seconds can
+# take one more round of announcements, and a busy machine more.
+DISCOVERY_SETTLE_S = 6.0
 # Watched nodes per shard (its own rclpy node, executor and thread).
 NODES_PER_SHARD = 12
 # The service list (thousands of entries in a big domain) is re-read on each discovery pass

@@ -104,8 +104,7 @@ def call_gateway(gateway: str, command: str, timeout: float | None = None, **arg
     if not state.online:
         raise GatewayOffline(state.refusal(robot), gateway)
     service_timeout = _service_timeout(timeout)
-    # A transition makes up to three calls in a row: read the state, change it, re-read it.
-    wait = 3 * service_timeout + settings.LIFECYCLE["COMMAND_GRACE"]
+    wait = protocol.CALLS_PER_COMMAND * service_timeout + settings.LIFECYCLE["COMMAND_GRACE"]
     asked = datetime.now(timezone.utc)
     message = {
         "command": command,

@@ -42,6 +42,9 @@ INGEST_GROUP = "ingest"
 # The stream field ("1") of facts entries handed over in one round trip with a command's reply.
 REPLIED = "r"
 
+# A command makes up to this many ROS calls in a row (a transition: read the state, change it,
+# read it again); the site waits that many service timeouts plus a grace for the reply.
+CALLS_PER_COMMAND = 3
 # Bounds. Commands queued per gateway, and how long an unread reply lives.
 COMMAND_QUEUE_LIMIT = 1000
 REPLY_TTL_S = 60

@@ -3,15 +3,18 @@ finished before the kill is on record, and the run is settled (failed, saying wh
 gateway comes back; if it does not come back, when it has been silent past the run's bound."""
 from __future__ import annotations
 
+import threading
 import time
 
 import pytest
 from django.core.management import call_command
+from django.db import connection
 
 from lifecycle_site.audit.models import TransitionRecord
+from lifecycle_site.fleet import gateways
 from lifecycle_site.fleet.models import Gateway, GroupRun, Robot
 from tests import stack
-from tests.integration.conftest import register, wait_node
+from tests.integration.conftest import register, transition, wait_node
 
 NAME, ROBOT = "cell-k", "kill-agv"
 
@@ -71,3 +74,33 @@ def test_a_run_whose_gateway_is_killed_is_settled_when_it_restarts(api, cell):
     assert done == [("/camera_driver", "activate"), ("/camera_driver", "configure"),
                     ("/lidar_driver", "activate"), ("/lidar_driver", "configure")], done
     assert Gateway.objects.get(name=NAME).facts_lost == 0
+
+
+def test_a_command_just_after_a_restart_waits_for_discovery(api, cell):
+    """A restarted gateway that has not found a node yet does not call it "not running": the
+    robots' DDS participants may answer its first announcements late (Fast DDS announces again
+    3 s on). Here the robot's process itself comes up 3 s after the gateway is back."""
+    cell.gateway.kill()
+    robot = cell.processes.pop(1)
+    robot.stop()
+    cell.start_gateway()
+    stack.wait_for(lambda: gateways.status(NAME).online, 20, "the restarted gateway online")
+    answer: dict = {}
+
+    def ask() -> None:
+        began = time.monotonic()
+        try:
+            answer["response"] = transition(api, f"{ROBOT}.camera_driver", "configure")
+            answer["seconds"] = time.monotonic() - began
+        finally:
+            connection.close()  # this thread's own
+
+    asking = threading.Thread(target=ask)
+    asking.start()
+    time.sleep(3.0)
+    cell.processes.append(stack.start_robot("kill-agv-nodes-again", stack.domain(23), "lidar_driver,camera_driver"))
+    asking.join(30)
+    response = answer["response"]
+    assert response.status_code == 200, (response.json(), answer["seconds"])
+    assert response.json()["to"]["label"] == "inactive"
+    assert answer["seconds"] > 3.0, answer  # it was sent before the node was there

@@ -7,7 +7,8 @@ import xml.etree.ElementTree as ET
 import pytest
 from django.conf import settings
 
-from ros_gateway.config import ConfigError, GatewayConfig, interfaces_profile
+from ros_gateway.config import ANNOUNCEMENT_PERIOD_S, ConfigError, GatewayConfig, interfaces_profile
+from ros_gateway.domain import FASTDDS_PROFILES
 
 NS = {"f": "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"}
 
@@ -50,9 +51,17 @@ def test_the_profile_lists_only_those_addresses_and_replaces_the_builtin_transpo
     assert participant.get("is_default_profile") == "true"
     assert participant.find(".//f:useBuiltinTransports", NS).text == "false"
     assert participant.find(".//f:userTransports/f:transport_id", NS).text == "lifecycle_udp"
-    # It replaces fastdds_gateway.xml, so it keeps that file's memory setting too.
+    # It replaces fastdds_gateway.xml, so it keeps that file's memory and announcement settings too.
     for kind in ("data_writer", "data_reader"):
         assert root.find(f".//f:{kind}//f:allocated_samples", NS).text == "0"
+    assert announcement_period(root) == announcement_period(ET.parse(FASTDDS_PROFILES).getroot())
+
+
+def announcement_period(root: ET.Element) -> float:
+    announcement = root.find(".//f:participant//f:discovery_config/f:leaseAnnouncement", NS)
+    seconds = int(announcement.find("f:sec", NS).text) + int(announcement.find("f:nanosec", NS).text) / 1e9
+    assert seconds == ANNOUNCEMENT_PERIOD_S
+    return seconds
 
 
 def test_a_discovery_server_makes_the_gateway_a_super_client_unless_told_otherwise():
