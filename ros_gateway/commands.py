@@ -7,7 +7,7 @@ import time
 from collections import deque
 from dataclasses import dataclass
 
-from ros_gateway.domain import RosDomain
+from ros_gateway.domain import COMMAND_DISCOVERY_WAIT_S, RosDomain
 from ros_gateway.groups import GroupRunner
 from ros_gateway.lifecycle import (
     DELIVERY_WAIT_S,
@@ -179,7 +179,8 @@ class CommandHandler:
         # first call, the others keep their time.
         domain = self.parts.domains.get(robot.domain_id)
         give_up = _float(command.get("deadline")) - (protocol.CALLS_PER_COMMAND - 1) * timeout
-        while (node is None or not node.alive) and domain is not None and domain.settling() and time.time() < give_up:
+        while (node is None or not node.alive) and domain is not None and domain.settling(COMMAND_DISCOVERY_WAIT_S) \
+                and time.time() < give_up:
             await asyncio.sleep(0.1)
             node = self.parts.registry.find(robot.name, name)
         if node is None or not node.alive:

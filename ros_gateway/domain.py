@@ -41,12 +41,13 @@ log = logging.getLogger(__name__)
 GET_STATE_TYPE = "lifecycle_msgs/srv/GetState"
 # The gateway's Fast DDS defaults (see the file for why); read when the first Context starts.
 FASTDDS_PROFILES = Path(__file__).with_name("fastdds_gateway.xml")
-# After a domain starts, discovery needs a moment before "not in the graph" means "gone".
-# The gateway announces itself 5 times 100 ms apart, then every second (fastdds_gateway.xml);
-# the robots every 3 s. Seen in CI: a restarted gateway found the robots 3.03 s after it started
-# and called a running node "not running". A robot process started in those first seconds can
-# take one more round of announcements, and a busy machine more.
-DISCOVERY_SETTLE_S = 6.0
+# After a domain starts, discovery needs a moment before "not in the graph" means "gone"
+# (nodes the site believes alive are reported lost only after it).
+DISCOVERY_SETTLE_S = 3.0
+# A command for a node not found yet waits longer: the gateway announces itself 5 times 100 ms
+# apart, then every second (fastdds_gateway.xml); the robots every 3 s. Seen in CI: a restarted
+# gateway found the robots 3.03 s after it started and called a running node "not running".
+COMMAND_DISCOVERY_WAIT_S = 6.0
 # Watched nodes per shard (its own rclpy node, executor and thread).
 NODES_PER_SHARD = 12
 # The service list (thousands of entries in a big domain) is re-read on each discovery pass
@@ -225,9 +226,9 @@ class RosDomain:
                 shard.thread.join(timeout=3.0)
         log.info("stopped watching ROS domain %d", self.domain_id)
 
-    def settling(self) -> bool:
+    def settling(self, window: float = DISCOVERY_SETTLE_S) -> bool:
         """Whether discovery in this domain is too young to call a node missing."""
-        return time.monotonic() - self.started_at < DISCOVERY_SETTLE_S
+        return time.monotonic() - self.started_at < window
 
     # -- graph ----------------------------------------------------------------------
     def lifecycle_node_names(self, known: Iterable[str] = ()) -> set[str]:
