@@ -229,14 +229,12 @@ class CommandHandler:
 
 def _timeout(value: object, default: float) -> float:
     """The command's service timeout, if it is a sane number of seconds, else the default."""
-    try:
-        timeout = float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        return default
+    timeout = _float(value)
     return timeout if 0 < timeout <= 60 else default
 
 
 def _float(value: object) -> float:
+    """The value as a number, 0.0 if it is none."""
     try:
         return float(value)  # type: ignore[arg-type]
     except (TypeError, ValueError):
