@@ -30,6 +30,9 @@ GONE_REASONS = ("unreachable", protocol.PROCESS_LOST)
 PROCESS_STATUS = {protocol.PROCESS_RESTARTED: "restarted"}
 
 DONE = (GroupRun.Status.SUCCEEDED, GroupRun.Status.FAILED, GroupRun.Status.PARTIAL)
+# PostgreSQL's codes for "your transaction lost a conflict with another; run it again".
+CONFLICT_STATES = {"40P01", "40001"}
+CONFLICT_ATTEMPTS = 3
 
 
 def apply_facts(gateway: str, facts: Iterable[dict], hints: Hints | None = None) -> Applied:
@@ -38,14 +41,39 @@ def apply_facts(gateway: str, facts: Iterable[dict], hints: Hints | None = None)
 
     All facts are first applied in one go; only when one of them fails is the batch rolled back
     and applied again fact by fact, each in a savepoint of its own (the usual batch, a reply's
-    two or three facts, costs no savepoint)."""
+    two or three facts, costs no savepoint).
+
+    The request path and the ingest process apply a reply's facts side by side. Should
+    PostgreSQL still end one of them as a deadlock victim (or a serialization failure), the
+    batch is applied again, up to CONFLICT_ATTEMPTS times; inside a caller's transaction (the
+    ingest's) the caller does that, since the locks taken before would still be held."""
     facts = list(facts)
+    attempts = 1 if transaction.get_connection().in_atomic_block else CONFLICT_ATTEMPTS
+    attempt = 1
+    while True:
+        try:
+            return _apply_batch(gateway, facts, hints)
+        except OperationalError as exc:
+            if attempt >= attempts or not _conflict(exc):
+                raise
+            attempt += 1
+            log.warning("gateway %s: applying %d fact(s) again after a database conflict (%s)", gateway,
+                        len(facts), str(exc).splitlines()[0])
+
+
+def _apply_batch(gateway: str, facts: list, hints: Hints | None) -> Applied:
     try:
         return _apply_all(gateway, facts, hints, isolated=False)
     except (OperationalError, InterfaceError):
-        raise  # the database itself is unavailable: the whole batch is tried again
+        raise  # the database itself is unavailable, or a conflict: the whole batch is tried again
     except Exception:  # noqa: BLE001 - some fact fails: find which, apply the others
         return _apply_all(gateway, facts, hints, isolated=True)
+
+
+def _conflict(exc: OperationalError) -> bool:
+    """Whether PostgreSQL ended the transaction for a conflict with another one, to be tried
+    again: a deadlock (40P01) or a serialization failure (40001)."""
+    return getattr(exc.__cause__, "sqlstate", None) in CONFLICT_STATES
 
 
 def _apply_all(gateway: str, facts: list, hints: Hints | None, isolated: bool) -> Applied:
@@ -290,7 +318,10 @@ def _run(known: KnownRecords, fact: dict, at: datetime, applied: Applied) -> Non
     for name in ("started", "finished"):
         if fact.get(name):
             changes[name] = parse_time(fact[name], name)
-    run = GroupRun.objects.select_for_update().select_related("robot").filter(pk=run_id).first()
+    # The run's row only ("self"): locking its robot's row too would block, until this batch
+    # commits, every audit record that refers to that robot (a foreign key check), and once
+    # deadlocked the request path applying a reply's facts against the ingest process.
+    run = GroupRun.objects.select_for_update(of=("self",)).select_related("robot").filter(pk=run_id).first()
     if run is None:
         if "operation" not in fact:
             raise FactRejected(f"there is no run {run_id}")
