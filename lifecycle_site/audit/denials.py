@@ -23,10 +23,11 @@ def record(request: HttpRequest | None, status: int, code: str, detail: str = ""
     """Write the refusal; never lets the recording fail the answer."""
     user = getattr(request, "user", None) if request is not None else None
     user = user if getattr(user, "is_authenticated", False) else None
-    name = username or (user.get_username() if user is not None else "")
+    name = _storable(username or (user.get_username() if user is not None else ""))
     client = (request.META.get("REMOTE_ADDR", "") if request is not None else "")[:64]
-    method = (request.method or "") if request is not None else ""
-    path = request.path[:300] if request is not None else ""
+    method = _storable(request.method or "") if request is not None else ""
+    path = _storable(request.path)[:300] if request is not None else ""
+    detail = _storable(detail)
     log.warning("refused %s %s (%s %s) for %s from %s", method, path, status, code, name or "anonymous", client)
     try:
         AccessDenial.objects.create(user=user, username=name[:150], client=client, method=method[:8], path=path,
@@ -35,6 +36,12 @@ def record(request: HttpRequest | None, status: int, code: str, detail: str = ""
             prune()
     except DatabaseError:
         log.exception("could not record a refused attempt")
+
+
+def _storable(text: str) -> str:
+    """What an attacker sent, as PostgreSQL can store it: a NUL character (``%00`` in a path or
+    a user name tried) becomes U+FFFD instead of losing the whole record."""
+    return text.replace("\x00", "\ufffd")
 
 
 def too_many_bad_tokens(request: HttpRequest) -> bool:

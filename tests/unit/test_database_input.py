@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import pytest
 
+from lifecycle_site.audit.models import AccessDenial
 from lifecycle_site.fleet.models import ManagedNode, Robot
 
 
@@ -35,3 +36,11 @@ def test_a_node_name_longer_than_its_column_is_not_a_server_error(operator_clien
     # The watch form refuses it as not a node name (on SQLite too, which would store it).
     assert response.status_code in (302, 400), response.content[:300]
     assert not ManagedNode.objects.filter(robot=robot).exists()
+
+
+def test_a_refusal_with_a_nul_character_is_still_on_record(client, robot):
+    response = client.post("/api/v1/nodes/agv%00/transition", '{"transition": "configure"}',
+                           content_type="application/json", HTTP_AUTHORIZATION="Bearer bad\x00token")
+    assert response.status_code == 401, response.content[:300]
+    denial = AccessDenial.objects.get()
+    assert denial.path == "/api/v1/nodes/agv\ufffd/transition" and denial.code == "bad_token"
