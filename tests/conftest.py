@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import re
 import time
 from pathlib import Path
 
@@ -11,8 +12,10 @@ from django.test import Client
 from tests import stack
 
 # Under a failed test, the last lines of every stack process's log written during it (gateway,
-# ingest, robots): a failure in CI leaves nothing but this output to find the cause in.
+# ingest, robots), and its first errors with their tracebacks wherever they are in the log: a
+# failure in CI leaves nothing but this output to find the cause in.
 FAILURE_LOG_LINES = 40
+FAILURE_ERROR_LINES = 200
 _STARTED = pytest.StashKey[float]()
 
 
@@ -27,8 +30,31 @@ def pytest_runtest_makereport(item, call):
     report = outcome.get_result()
     if report.failed and report.when in ("setup", "call"):
         for path in _logs_written_since(item.stash.get(_STARTED, 0.0)):
-            lines = path.read_text(errors="replace").splitlines()[-FAILURE_LOG_LINES:]
-            report.sections.append((f"{path.name}, last {len(lines)} lines", "\n".join(lines)))
+            lines = path.read_text(errors="replace").splitlines()
+            errors = _errors(lines[:-FAILURE_LOG_LINES])
+            if errors:
+                report.sections.append((f"{path.name}, errors before the last lines", "\n".join(errors)))
+            tail = lines[-FAILURE_LOG_LINES:]
+            report.sections.append((f"{path.name}, last {len(tail)} lines", "\n".join(tail)))
+
+
+# Where a log record begins: ours (settings.LOGGING), rclpy's, daphne's access log.
+_RECORD_START = re.compile(r"\d{4}-\d\d-\d\d \d\d:|\[(DEBUG|INFO|WARN|ERROR|FATAL)\] |\S+:\d+ - - \[")
+
+
+def _errors(lines: list[str]) -> list[str]:
+    """The lines logged at ERROR or CRITICAL and the lines under each (a traceback), up to
+    FAILURE_ERROR_LINES in all."""
+    found: list[str] = []
+    inside = False
+    for line in lines:
+        if _RECORD_START.match(line):  # a new record: an error, or the end of the one before
+            inside = " ERROR " in line or " CRITICAL " in line or line.startswith(("[ERROR]", "[FATAL]"))
+        if inside:
+            found.append(line)
+            if len(found) >= FAILURE_ERROR_LINES:
+                break
+    return found
 
 
 def _logs_written_since(started: float) -> list[Path]:
