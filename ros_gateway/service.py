@@ -42,6 +42,10 @@ log = logging.getLogger(__name__)
 VERSION = "2.0"
 # How often all live nodes' "last seen" goes to the site, and all states are re-read.
 RESYNC_EVERY_S = 30.0
+# A stopping gateway's last words to Redis, each bounded: a supervisor (docker stop: 10 s)
+# would kill a gateway that waited out every Redis call's timeout and retries (over a minute).
+STOP_FLUSH_S = 4.0
+STOP_FAREWELL_S = 2.0
 
 
 class AlreadyRunning(RuntimeError):
@@ -135,11 +139,21 @@ class Gateway:
         await tasks.cancel_all()
         self.logs.collect()
         try:  # what is still held goes out if Redis answers; bounded, the process is stopping
-            await asyncio.wait_for(self.outbox.flush(), 5.0)
+            await asyncio.wait_for(self.outbox.flush(), STOP_FLUSH_S)
         except Exception:
             log.warning("stopping with %s facts and log batches not sent", self.outbox.counters())
         for domain in list(self.domains.values()):
             await asyncio.to_thread(domain.stop)
+        try:  # bounded too: each Redis call would otherwise wait out its timeout and retries
+            await asyncio.wait_for(self._farewell(), STOP_FAREWELL_S)
+        except Exception as exc:
+            log.warning("stopping without a last word to Redis (%s): the site calls this gateway offline once "
+                        "its beats stop, and its lease runs out by itself within %g s",
+                        "no answer within %g s" % STOP_FAREWELL_S if isinstance(exc, asyncio.TimeoutError) else exc,
+                        self.config.lease_ttl)
+
+    async def _farewell(self) -> None:
+        """The last beat (the site calls the gateway offline at once) and the lease given back."""
         await self.relay.beat({**self._beat(), "stopped": True})
         await self.relay.release_lease(self.instance)
         await self.relay.close()

@@ -38,6 +38,9 @@ HEARTBEAT_S = "3.0"
 OFFLINE_AFTER_S = 10.0
 SLOW_S = 6.0  # flaky_node's slow configure
 ANSWER_SLACK_S = 2.0  # beyond a request's documented bound (3 x timeout + 3 s): this machine is slow
+# A gateway's stop: its bounded flush and farewell (ros_gateway/service.py), its ROS domains'
+# shutdown, and slack for this machine. Docker's default grace before SIGKILL is 10 s.
+GATEWAY_STOP_BOUND_S = 10.0
 
 
 class Cell:
@@ -281,6 +284,22 @@ def test_redis_frozen_or_stopped_every_request_answers_within_seconds_on_record_
     assert ParameterRecord.objects.filter(node__key=key("camera_driver")).count() == params_before + 2
     runs = GroupRun.objects.filter(robot__name=ROBOT).order_by("-created")
     assert runs.count() == asked_runs + 1 and runs[0].status == "failed" and "Redis" in runs[0].message
+
+
+def test_a_gateway_stopped_while_redis_is_frozen_ends_within_seconds(cell, redis_server):
+    """Stopping (docker stop, systemd) with Redis not answering: what the gateway still holds
+    is given up after a bounded wait, not after every Redis call's own timeouts and retries
+    (more than a minute), by which time a supervisor would have killed it."""
+    with stack.frozen(redis_server.current.pid):
+        began = time.monotonic()
+        code = cell.gateway.stop(timeout=40)  # SIGTERM, and SIGKILL only after 40 s
+        took = time.monotonic() - began
+    assert code == 0 and took < GATEWAY_STOP_BOUND_S, (code, took, cell.gateway.output()[-1500:])
+    assert "stopping without a last word to Redis (no answer within" in cell.gateway.output()
+    cell.start_gateway()
+    stack.wait_for(gateway_online, 30, f"gateway {NAME} online after its restart")
+    for node in ("lidar_driver", "camera_driver", "flaky_node"):
+        wait_node(None, key(node), alive=True, timeout=30)
 
 
 def test_with_the_ingest_process_stopped_requests_are_on_record_before_their_answer_and_once(cell, ingest):
