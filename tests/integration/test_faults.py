@@ -26,6 +26,7 @@ from lifecycle_site.dashboard.consumers import TRY_AGAIN_LATER
 from lifecycle_site.dashboard.routing import websocket_urlpatterns
 from lifecycle_site.fleet import gateways
 from lifecycle_site.fleet.models import Gateway, GroupRun, Robot
+from ros_gateway.shared import protocol
 from tests import stack
 from tests.conftest import make_user, session_of
 from tests.integration.conftest import register, wait_node
@@ -272,8 +273,11 @@ def test_redis_frozen_or_stopped_every_request_answers_within_seconds_on_record_
         assert fleet_socket_close_code() == TRY_AGAIN_LATER  # refused with a code the page retries on, not a 500
     finally:
         redis_server.start()
-    # Back by itself: the gateway, live updates, commands; nothing restarted.
+    # Back by itself: the gateway, live updates, commands; nothing restarted. The gateway's config,
+    # lost with Redis's data, is there again for a gateway that starts now (not a minute later).
     stack.wait_for(gateway_online, 30, f"gateway {NAME} online after Redis came back")
+    config = protocol.config_key(gateways.channel_prefix(), NAME)
+    stack.wait_for(lambda: stack.redis_client().exists(config), 6, "the gateway's config in Redis again")
     assert fleet_socket_close_code() is None
     response = stack.wait_for(lambda: (r := transition("camera_driver", "configure")).status_code != 503 and r, 20,
                               "a command after Redis came back")

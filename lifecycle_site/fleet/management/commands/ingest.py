@@ -105,6 +105,7 @@ class Ingest:
             except redis.RedisError as exc:
                 self.complain(f"Redis at {gw.safe_url(settings.REDIS_URL)} failed: {exc}; retrying")
                 self.ready.clear()
+                self.published.clear()  # a Redis restarted without its data has lost the configs
                 time.sleep(1.0)
             except DatabaseError as exc:
                 self.complain(f"the database failed: {exc}; retrying")
@@ -199,6 +200,7 @@ class Ingest:
         except redis.ResponseError as exc:
             if "NOGROUP" in str(exc):  # Redis restarted without its data
                 self.ready.clear()
+                self.published.clear()
                 self.due.pop("refresh", None)
                 return 0
             raise
