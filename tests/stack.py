@@ -17,6 +17,8 @@ from urllib.parse import urlparse
 
 from django.conf import settings
 
+from lifecycle_site.child_process import die_with_parent
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -80,7 +82,8 @@ def free_port() -> int:
 
 
 class Process:
-    """A child process whose output goes to a log file shown when a test fails."""
+    """A child process whose output goes to a log file shown when a test fails. Started from
+    the main thread, it also ends when the test run is killed (no fixture clean-up then)."""
 
     def __init__(self, name: str, argv: list[str], env: dict[str, str], log_dir: Path) -> None:
         self.name = name
@@ -88,7 +91,8 @@ class Process:
         log_dir.mkdir(parents=True, exist_ok=True)
         with open(self.log_path, "ab") as log:
             self.popen = subprocess.Popen(
-                argv, cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True
+                argv, cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
+                preexec_fn=die_with_parent() if threading.current_thread() is threading.main_thread() else None,
             )
 
     def output(self) -> str:
