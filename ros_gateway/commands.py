@@ -140,17 +140,18 @@ class CommandHandler:
             return parts.runs.start(command.get("run"))
         node = await self._node(command, timeout)
         domain = parts.domains[node.robot.domain_id]
+        first_call = self._first_call_timeout(command, domain, timeout)
         try:
             if name == protocol.GET_STATE:
-                state_id = await read_state(domain, node.name, timeout)
+                state_id = await read_state(domain, node.name, first_call)
                 parts.registry.set_state(node, state_id)
                 return {"ok": True, "state": sm.state_dict(state_id)}
             if name == protocol.GET_AVAILABLE_STATES:
-                return {"ok": True, "states": await available_states(domain, node.name, timeout)}
+                return {"ok": True, "states": await available_states(domain, node.name, first_call)}
             if name == protocol.GET_AVAILABLE_TRANSITIONS:
-                return {"ok": True, "transitions": await available_transitions(domain, node.name, timeout)}
+                return {"ok": True, "transitions": await available_transitions(domain, node.name, first_call)}
             if name == protocol.GET_TRANSITION_GRAPH:
-                return {"ok": True, "graph": await available_transitions(domain, node.name, timeout, graph=True)}
+                return {"ok": True, "graph": await available_transitions(domain, node.name, first_call, graph=True)}
             if name == protocol.GET_PARAMETERS:
                 return {"ok": True, "parameters": await parts.params.listing(node, timeout)}
             if name == protocol.SET_PARAMETERS:
@@ -164,7 +165,7 @@ class CommandHandler:
         except NodeUnreachable as exc:
             raise CommandError("node_unreachable", f"{node.name} on {node.robot.name} did not answer: {exc}.")
         if name == protocol.CHANGE_STATE:
-            return await self.change_state(node, command, timeout)
+            return await self.change_state(node, command, timeout, first_call)
         raise CommandError("unknown_command", f"The gateway has no command {name!r}.")
 
     async def _node(self, command: dict, timeout: float) -> LiveNode:
@@ -187,7 +188,18 @@ class CommandHandler:
             raise CommandError("node_offline", f"{name} is not running on {robot_name} (not in its ROS graph).")
         return node
 
-    async def change_state(self, node: LiveNode, command: dict, timeout: float) -> dict:
+    @staticmethod
+    def _first_call_timeout(command: dict, domain: RosDomain, timeout: float) -> float:
+        """How long the command's first ROS call may wait for its answer. Just after this
+        gateway started, robots may not answer it for a few seconds (after a kill: 1.0-3.4 s,
+        docs/networks.md), so there the first call may use what the requester's deadline
+        leaves beyond the other calls' time, as the wait for discovery above does."""
+        if not domain.settling(COMMAND_DISCOVERY_WAIT_S):
+            return timeout
+        give_up = _float(command.get("deadline")) - (protocol.CALLS_PER_COMMAND - 1) * timeout
+        return max(timeout, give_up - time.time())
+
+    async def change_state(self, node: LiveNode, command: dict, timeout: float, read_timeout: float) -> dict:
         requested = command.get("transition")
         try:
             sm.resolve_transition(requested, sm.UNCONFIGURED)  # only checks that the name exists
@@ -208,7 +220,7 @@ class CommandHandler:
                 driven = await self.parts.driver.transition(
                     node, requested, timeout, source=str(command.get("source") or "api"),
                     user_id=_user(command), run_id=str(command.get("run_id") or ""),
-                    delivered_by_reply=True,
+                    read_timeout=read_timeout, delivered_by_reply=True,
                 )
             except NodeUnreachableRecorded as exc:
                 raise CommandError("node_unreachable", str(exc), facts=[exc.fact]) from None

@@ -64,9 +64,12 @@ READ_ONLY_SERVICES = frozenset({
     "get_state", "get_available_states", "get_available_transitions", "get_transition_graph",
     "list_parameters", "get_parameters", "describe_parameters", "get_parameter_types",
 })
-# A read is sent again after this long without an answer, then after twice as long, and so
-# on (a well node answers in milliseconds; 3 requests at most within a 5 s timeout).
-RESEND_AFTER_S = 1.0
+# A read is sent again every this long while unanswered (a well node answers in
+# milliseconds; 6 requests at most within a 3 s timeout). A steady pace, not a growing one:
+# the answer can come only to a request sent after the node matched us, and a gateway
+# restarted after a kill is not answered for 1.0-3.4 s (docs/networks.md); with pauses that
+# doubled, the last request of a 3 s call left at 1 s and its answer was lost.
+RESEND_AFTER_S = 0.5
 # /rosout messages taken per wake-up at most, so a flood cannot starve the thread's stop check.
 ROSOUT_BATCH = 1000
 
@@ -359,8 +362,6 @@ class RosDomain:
                         send()
                     except _rclpy.InvalidHandle:  # forgotten meanwhile: the requests sent may still be answered
                         resend_after = math.inf
-                        continue
-                    resend_after *= 2
         finally:  # the caller stopped waiting, or an answer came: the other requests are not awaited
             for ros_future in sent:
                 if not ros_future.done():

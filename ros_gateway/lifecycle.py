@@ -95,6 +95,7 @@ async def perform_transition(
     on_send=None,
     known_state: int | None = None,
     process_gone: ProcessGone | None = None,
+    read_timeout: float | None = None,
 ) -> TransitionResult:
     """Check, call and verify one transition. Raises NodeUnreachable and sm.UnknownTransition.
 
@@ -104,8 +105,12 @@ async def perform_transition(
     step by step), which spares one get_state call.
     ``process_gone``: looked at while the call runs; once it says the node's process went,
     the call ends at once as ``process_lost`` (its answer would never come).
+    ``read_timeout``: the first state read's own bound, when it is not ``timeout``.
     """
-    start_state = known_state if known_state is not None else await read_state(domain, fqn, timeout)
+    if known_state is not None:
+        start_state = known_state
+    else:
+        start_state = await read_state(domain, fqn, timeout if read_timeout is None else read_timeout)
     transition = sm.resolve_transition(requested, start_state)
     if transition is None:
         valid = [t.as_dict() for t in sm.valid_transitions(start_state)]
@@ -231,7 +236,8 @@ class NodeDriver:
 
     async def transition(
         self, node: LiveNode, requested, timeout: float, *, source: str, user_id: int | None = None,
-        run_id: str = "", known_state: int | None = None, delivered_by_reply: bool = False,
+        run_id: str = "", known_state: int | None = None, read_timeout: float | None = None,
+        delivered_by_reply: bool = False,
     ) -> Driven:
         """Carry out one transition; the caller holds ``node.lock``. Raises
         NodeUnreachableRecorded (reported too) when nothing could be sent. Returns once its
@@ -242,7 +248,7 @@ class NodeDriver:
         node.in_transition = True
         try:
             driven = await self._transition(node, requested, timeout, source=source, user_id=user_id,
-                                            run_id=run_id, known_state=known_state)
+                                            run_id=run_id, known_state=known_state, read_timeout=read_timeout)
         except NodeUnreachableRecorded as exc:
             if not delivered_by_reply:
                 await self.outbox.delivered(exc.fact, DELIVERY_WAIT_S)
@@ -254,7 +260,7 @@ class NodeDriver:
         return driven
 
     async def _transition(self, node: LiveNode, requested, timeout: float, *, source: str, user_id: int | None,
-                          run_id: str, known_state: int | None) -> Driven:
+                          run_id: str, known_state: int | None, read_timeout: float | None) -> Driven:
         domain = self.domains[node.robot.domain_id]
         requested_at = datetime.now(timezone.utc)
         audit = dict(robot=node.robot.name, node=node.name, source=source, user_id=user_id, run_id=run_id,
@@ -262,7 +268,8 @@ class NodeDriver:
         try:
             result = await perform_transition(domain, node.name, requested, timeout,
                                               on_send=lambda t: self._claim(node, t), known_state=known_state,
-                                              process_gone=self._process_gone(node, domain))
+                                              process_gone=self._process_gone(node, domain),
+                                              read_timeout=read_timeout)
         except NodeUnreachable as exc:
             message = f"{node.name} on {node.robot.name} did not answer ({exc}); nothing was sent to it."
             fact = self.outbox.emit(
