@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 # DDS discovery stays on this machine unless you say otherwise (see README).
 export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 
-.PHONY: setup system-packages demo test test-unit test-integration test-postgres test-deploy bench images edge-package edge-cell-package clean
+.PHONY: setup system-packages demo test test-postgres test-deploy bench images edge-package edge-cell-package clean
 
 $(BIN)/.installed: requirements.txt requirements-dev.txt
 	@$(PYTHON) -c 'import sys; assert sys.version_info[:2] == (3, 11), "Python 3.11 is needed (the ROS 2 Jazzy wheels are built for it); set PYTHON=/path/to/python3.11"'

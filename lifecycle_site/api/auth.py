@@ -2,13 +2,14 @@
 from __future__ import annotations
 
 import json
+import logging
 import math
 from functools import wraps
 from typing import Any, Callable
 
 from django.conf import settings
 from django.core.exceptions import RequestDataTooBig, SuspiciousOperation, TooManyFieldsSent
-from django.db import DataError
+from django.db import DataError, InterfaceError, OperationalError
 from django.http import Http404, HttpRequest, JsonResponse
 from django.middleware.csrf import CsrfViewMiddleware
 from django.utils import timezone
@@ -23,6 +24,12 @@ from lifecycle_site.fleet.gateway_client import GatewayError
 from ros_gateway.shared import param_types as pt
 
 UNSAFE_METHODS = {"POST", "PUT", "PATCH", "DELETE"}
+log = logging.getLogger(__name__)
+DATABASE_DOWN_MESSAGE = (
+    "The site's database did not answer; try again in a moment. If you asked for a change, look "
+    "at the node before asking again: a change that reached the robot is recorded from its "
+    "gateway's report once the database answers."
+)
 
 
 def error(code: str, message: str, status: int, **details) -> JsonResponse:
@@ -171,6 +178,15 @@ def api_view(methods: tuple[str, ...] = ("GET",), permission: str = VIEW_PERMISS
         @csrf_exempt
         @wraps(view)
         def wrapper(request: HttpRequest, *args, **kwargs):
+            # SQLite locked past its timeout, PostgreSQL down or gone: whether in the token
+            # check or in the view, the API's own error shape, not Django's HTML 500.
+            try:
+                return checked(request, *args, **kwargs)
+            except (OperationalError, InterfaceError) as exc:
+                log.error("API %s %s: the database did not answer: %s", request.method, cut(request.path), exc)
+                return error("database_unavailable", DATABASE_DOWN_MESSAGE, 503)
+
+        def checked(request: HttpRequest, *args, **kwargs):
             if request.method not in methods:
                 return error("method_not_allowed", f"Use {' or '.join(methods)} here.", 405)
             user = _token_user(request)
