@@ -5,6 +5,7 @@ Debian's ``redis-server`` when it is on PATH, else the server bundled in ``redis
 from __future__ import annotations
 
 import shutil
+import signal
 import subprocess
 import time
 from pathlib import Path
@@ -36,7 +37,9 @@ def start(port: int, workdir: Path, wait: float = 10.0, binary: str | None = Non
     """Start a throw-away Redis on 127.0.0.1:``port`` (no persistence); returns its process.
     ``binary``: that redis-server rather than the one ``server_binary()`` finds.
 
-    It gets SIGTERM when the calling process dies, so call this from the main thread.
+    It gets SIGKILL when the calling process dies, so call this from the main thread. SIGKILL,
+    not SIGTERM: it has nothing to save, and a Redis stopped with SIGSTOP (a fault test) would
+    keep a SIGTERM pending, and run stopped, for good.
     """
     workdir.mkdir(parents=True, exist_ok=True)
     process = subprocess.Popen(
@@ -53,7 +56,7 @@ def start(port: int, workdir: Path, wait: float = 10.0, binary: str | None = Non
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
         start_new_session=True,  # Ctrl-C reaches whoever started it, who then stops it in order
-        preexec_fn=die_with_parent(),  # and it ends with its starter, even one killed by SIGKILL
+        preexec_fn=die_with_parent(signal.SIGKILL),  # and it ends with its starter, even one killed
     )
     url = f"redis://127.0.0.1:{port}/0"
     deadline = time.monotonic() + wait

@@ -92,7 +92,9 @@ class Process:
         with open(self.log_path, "ab") as log:
             self.popen = subprocess.Popen(
                 argv, cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
-                preexec_fn=die_with_parent() if threading.current_thread() is threading.main_thread() else None,
+                # SIGKILL when the test run dies: it also ends a process a test stopped (frozen()).
+                preexec_fn=die_with_parent(signal.SIGKILL) if threading.current_thread() is threading.main_thread()
+                else None,
             )
 
     def output(self) -> str:
