@@ -13,7 +13,12 @@ def _free_port() -> int:
 
 
 # Set once per run (the values travel to pytest's subprocesses through the environment).
-os.environ.setdefault("LIFECYCLE_DATA_DIR", tempfile.mkdtemp(prefix="lifecycle-test-"))
+if "LIFECYCLE_DATA_DIR" not in os.environ:  # the run's first process: its scratch dir, gone with it
+    import atexit
+    import shutil
+
+    os.environ["LIFECYCLE_DATA_DIR"] = tempfile.mkdtemp(prefix="lifecycle-test-")
+    atexit.register(shutil.rmtree, os.environ["LIFECYCLE_DATA_DIR"], ignore_errors=True)
 os.environ.setdefault("REDIS_URL", f"redis://127.0.0.1:{_free_port()}/0")
 if "LIFECYCLE_TEST_DOMAIN_BASE" not in os.environ:  # the run's first process claims them
     from tests import domains
