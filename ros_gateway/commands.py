@@ -179,7 +179,7 @@ class CommandHandler:
         # domain's settling and by the requester's deadline: the wait takes the place of the
         # first call, the others keep their time.
         domain = self.parts.domains.get(robot.domain_id)
-        give_up = _float(command.get("deadline")) - (protocol.CALLS_PER_COMMAND - 1) * timeout
+        give_up = _first_call_deadline(command, timeout)
         while (node is None or not node.alive) and domain is not None and domain.settling(COMMAND_DISCOVERY_WAIT_S) \
                 and time.time() < give_up:
             await asyncio.sleep(0.1)
@@ -196,8 +196,7 @@ class CommandHandler:
         leaves beyond the other calls' time, as the wait for discovery above does."""
         if not domain.settling(COMMAND_DISCOVERY_WAIT_S):
             return timeout
-        give_up = _float(command.get("deadline")) - (protocol.CALLS_PER_COMMAND - 1) * timeout
-        return max(timeout, give_up - time.time())
+        return max(timeout, _first_call_deadline(command, timeout) - time.time())
 
     async def change_state(self, node: LiveNode, command: dict, timeout: float, read_timeout: float) -> dict:
         requested = command.get("transition")
@@ -237,6 +236,12 @@ class CommandHandler:
             "fact_id": driven.record["id"],
             "facts": driven.facts,
         }
+
+
+def _first_call_deadline(command: dict, timeout: float) -> float:
+    """When (epoch seconds) the command's first call must be over for the others to keep
+    their ``timeout`` each within the requester's deadline."""
+    return _float(command.get("deadline")) - (protocol.CALLS_PER_COMMAND - 1) * timeout
 
 
 def _timeout(value: object, default: float) -> float:
