@@ -6,7 +6,6 @@ or locks the tables (PostgreSQL, ``make test-postgres``), and the site's connect
 after half a second instead of its 20 s."""
 from __future__ import annotations
 
-import sqlite3
 from contextlib import contextmanager
 from typing import Iterator
 
@@ -27,19 +26,14 @@ LOCKED_TABLES = ("api_apitoken", "fleet_managednode", "audit_transitionrecord")
 @contextmanager
 def database_held() -> Iterator[None]:
     """The site's database busy with another connection's lock until the block ends."""
+    holder = connection.get_new_connection(connection.get_connection_params())  # a second one, as Django opens it
     options = connection.settings_dict.setdefault("OPTIONS", {})
     saved = dict(options)
     if connection.vendor == "sqlite":
         options["timeout"] = 0.5
-        holder = sqlite3.connect(connection.settings_dict["NAME"], isolation_level=None)
         holder.execute("BEGIN IMMEDIATE")  # the write lock: every writer waits for it
     else:
-        import psycopg
-
         options["options"] = "-c lock_timeout=500"
-        settings = connection.settings_dict
-        holder = psycopg.connect(dbname=settings["NAME"], user=settings["USER"], password=settings["PASSWORD"],
-                                 host=settings["HOST"], port=settings["PORT"])
         holder.execute(f"LOCK TABLE {', '.join(LOCKED_TABLES)} IN ACCESS EXCLUSIVE MODE")
     connection.close()  # the next query connects with the short timeout
     try:
