@@ -334,9 +334,31 @@ def _run(known: KnownRecords, fact: dict, at: datetime, applied: Applied) -> Non
         return
     if not known.owns(run.robot.name):
         raise FactRejected(f"run {run_id} is for robot {run.robot.name}, not one of gateway {known.name}'s")
-    if run.status in DONE and status not in DONE:
-        return  # a late progress report of a run that is over
+    if run.status in DONE:
+        # A verdict is final (the site's or the gateway's own): a progress report that comes
+        # after it is dropped, an end reported after it is kept as what it is, beside it.
+        if status in DONE:
+            _late_end(run, status, changes)
+        return
     GroupRun.objects.filter(pk=run_id).update(**changes)
+
+
+LATE_END = "; after this verdict the gateway reported: "
+
+
+def _late_end(run: GroupRun, status: str, changes: dict[str, Any]) -> None:
+    """The gateway's end of a run the site had already ended: its status stays; the message
+    says what the gateway reported, and the results are the gateway's (what its nodes did)."""
+    said = str(changes.get("message") or "")
+    if status == run.status and said == run.message:
+        return  # the report that ended it, applied again
+    verdict = run.message.split(LATE_END, 1)[0]
+    message = f"{verdict}{LATE_END}{status}" + (f" ({said})" if said else "")
+    late = {"message": message, **({"results": changes["results"]} if "results" in changes else {})}
+    if message != run.message:
+        GroupRun.objects.filter(pk=run.pk).update(**late)
+        log.warning("run %s: the gateway reported it %s after it had ended %s; it stays %s", run.pk, status,
+                    run.status, run.status)
 
 
 def _gateway_started(known: KnownRecords, fact: dict, at: datetime, applied: Applied) -> None:

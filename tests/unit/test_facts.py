@@ -135,6 +135,22 @@ def test_runs_follow_their_facts_but_never_come_back_from_done(cell):
     assert (made.operation, made.only_nodes, made.source, made.status) == ("recover", ["/lidar"], "recovery", "queued")
 
 
+def test_an_end_reported_after_the_sites_verdict_leaves_the_run_as_the_site_ended_it(cell):
+    part, robot = cell
+    verdict = "the gateway cell-f has been silent since 2026-11-25 20:14:36 UTC, so the run could not finish"
+    run = GroupRun.objects.create(id=protocol.new_id(), robot=robot, operation="bringup", status="failed",
+                                  message=verdict)
+    step = {"node": "/lidar", "outcome": "succeeded", "steps": [{"transition": "activate", "outcome": "succeeded"}]}
+    late = part.fact(protocol.RUN, run_id=run.id, robot=robot.name, status="succeeded", message="1 succeeded",
+                     results=[step], started=None, finished=part.tick())
+    apply_facts("cell-f", [late])
+    apply_facts("cell-f", [late])  # applied again (ingest after a crash): said once
+    run.refresh_from_db()
+    assert run.status == "failed"
+    assert run.message == f"{verdict}; after this verdict the gateway reported: succeeded (1 succeeded)"
+    assert run.results == [step]  # what the gateway did, as it reported it
+
+
 def test_a_gateway_restart_fails_the_runs_it_no_longer_knows(cell):
     part, robot = cell
     running = GroupRun.objects.create(id=protocol.new_id(), robot=robot, operation="bringup", status="running")
