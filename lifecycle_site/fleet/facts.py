@@ -17,6 +17,7 @@ from django.db.models import Q
 from django.db.models.functions import Coalesce
 
 from lifecycle_site.audit.models import ParameterRecord, TransitionRecord
+from lifecycle_site.fleet import verdicts
 from lifecycle_site.fleet.absences import node_back, node_left
 from lifecycle_site.fleet.fact_context import Applied, FactRejected, Hints, KnownRecords, optional_time, parse_time
 from lifecycle_site.fleet.models import GroupRun, ManagedNode
@@ -364,9 +365,15 @@ def _late_end(run: GroupRun, status: str, changes: dict[str, Any]) -> None:
 def _gateway_started(known: KnownRecords, fact: dict, at: datetime, applied: Applied) -> None:
     message = (f"the gateway {known.name} restarted while it ran (instance {fact.get('instance', '?')}); "
                "its last results are kept")
-    GroupRun.objects.filter(
-        robot__gateway__name=known.name, status__in=(GroupRun.Status.QUEUED, GroupRun.Status.RUNNING), created__lt=at
-    ).update(status=GroupRun.Status.FAILED, message=message, finished=at)
+    open_states = (GroupRun.Status.QUEUED, GroupRun.Status.RUNNING)
+    ids = list(GroupRun.objects.filter(robot__gateway__name=known.name, status__in=open_states, created__lt=at)
+               .values_list("id", flat=True))
+    if ids:
+        GroupRun.objects.filter(id__in=ids, status__in=open_states).update(
+            status=GroupRun.Status.FAILED, message=message, finished=at)
+        # The instance that ran them may only have been frozen while this one took its lease:
+        # should it wake up, it stops at its next step.
+        transaction.on_commit(lambda: verdicts.publish(known.name, ids, GroupRun.Status.FAILED, message, at))
 
 
 HANDLERS = {

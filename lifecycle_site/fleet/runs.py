@@ -14,7 +14,7 @@ from datetime import datetime, timedelta, timezone
 from django.conf import settings
 from django.db.models import F
 
-from lifecycle_site.fleet import gateways
+from lifecycle_site.fleet import gateways, verdicts
 from lifecycle_site.fleet.gateway_client import GatewayError, call_gateway
 from lifecycle_site.fleet.models import Gateway, GroupRun, ManagedNode, Robot
 from ros_gateway.shared import protocol
@@ -73,6 +73,8 @@ def start_run(
     try:
         call_gateway(robot.gateway.name, protocol.START_RUN, timeout=2.0, run=spec)
     except GatewayError as exc:
+        # The gateway may have taken the run all the same (no answer in time): it must not go on.
+        verdicts.publish(robot.gateway.name, [run.id], GroupRun.Status.FAILED, exc.message)
         GroupRun.objects.filter(pk=run.pk).update(status=GroupRun.Status.FAILED, message=exc.message)
         raise RunRefused(exc.code, exc.message, exc.status) from None
     return run
@@ -117,7 +119,11 @@ def wait_for(run: GroupRun, seconds: float, on_progress=None) -> GroupRun:
 def fail_runs_of_silent_gateways() -> None:
     """Runs of a gateway that has been silent past LIFECYCLE_RUN_ORPHAN_AFTER, with nothing
     of it left to store, end failed: a killed gateway that stays away would otherwise leave
-    them running for good (one that comes back settles them itself, gateway.started)."""
+    them running for good (one that comes back settles them itself, gateway.started).
+
+    The verdict goes to the gateway first (verdicts.py): one that was only frozen or cut off
+    and comes back reads it before its next step and stops, instead of finishing a run the
+    site has called failed."""
     open_states = (GroupRun.Status.QUEUED, GroupRun.Status.RUNNING)
     names = set(GroupRun.objects.filter(status__in=open_states).values_list("robot__gateway__name", flat=True))
     if not names:
@@ -128,10 +134,12 @@ def fail_runs_of_silent_gateways() -> None:
     for row, state in zip(rows, gateways.statuses(rows), strict=True):
         if state.online or state.last_beat is None or now - state.last_beat < after or row.backlog:
             continue
-        settled = GroupRun.objects.filter(robot__gateway=row, status__in=open_states).update(
-            status=GroupRun.Status.FAILED, finished=now,
-            message=f"the gateway {row.name} has been silent since {state.last_beat:%Y-%m-%d %H:%M:%S} UTC, "
-            "so the run could not finish; what finished before is on record")
+        ids = list(GroupRun.objects.filter(robot__gateway=row, status__in=open_states).values_list("id", flat=True))
+        message = (f"the gateway {row.name} has been silent since {state.last_beat:%Y-%m-%d %H:%M:%S} UTC, "
+                   "so the run could not finish; what finished before is on record")
+        verdicts.publish(row.name, ids, GroupRun.Status.FAILED, message, now)
+        settled = GroupRun.objects.filter(id__in=ids, status__in=open_states).update(
+            status=GroupRun.Status.FAILED, finished=now, message=message)
         if settled:
             log.warning("gateway %s: %d run(s) failed, the gateway is silent since %s", row.name, settled,
                         state.last_beat.isoformat())

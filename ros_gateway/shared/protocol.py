@@ -20,6 +20,10 @@ Every gateway has a name (``local`` on one machine) and its own Redis keys, all 
                       carries the command out; a site that stopped waiting SET NXes ABANDONED.
                       Whoever is first decides, so the site can tell the user plainly whether
                       the command was carried out (see ``not_carried_out``)
+``verdict:ID`` string written by the site when it ends a group run the gateway may still be
+                      carrying out (``{"status", "message", "at"}``, expiring after VERDICT_TTL_S);
+                      the gateway only reads it, before a run's next step after a pause, and
+                      stops the run if it is there (a verdict is final)
 
 Live updates to browsers go straight from the gateway to Channels groups (the site's
 consumers turn ``node.state`` into ``node_state``): ``node.state``, ``node.parameters`` and
@@ -51,6 +55,8 @@ REPLY_TTL_S = 60
 # A command's claim outlives the site's longest wait for it (3 x 25 s + grace) with room to spare.
 CLAIM_TTL_S = 180
 ABANDONED = "abandoned"  # the claim a site that stopped waiting leaves: the command is never carried out
+# A run's verdict outlives any run (a node step is bounded to minutes) by far.
+VERDICT_TTL_S = 24 * 3600
 # Facts kept in Redis for the ingest process (approximate trimming, ``XADD MAXLEN ~``): at a
 # few hundred bytes each, tens of MB at most; hours of state changes of a large cell.
 FACTS_MAXLEN = 100_000
@@ -134,6 +140,11 @@ def ingest_lease_key(prefix: str) -> str:
 
 def claim_key(prefix: str, gateway: str, request_id: str) -> str:
     return gateway_key(prefix, gateway, f"claim:{request_id}")
+
+
+def verdict_key(prefix: str, gateway: str, run_id: str) -> str:
+    """The site's final word on a run of this gateway (the gateway reads it, never writes it)."""
+    return gateway_key(prefix, gateway, f"verdict:{run_id}")
 
 
 def client_name(gateway: str, instance: str) -> str:

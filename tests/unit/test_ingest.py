@@ -253,3 +253,9 @@ def test_runs_of_a_gateway_silent_past_the_bound_end_failed_and_others_stay(cell
     assert failed.status == "failed" and failed.finished is not None
     assert failed.message.startswith("the gateway cell-i has been silent since ") and "on record" in failed.message
     assert GroupRun.objects.get(id=runs["ingest-arm"].id).status == "running"
+    # The verdict is where the gateway reads it (its own keys), should it come back.
+    client, prefix = stack.redis_client(), gateways.channel_prefix()
+    said = json.loads(client.get(protocol.verdict_key(prefix, "cell-i", failed.id)))
+    assert (said["status"], said["message"]) == ("failed", failed.message)
+    assert 0 < client.ttl(protocol.verdict_key(prefix, "cell-i", failed.id)) <= protocol.VERDICT_TTL_S
+    assert not client.exists(protocol.verdict_key(prefix, "cell-j", runs["ingest-arm"].id))
