@@ -3,7 +3,8 @@
 What Nav2's lifecycle manager does, without its surprises: nodes already where they should
 be are skipped, not failed; after a timeout the real state is read again before a node is
 called failed; a failure stops the run or not, as the operator chose; every step lands in
-the audit log under the run's id, and progress is pushed after every node.
+the audit log under the run's id, and progress is pushed after every node. A run the site
+has ended meanwhile (verdicts.py) takes no further step.
 """
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ from ros_gateway.relay import Relay
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 from ros_gateway.tasks import spawn
+from ros_gateway.verdicts import RunVerdict
 
 log = logging.getLogger(__name__)
 
@@ -164,16 +166,19 @@ class GroupRunner:
         progress = _Progress(self, run, names, started)
         limit = asyncio.Semaphore(TIER_CONCURRENCY)
         stopped_by: list[str] = []  # the node whose failure stopped the run
+        verdict = RunVerdict(self.relay, run.id)
 
         async def drive(name: str) -> None:
             async with limit:
-                if stopped_by:
+                if verdict.ended:
+                    result = {"node": name, "outcome": "not_run", "steps": [], "message": f"not run: {verdict.ended}"}
+                elif stopped_by:
                     result = {"node": name, "outcome": "not_run", "steps": [],
                               "message": f"not run: the run stopped after {stopped_by[0]} failed"}
                 else:
                     node = self.registry.find(run.robot.name, name)
                     try:
-                        result = await self._drive_node(run, node, name, target, leave_alone)
+                        result = await self._drive_node(run, node, name, target, leave_alone, verdict)
                     except Exception as exc:  # a bug: this node fails, the run ends cleanly
                         log.exception("run %s: driving %s failed", run.id, name)
                         result = {"node": name, "node_id": node.key if node else None, "outcome": "failed",
@@ -186,7 +191,9 @@ class GroupRunner:
             await asyncio.gather(*(drive(name) for name in tier))
         results = progress.results()
         failed = sum(r["outcome"] == "failed" for r in results)
-        if not failed:
+        if verdict.ended:
+            status = verdict.status or "failed"  # the site's, if it ended the run
+        elif not failed:
             status = "succeeded"
         elif stopped_by or failed == len(results):
             status = "failed"
@@ -195,13 +202,16 @@ class GroupRunner:
         summary = ", ".join(f"{sum(r['outcome'] == o for r in results)} {o.replace('_', ' ')}"
                             for o in ("succeeded", "skipped", "failed", "not_run")
                             if any(r["outcome"] == o for r in results))
+        summary = summary or "no nodes"
+        if verdict.ended:
+            summary = f"stopped: {verdict.ended}; {summary}"
         await progress.close()
-        self._report(run, status, summary or "no nodes", results, started=started, finished=True)
+        self._report(run, status, summary, results, started=started, finished=True)
         await progress.push(status=status, message=summary)
         log.info("run %s (%s of %s): %s", run.id, run.operation, run.robot.name, summary)
 
     async def _drive_node(self, run: Run, node: LiveNode | None, name: str, target: int,
-                          leave_alone: tuple[int, ...]) -> dict:
+                          leave_alone: tuple[int, ...], verdict: RunVerdict) -> dict:
         result = {"node": name, "node_id": node.key if node else None, "steps": [], "outcome": "succeeded",
                   "message": ""}
         if node is None or not node.alive:
@@ -227,6 +237,11 @@ class GroupRunner:
                         return {**result, "outcome": "skipped", "state": sm.state_dict(state),
                                 "message": f"already {sm.state_label(state)}"}
                     for label in steps:
+                        if not await verdict.may_step():
+                            result.update(outcome="failed", message=f"stopped before {label}: {verdict.ended}")
+                            if not result["steps"]:
+                                result.update(outcome="not_run", message=f"not run: {verdict.ended}")
+                            break
                         step = await self._step(run, node, label, state)
                         state = step["to"]["id"]
                         result["steps"].append(step)

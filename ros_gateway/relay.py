@@ -158,6 +158,11 @@ class Relay:
             log.warning("ignored the site's configuration for this gateway: %s", exc)
             return None
 
+    async def read_verdict(self, run_id: str) -> bytes | None:
+        """The site's verdict on a run (None while it has none); raises when Redis cannot be
+        read. Only ever read: the site writes it (protocol.verdict_key)."""
+        return await self.redis.get(protocol.verdict_key(self.prefix, self.gateway, run_id))
+
     async def beat(self, beat: dict) -> None:
         try:
             await self.redis.set(self.key("beat"), protocol.encode(beat))
