@@ -47,6 +47,42 @@ def test_a_right_password_before_the_limit_resets_the_count(db):
     assert login(Client(), "olga-operator", PASSWORD).status_code == 302
 
 
+def test_a_good_login_of_another_account_does_not_wipe_the_failures(db):
+    """An account holder guessing another account's password: 4 guesses, then a good login of
+    their own account from the same address, over and over. The guesses still add up."""
+    make_user("admin1", "admin")
+    make_user("viewer1", "viewer")
+    answers = []
+    for _round in range(5):
+        answers += [login(Client(), "admin1", f"guess-{len(answers)}", "10.4.4.4").status_code for _ in range(4)]
+        login(Client(), "viewer1", PASSWORD, "10.4.4.4")
+    refused = answers.count(429)
+    assert answers == [200] * 4 + [429] * 16, f"{refused} of 20 guesses refused: {answers}"  # the fifth blocks
+    assert login(Client(), "admin1", PASSWORD, "10.4.4.5").status_code == 429  # the account is blocked
+    assert login(Client(), "viewer1", PASSWORD, "10.4.4.4").status_code == 429  # and so is the address
+
+
+def test_a_good_login_does_not_wipe_the_addresss_failures_at_other_accounts(db):
+    make_user("viewer1", "viewer")
+    for name in ("u1", "u2", "u3", "u4"):  # one guess each: no account comes near its limit
+        login(Client(), name, "wrong", "10.3.3.3")
+    assert login(Client(), "viewer1", PASSWORD, "10.3.3.3").status_code == 302
+    login(Client(), "u5", "wrong", "10.3.3.3")  # the address's fifth failure
+    assert login(Client(), "viewer1", PASSWORD, "10.3.3.3").status_code == 429
+
+
+def test_a_good_login_clears_the_users_own_mistypes_not_guesses_from_elsewhere(db):
+    make_user("olga-operator", "operator")
+    for _ in range(3):
+        login(Client(), "olga-operator", "guess", "10.8.8.8")  # someone else, elsewhere
+    login(Client(), "olga-operator", "mistyped", "10.0.0.1")  # olga herself
+    assert login(Client(), "olga-operator", PASSWORD, "10.0.0.1").status_code == 302
+    login(Client(), "olga-operator", "guess", "10.8.8.8")  # 4 counted against the account
+    assert login(Client(), "olga-operator", PASSWORD, "10.0.0.1").status_code == 302
+    login(Client(), "olga-operator", "guess", "10.8.8.8")  # the fifth guess
+    assert login(Client(), "olga-operator", PASSWORD, "10.0.0.1").status_code == 429
+
+
 def test_the_admin_login_is_guarded_alike(db):
     admin = make_user("ada-admin", "admin")
     admin.is_staff = True
