@@ -3,7 +3,11 @@ limit the login is refused (the right password too) with a page that says so and
 long; the admin login is guarded the same way; every failure is on record with the name."""
 from __future__ import annotations
 
+from datetime import datetime, timedelta
+
+from django.db.models import F
 from django.test import Client
+from django.utils import timezone
 
 from lifecycle_site.audit.models import AccessDenial
 from tests.conftest import make_user
@@ -92,16 +96,30 @@ def test_the_admin_login_is_guarded_alike(db):
     assert login(Client(), "ada-admin", PASSWORD, path="/admin/login/").status_code == 429
 
 
-def test_guessing_tokens_is_throttled_per_address_and_valid_tokens_still_work(db):
+def test_an_address_blocked_for_bad_tokens_is_refused_every_token_until_the_block_ends(db):
     from lifecycle_site.api.models import ApiToken
 
     _record, token = ApiToken.issue(make_user("tess-token", "viewer"), "ci")
     guesser = Client(REMOTE_ADDR="10.5.5.5")
     answers = [guesser.get("/api/v1/nodes", HTTP_AUTHORIZATION=f"Bearer guess-{i}").status_code for i in range(21)]
     assert answers == [401] * 20 + [429]
-    refused = guesser.get("/api/v1/nodes", HTTP_AUTHORIZATION="Bearer guess-22")
-    assert refused.json()["error"]["code"] == "too_many_attempts"
-    assert AccessDenial.objects.filter(code="bad_token").count() == 20  # the blocked ones cost no row
-    # A valid token is no guess (2^256 of them): it works, from there too.
-    assert guesser.get("/api/v1/nodes", HTTP_AUTHORIZATION=f"Bearer {token}").status_code == 200
+    # Blocked means blocked: a valid token from there is refused too, unchecked.
+    valid = guesser.get("/api/v1/nodes", HTTP_AUTHORIZATION=f"Bearer {token}")
+    assert valid.status_code == 429, f"a valid token from the blocked address got {valid.status_code}"
+    guesser.get("/api/v1/nodes", HTTP_AUTHORIZATION="Bearer guess-22")
+    rows = list(AccessDenial.objects.filter(client="10.5.5.5").order_by("id").values_list("code", "status"))
+    assert rows == [("bad_token", 401)] * 20 + [("token_blocked", 429)] * 3, rows  # every refusal on record
+    error = valid.json()["error"]
+    first = AccessDenial.objects.filter(code="bad_token").order_by("id").values_list("at", flat=True).first()
+    until = first + timedelta(minutes=15)  # the first of the 20 leaves the lock-out time
+    assert error["code"] == "too_many_attempts" and datetime.fromisoformat(error["until"]) == until
+    assert 0 < error["retry_after"] <= 15 * 60 and valid["Retry-After"] == str(error["retry_after"])
+    # Other addresses are not affected.
+    assert Client(REMOTE_ADDR="10.5.5.6").get("/api/v1/nodes", HTTP_AUTHORIZATION=f"Bearer {token}").status_code == 200
     assert Client(REMOTE_ADDR="10.5.5.6").get("/api/v1/nodes", HTTP_AUTHORIZATION="Bearer guess").status_code == 401
+    # The block ends when the first of the 20 leaves the lock-out time: as if that time came now.
+    first_row = AccessDenial.objects.filter(code="bad_token", at=first)
+    first_row.update(at=F("at") - (until - timezone.now()) - timedelta(seconds=1))
+    assert guesser.get("/api/v1/nodes", HTTP_AUTHORIZATION=f"Bearer {token}").status_code == 200
+    assert guesser.get("/api/v1/nodes", HTTP_AUTHORIZATION="Bearer guess-23").status_code == 401  # 20 again
+    assert guesser.get("/api/v1/nodes", HTTP_AUTHORIZATION=f"Bearer {token}").status_code == 429
