@@ -134,7 +134,11 @@ AUTHENTICATION_BACKENDS = ["axes.backends.AxesStandaloneBackend", "django.contri
 AXES_FAILURE_LIMIT = int(os.environ.get("LIFECYCLE_LOGIN_FAILURES", "5"))
 AXES_COOLOFF_TIME = timedelta(minutes=float(os.environ.get("LIFECYCLE_LOGIN_LOCKOUT_MINUTES", "15")))
 AXES_LOCKOUT_PARAMETERS = ["username", "ip_address"]
+# A good login forgets only that account's failures from that address (login_attempts.py):
+# axes' own reset, by account or address, let a good login of one account wipe the failures
+# counted against another.
 AXES_RESET_ON_SUCCESS = True
+AXES_HANDLER = "lifecycle_site.login_attempts.LoginAttempts"
 AXES_LOCKOUT_TEMPLATE = "registration/locked_out.html"
 AXES_VERBOSE = True
 # Refused form posts (a stale page, a forged request) are on record like other refusals.

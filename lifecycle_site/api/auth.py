@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+from datetime import datetime
 from functools import wraps
 from typing import Any, Callable
 
@@ -167,6 +168,19 @@ def _csrf_failure(request: HttpRequest) -> JsonResponse | None:
     return None
 
 
+def _token_blocked(request: HttpRequest, until: datetime) -> JsonResponse:
+    """429 for a token request from an address blocked for guessing tokens, with when it ends."""
+    wait = max(1, math.ceil((until - timezone.now()).total_seconds()))
+    when = until.isoformat(timespec="seconds")
+    denials.record(request, 429, "token_blocked", f"too many invalid tokens from this address; blocked until {when}")
+    response = error(
+        "too_many_attempts", f"Too many invalid tokens from this address: every token request from it is refused, "
+        f"unchecked, until {when} (in {wait} s).", 429, retry_after=wait, until=until.isoformat(),
+    )
+    response["Retry-After"] = str(wait)
+    return response
+
+
 VIEW_PERMISSION = "fleet.view_managednode"
 
 
@@ -189,12 +203,14 @@ def api_view(methods: tuple[str, ...] = ("GET",), permission: str = VIEW_PERMISS
         def checked(request: HttpRequest, *args, **kwargs):
             if request.method not in methods:
                 return error("method_not_allowed", f"Use {' or '.join(methods)} here.", 405)
+            if "Authorization" in request.headers:
+                # The block is the address's: every token it sends is refused unchecked, a valid
+                # one too (one query per token request), and each refusal is on record.
+                until = denials.token_block_until(request)
+                if until is not None:
+                    return _token_blocked(request, until)
             user = _token_user(request)
             if user is None and "Authorization" in request.headers:
-                # Checked on a bad token only: a valid one costs no extra query.
-                if denials.too_many_bad_tokens(request):
-                    return error("too_many_attempts", "Too many invalid tokens from this address: they are refused "
-                                 "unchecked for a while (an admin sees them under Refused attempts).", 429)
                 denials.record(request, 401, "bad_token", "the bearer token is not valid (or revoked)")
                 return error("unauthorized", "The bearer token is not valid.", 401)
             if user is None:

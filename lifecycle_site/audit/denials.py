@@ -4,6 +4,7 @@ database, and what an admin reviews is the latest."""
 from __future__ import annotations
 
 import logging
+from datetime import datetime
 from itertools import count
 
 from django.contrib.auth.signals import user_login_failed
@@ -44,16 +45,21 @@ def _storable(text: str) -> str:
     return text.replace("\x00", "\ufffd")
 
 
-def too_many_bad_tokens(request: HttpRequest) -> bool:
-    """Whether this client sent AXES_FAILURE_LIMIT x 4 invalid bearer tokens within the login
-    lock-out time: its token requests are then refused unchecked (token guessing)."""
+def token_block_until(request: HttpRequest) -> datetime | None:
+    """When this client's block for token guessing ends, or None if it is not blocked.
+
+    Blocked while AXES_FAILURE_LIMIT x 4 of its invalid bearer tokens fall within the login
+    lock-out time: until the oldest of its newest that many leaves it. Requests refused while
+    blocked (token_blocked) are not counted, so the end does not move while it waits."""
     from django.conf import settings
     from django.utils import timezone
 
     since = timezone.now() - settings.AXES_COOLOFF_TIME
     limit = settings.AXES_FAILURE_LIMIT * 4
     client = request.META.get("REMOTE_ADDR", "")[:64]
-    return AccessDenial.objects.filter(code="bad_token", client=client, at__gte=since).count() >= limit
+    oldest = (AccessDenial.objects.filter(code="bad_token", client=client, at__gte=since)
+              .order_by("-at", "-id").values_list("at", flat=True)[limit - 1:limit].first())
+    return None if oldest is None else oldest + settings.AXES_COOLOFF_TIME
 
 
 def prune(keep: int = DENIALS_KEPT) -> int:

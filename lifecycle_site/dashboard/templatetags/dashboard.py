@@ -1,6 +1,8 @@
 """Small template helpers shared by full pages and live fragments."""
 from __future__ import annotations
 
+import json
+
 from django import template
 
 from lifecycle_site.audit.models import TransitionRecord
@@ -65,11 +67,23 @@ def param_dom(name: str) -> str:
 
 @register.filter
 def json_value(value) -> str:
-    import json
-
     if isinstance(value, str):
         return value
     return json.dumps(value)
+
+
+@register.simple_tag
+def json_object(*pairs) -> str:
+    """A JSON object from key, value pairs, for an attribute (hx-vals, hx-headers):
+    ``hx-vals="{% json_object 'transition' t.label %}"``.
+
+    Values are escaped for JSON here and, as a simple tag's output, for HTML by autoescaping
+    (quotes included): a name a robot reports stays one value, whatever it holds. Pasting
+    ``"{{ t.label }}"`` into JSON text let a label add keys of its own."""
+    if len(pairs) % 2:
+        raise template.TemplateSyntaxError("json_object takes key, value pairs")
+    # default=str: lazy strings such as the csrf_token of the context.
+    return json.dumps(dict(zip(pairs[::2], pairs[1::2], strict=True)), default=str)
 
 
 @register.filter
