@@ -11,6 +11,7 @@ from django.core.validators import MinValueValidator, URLValidator
 from django.db import models
 from django.db.models import Q
 
+from lifecycle_site.alerts import destinations
 from ros_gateway.shared import state_machine as sm
 
 NODE_KINDS = ("state", "gone", "not_desired")
@@ -25,6 +26,18 @@ def validate_emails(value: str) -> None:
 
 def split_emails(value: str) -> list[str]:
     return [a.strip() for a in value.replace(";", ",").replace("\n", ",").split(",") if a.strip()]
+
+
+WEBHOOK_URL = URLValidator(schemes=["http", "https"])
+
+
+def _valid_url(url: str) -> bool:
+    """The field's own check passed (its message is enough otherwise)."""
+    try:
+        WEBHOOK_URL(url)
+    except ValidationError:
+        return False
+    return True
 
 
 class Receiver(models.Model):
@@ -63,6 +76,8 @@ class Receiver(models.Model):
     def clean(self) -> None:
         if self.kind == self.Kind.WEBHOOK and not self.url:
             raise ValidationError({"url": "A webhook needs its URL."})
+        if self.kind == self.Kind.WEBHOOK and _valid_url(self.url) and (why := destinations.problem(self.url)):
+            raise ValidationError({"url": f"{destinations.redact(self.url)}: {why}."})
         if self.kind == self.Kind.EMAIL and not split_emails(self.emails):
             raise ValidationError({"emails": "Give at least one e-mail address."})
 
