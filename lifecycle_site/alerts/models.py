@@ -4,6 +4,7 @@ engine.py; how alerts are sent: delivery.py; the design: docs/alerts.md."""
 from __future__ import annotations
 
 import fnmatch
+import re
 
 from django.conf import settings
 from django.core.exceptions import ValidationError
@@ -15,6 +16,15 @@ from lifecycle_site.alerts import destinations
 from ros_gateway.shared import state_machine as sm
 
 NODE_KINDS = ("state", "gone", "not_desired")
+# Line breaks and other control characters: in an e-mail header they end it (Django refuses to
+# send such a mail at all); in a log line they forge the next one.
+CONTROL_CHARACTERS = re.compile(r"[\x00-\x1f\x7f-\x9f\u2028\u2029]+")
+
+
+def refuse_control_characters(field: str, value: str) -> None:
+    if CONTROL_CHARACTERS.search(value):
+        raise ValidationError({field: "Line breaks, tabs and other control characters are not allowed here "
+                                      "(the name goes into e-mail subjects and logs)."})
 
 
 def validate_emails(value: str) -> None:
@@ -74,6 +84,7 @@ class Receiver(models.Model):
         return f"{self.name} ({self.get_kind_display()})"
 
     def clean(self) -> None:
+        refuse_control_characters("name", self.name)
         if self.kind == self.Kind.WEBHOOK and not self.url:
             raise ValidationError({"url": "A webhook needs its URL."})
         if self.kind == self.Kind.WEBHOOK and _valid_url(self.url) and (why := destinations.problem(self.url)):
@@ -130,6 +141,7 @@ class Rule(models.Model):
         return self.name
 
     def clean(self) -> None:
+        refuse_control_characters("name", self.name)
         if self.kind == self.Kind.STATE and not self.state:
             raise ValidationError({"state": "Choose the state this rule watches for."})
         if self.kind != self.Kind.STATE and self.state:
