@@ -16,6 +16,8 @@ import dj_database_url
 from csp.constants import NONE, SELF
 from django.core.exceptions import ImproperlyConfigured
 
+from lifecycle_site.alerts.destinations import Allow, parse_allow
+
 BASE_DIR = Path(__file__).resolve().parent.parent
 DATA_DIR = Path(os.environ.get("LIFECYCLE_DATA_DIR", BASE_DIR / "var")).resolve()
 DATA_DIR.mkdir(parents=True, exist_ok=True)
@@ -309,6 +311,18 @@ def _networks(variable: str) -> list[ipaddress.IPv4Network | ipaddress.IPv6Netwo
 
 
 LIFECYCLE_METRICS_ALLOW = _networks("LIFECYCLE_METRICS_ALLOW")
+
+
+# Alert webhooks may reach internal addresses only as listed here: comma-separated addresses,
+# networks and host names, e.g. "10.20.0.0/16,tickets.plant" (docs/alerts.md, "Where webhooks may go").
+def _webhook_allow(variable: str = "LIFECYCLE_WEBHOOK_ALLOW") -> Allow:
+    try:
+        return parse_allow(os.environ.get(variable, ""))
+    except ValueError as exc:
+        raise ImproperlyConfigured(f"{variable}: {exc}") from None
+
+
+LIFECYCLE_WEBHOOK_ALLOW = _webhook_allow()
 
 # Alerts (docs/alerts.md): evaluated by the ingest process, sent by its delivery threads.
 ALERTS = {

@@ -34,6 +34,8 @@ os.environ.setdefault("LIFECYCLE_ROBOT_REFRESH_INTERVAL", "0.5")
 os.environ.setdefault("LIFECYCLE_HEARTBEAT_INTERVAL", "0.5")
 os.environ.setdefault("LIFECYCLE_GATEWAY_OFFLINE_AFTER", "3")
 os.environ.setdefault("LIFECYCLE_SERVICE_TIMEOUT", "3")
+# The tests' webhook receivers listen on loopback, which webhooks may reach only when listed.
+os.environ.setdefault("LIFECYCLE_WEBHOOK_ALLOW", "127.0.0.1")
 # LIFECYCLE_TEST_DATABASE=postgres (`make test-postgres`): a throw-away PostgreSQL cluster for the
 # run, stopped and removed when this process ends (tests/postgres.py); every child process
 # gets its DATABASE_URL. The run's first process starts it; the URL travels to the others.

@@ -4,6 +4,7 @@ from __future__ import annotations
 from django import forms
 from django.contrib import admin
 
+from lifecycle_site.alerts import destinations
 from lifecycle_site.alerts.models import Alert, Delivery, Receiver, Rule
 from lifecycle_site.audit.admin import ReadOnlyAdmin
 
@@ -21,6 +22,9 @@ class ReceiverForm(forms.ModelForm):
     class Meta:
         model = Receiver
         fields = ["name", "kind", "url", "secret", "clear_secret", "emails", "enabled"]
+        help_texts = {"url": "http:// or https:// address that takes a JSON POST (redirects are not followed). "
+                             "Internal addresses only as LIFECYCLE_WEBHOOK_ALLOW lists them; no user name or "
+                             "password in it (the secret signs each request)."}
 
     def save(self, commit: bool = True) -> Receiver:
         receiver = super().save(commit=False)
@@ -41,7 +45,7 @@ class ReceiverAdmin(admin.ModelAdmin):
 
     @admin.display(description="sends to")
     def target(self, receiver: Receiver) -> str:
-        return receiver.url if receiver.kind == Receiver.Kind.WEBHOOK else receiver.emails
+        return destinations.redact(receiver.url) if receiver.kind == Receiver.Kind.WEBHOOK else receiver.emails
 
     @admin.display(boolean=True)
     def signed(self, receiver: Receiver) -> bool:

@@ -10,8 +10,11 @@ from __future__ import annotations
 import hashlib
 import heapq
 import hmac
+import http.client
 import itertools
 import logging
+import socket
+import ssl
 import threading
 import time
 import urllib.error
@@ -22,6 +25,8 @@ from datetime import datetime, timezone
 
 from django.conf import settings
 from django.core.mail import EmailMessage, get_connection
+
+from lifecycle_site.alerts import destinations
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +56,7 @@ class Job:
     event: str  # firing | resolved
     delivery_id: str
     body: bytes = b""  # webhook: the JSON body
-    url: str = ""
+    url: str = field(default="", repr=False)  # may hold a password (saved before they were refused)
     secret: str = field(default="", repr=False)
     emails: list[str] = field(default_factory=list)
     subject: str = ""  # e-mail
@@ -75,27 +80,97 @@ class _NoRedirects(urllib.request.HTTPRedirectHandler):
         return None
 
 
-_opener = urllib.request.build_opener(_NoRedirects)
+class _PinnedHTTP(http.client.HTTPConnection):
+    """Connects to the address that was checked; the Host header still names the URL's host."""
+
+    def __init__(self, host: str, port: int, address: str, timeout: float) -> None:
+        super().__init__(host, port, timeout=timeout)
+        self.address = address
+
+    def connect(self) -> None:
+        self.sock = socket.create_connection((self.address, self.port), self.timeout)
+        self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
+
+class _PinnedHTTPS(http.client.HTTPSConnection):
+    """As _PinnedHTTP, with TLS: the server name sent and its certificate checked are the URL's host."""
+
+    def __init__(self, host: str, port: int, address: str, timeout: float) -> None:
+        super().__init__(host, port, timeout=timeout, context=ssl.create_default_context())
+        self.address = address
+
+    def connect(self) -> None:
+        sock = socket.create_connection((self.address, self.port), self.timeout)
+        self.sock = self._context.wrap_socket(sock, server_hostname=self.host)
+
+
+def _post_direct(target: destinations.Target, body: bytes, headers: dict, timeout: float) -> tuple[int, str]:
+    """POST to the first of the checked addresses that takes the connection: (status, reason)."""
+    connection_class = _PinnedHTTPS if target.scheme == "https" else _PinnedHTTP
+    failure: OSError | None = None
+    for address in target.addresses:
+        connection = connection_class(target.host, target.port, address, timeout)
+        try:
+            try:
+                connection.connect()
+            except OSError as exc:
+                failure = exc
+                continue
+            connection.request("POST", target.path, body, headers)
+            response = connection.getresponse()
+            response.read(MAX_RESPONSE_BYTES)
+            return response.status, response.reason
+        finally:
+            connection.close()
+    raise failure or OSError("no address to connect to")
+
+
+def _post_proxied(url: str, body: bytes, headers: dict, timeout: float) -> tuple[int, str]:
+    request = urllib.request.Request(url, data=body, headers=headers, method="POST")
+    opener = urllib.request.build_opener(_NoRedirects)  # its ProxyHandler reads HTTP(S)_PROXY now, as _proxied did
+    try:
+        with opener.open(request, timeout=timeout) as response:
+            response.read(MAX_RESPONSE_BYTES)
+            return response.status, response.reason
+    except urllib.error.HTTPError as exc:
+        return exc.code, str(exc.reason)
+
+
+def _proxied(scheme: str, host: str) -> bool:
+    """HTTP(S)_PROXY applies to this URL (NO_PROXY does not exempt it)."""
+    return scheme in urllib.request.getproxies() and not urllib.request.proxy_bypass(host)
 
 
 def post_webhook(job: Job, timeout: float) -> tuple[int | None, str, bool]:
-    """POST the job's body: (status code, error text, worth retrying)."""
+    """POST the job's body to the checked address: (status code, error text, worth retrying).
+    The URL in error texts is redacted (destinations.redact): no password reaches the log."""
+    shown = destinations.redact(job.url)
     headers = {"Content-Type": "application/json", "User-Agent": USER_AGENT,
                "X-Lifecycle-Event": job.event, "X-Lifecycle-Delivery": job.delivery_id}
     if job.secret:
         headers[SIGNATURE_HEADER] = sign(job.secret, job.body)
-    request = urllib.request.Request(job.url, data=job.body, headers=headers, method="POST")
     try:
-        with _opener.open(request, timeout=timeout) as response:
-            response.read(MAX_RESPONSE_BYTES)
-            return response.status, "", False
-    except urllib.error.HTTPError as exc:
-        code = exc.code
-        retry = code >= 500 or code in (408, 429)
-        return code, f"the receiver answered HTTP {code} {exc.reason}", retry
-    except (urllib.error.URLError, OSError, ValueError) as exc:
-        reason = getattr(exc, "reason", exc)
-        return None, f"could not reach {job.url}: {reason}", True
+        parts, host, _ = destinations.split(job.url)
+        if _proxied(parts.scheme, host):
+            # The proxy connects, to what it resolves the name to; what this machine resolves it
+            # to is checked all the same. A name only the proxy knows is the proxy's to judge.
+            try:
+                destinations.check(job.url)
+            except OSError:
+                pass
+            code, reason = _post_proxied(job.url, job.body, headers, timeout)
+        else:
+            target = destinations.check(job.url)  # resolved now: the name may point elsewhere since it was saved
+            code, reason = _post_direct(target, job.body, headers, timeout)
+    except destinations.Refused as exc:
+        return None, f"not sent to {shown}: {exc}", False
+    except (urllib.error.URLError, OSError, ValueError, http.client.HTTPException) as exc:
+        reason = exc.reason if isinstance(exc, urllib.error.URLError) else exc  # (an SSLError's reason is terse)
+        return None, f"could not reach {shown}: {reason}", True
+    if 200 <= code < 300:
+        return code, "", False
+    # 3xx included: redirects are not followed (the place they point to was not checked)
+    return code, f"the receiver answered HTTP {code} {reason}", code >= 500 or code in (408, 429)
 
 
 def send_email(job: Job, timeout: float) -> tuple[int | None, str, bool]:

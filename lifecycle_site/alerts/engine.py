@@ -24,7 +24,7 @@ from django.utils import timezone
 
 from lifecycle_site.alerts import conditions as cond
 from lifecycle_site.alerts.delivery import Dispatcher, Job, Result
-from lifecycle_site.alerts.models import Alert, Delivery, Receiver, Rule, split_emails
+from lifecycle_site.alerts.models import CONTROL_CHARACTERS, Alert, Delivery, Receiver, Rule, split_emails
 
 log = logging.getLogger(__name__)
 
@@ -175,7 +175,8 @@ def payload(alert: Alert, event: str, delivery_id: str) -> dict:
 
 def email_text(alert: Alert, event: str) -> tuple[str, str]:
     word = "RESOLVED" if event == "resolved" else "FIRING"
-    subject = f"[{word}] {alert.rule_name}: {alert.subject}"
+    # No line breaks in a header, whatever was stored (Django refuses to send the mail otherwise)
+    subject = CONTROL_CHARACTERS.sub(" ", f"[{word}] {alert.rule_name}: {alert.subject}")
     lines = [alert.summary, "", f"Rule: {alert.rule_name}", f"Since: {alert.since.isoformat()}",
              f"Fired: {alert.fired_at.isoformat()}"]
     if alert.resolved_at:

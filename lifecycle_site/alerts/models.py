@@ -4,6 +4,7 @@ engine.py; how alerts are sent: delivery.py; the design: docs/alerts.md."""
 from __future__ import annotations
 
 import fnmatch
+import re
 
 from django.conf import settings
 from django.core.exceptions import ValidationError
@@ -11,9 +12,19 @@ from django.core.validators import MinValueValidator, URLValidator
 from django.db import models
 from django.db.models import Q
 
+from lifecycle_site.alerts import destinations
 from ros_gateway.shared import state_machine as sm
 
 NODE_KINDS = ("state", "gone", "not_desired")
+# Line breaks and other control characters: in an e-mail header they end it (Django refuses to
+# send such a mail at all); in a log line they forge the next one.
+CONTROL_CHARACTERS = re.compile(r"[\x00-\x1f\x7f-\x9f\u2028\u2029]+")
+
+
+def refuse_control_characters(field: str, value: str) -> None:
+    if CONTROL_CHARACTERS.search(value):
+        raise ValidationError({field: "Line breaks, tabs and other control characters are not allowed here "
+                                      "(the name goes into e-mail subjects and logs)."})
 
 
 def validate_emails(value: str) -> None:
@@ -25,6 +36,18 @@ def validate_emails(value: str) -> None:
 
 def split_emails(value: str) -> list[str]:
     return [a.strip() for a in value.replace(";", ",").replace("\n", ",").split(",") if a.strip()]
+
+
+WEBHOOK_URL = URLValidator(schemes=["http", "https"])
+
+
+def _valid_url(url: str) -> bool:
+    """The field's own check passed (its message is enough otherwise)."""
+    try:
+        WEBHOOK_URL(url)
+    except ValidationError:
+        return False
+    return True
 
 
 class Receiver(models.Model):
@@ -61,8 +84,11 @@ class Receiver(models.Model):
         return f"{self.name} ({self.get_kind_display()})"
 
     def clean(self) -> None:
+        refuse_control_characters("name", self.name)
         if self.kind == self.Kind.WEBHOOK and not self.url:
             raise ValidationError({"url": "A webhook needs its URL."})
+        if self.kind == self.Kind.WEBHOOK and _valid_url(self.url) and (why := destinations.problem(self.url)):
+            raise ValidationError({"url": f"{destinations.redact(self.url)}: {why}."})
         if self.kind == self.Kind.EMAIL and not split_emails(self.emails):
             raise ValidationError({"emails": "Give at least one e-mail address."})
 
@@ -115,6 +141,7 @@ class Rule(models.Model):
         return self.name
 
     def clean(self) -> None:
+        refuse_control_characters("name", self.name)
         if self.kind == self.Kind.STATE and not self.state:
             raise ValidationError({"state": "Choose the state this rule watches for."})
         if self.kind != self.Kind.STATE and self.state:

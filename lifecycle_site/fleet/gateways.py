@@ -27,6 +27,7 @@ from redis.retry import Retry
 
 from lifecycle_site.fleet import presence
 from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
+from lifecycle_site.fleet.stream_entries import beat_at, beat_started, plausible
 from ros_gateway.shared import protocol
 
 log = logging.getLogger(__name__)
@@ -125,13 +126,6 @@ def read_beats(names: Iterable[str]) -> dict[str, tuple[dict | None, str]]:
     return {n: (kept[n][1], kept[n][2]) for n in names}
 
 
-def _utc(epoch: Any) -> datetime | None:
-    try:
-        return datetime.fromtimestamp(float(epoch), timezone.utc)
-    except (TypeError, ValueError, OverflowError, OSError):
-        return None
-
-
 def _when(moment: datetime) -> str:
     """'10:32:05 UTC, 2 min ago' (the date too when it is not today)."""
     moment = moment.astimezone(timezone.utc)
@@ -199,14 +193,15 @@ class GatewayStatus:
 
 def _status(name: str, beat: dict | None, error: str, known_last_beat: datetime | None,
             read_at: float = 0.0) -> GatewayStatus:
+    known_last_beat = plausible(known_last_beat)  # (a row may hold one stored before times were checked)
     if error:
         return GatewayStatus(name, UNREACHABLE, known_last_beat, redis_error=error)
-    if beat is None:
+    at = None if beat is None else beat_at(beat.get("at"))
+    if beat is None or at is None:  # a beat without a plausible time is no sign of life
         return GatewayStatus(name, OFFLINE if known_last_beat else NEVER, known_last_beat)
-    at = _utc(beat.get("at"))
     if beat.get("stopped"):
         return GatewayStatus(name, STOPPED, at, beat)
-    fresh = at is not None and time.time() - at.timestamp() <= settings.LIFECYCLE["GATEWAY_OFFLINE_AFTER"]
+    fresh = time.time() - at.timestamp() <= settings.LIFECYCLE["GATEWAY_OFFLINE_AFTER"]
     if fresh and presence.process_gone(redis_client(), str(beat.get("client") or ""), read_at):
         return GatewayStatus(name, OFFLINE, at, beat, ended=True)
     return GatewayStatus(name, ONLINE if fresh else OFFLINE, at, beat)
@@ -251,6 +246,11 @@ def dds_summary(dds: dict) -> str:
     return " · ".join(parts)
 
 
+def _started(beat: dict, gateway: Gateway) -> str | None:
+    started = beat_started(beat.get("started")) if "started" in beat else plausible(gateway.started)
+    return started.isoformat() if started else None
+
+
 def describe(gateway: Gateway, state: GatewayStatus, robots: list[str] | None = None) -> dict:
     """A gateway as pages and the API show it: its status, what it reports (its heartbeat,
     else what the ingest process last copied) and the site's accounts of its streams."""
@@ -264,7 +264,7 @@ def describe(gateway: Gateway, state: GatewayStatus, robots: list[str] | None = 
         "version": str(beat.get("version") or gateway.version),
         "host": str(beat.get("host") or gateway.host),
         "pid": beat.get("pid") or gateway.pid,
-        "started": beat.get("started") or (gateway.started.isoformat() if gateway.started else None),
+        "started": _started(beat, gateway),
         "domains": beat.get("domains") if isinstance(beat.get("domains"), list) else gateway.domains,
         "dds": dds,
         "dds_summary": dds_summary(dds),

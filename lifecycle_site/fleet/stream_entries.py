@@ -4,7 +4,7 @@ as a Gateway row's fields."""
 from __future__ import annotations
 
 import json
-from datetime import datetime, timezone
+from datetime import datetime, timedelta, timezone
 from typing import Any
 
 from lifecycle_site.fleet.fact_context import FactRejected, parse_time
@@ -55,17 +55,44 @@ def count_gap(instance: Any, seq: Any, last_instance: str, last_seq: int) -> tup
     return seq - last_seq - 1, instance, seq
 
 
+# A gateway's clock may run a little ahead of the site's. A beat's time further ahead, or
+# before 2000, is wrong: "at": 9999999999 (year 2286) would keep a dead gateway online for good.
+MAX_CLOCK_SKEW = timedelta(minutes=5)
+EARLIEST_BEAT = datetime(2000, 1, 1, tzinfo=timezone.utc)
+
+
+def plausible(moment: datetime | None) -> datetime | None:
+    """The time, if a heartbeat could carry it (EARLIEST_BEAT up to MAX_CLOCK_SKEW ahead); else None."""
+    if moment is None or not EARLIEST_BEAT <= moment <= datetime.now(timezone.utc) + MAX_CLOCK_SKEW:
+        return None
+    return moment
+
+
+def beat_at(value: Any) -> datetime | None:
+    """A heartbeat's "at" (seconds since the epoch) as a time, if plausible."""
+    if isinstance(value, bool):
+        return None
+    try:
+        return plausible(datetime.fromtimestamp(float(value), timezone.utc))
+    except (TypeError, ValueError, OverflowError, OSError):
+        return None
+
+
+def beat_started(value: Any) -> datetime | None:
+    """A heartbeat's "started" (ISO 8601) as a time, if plausible."""
+    try:
+        return plausible(parse_time(value))
+    except FactRejected:
+        return None
+
+
 def beat_fields(beat: dict) -> dict[str, Any]:
-    """The Gateway row's copy of a heartbeat (what is malformed is left out)."""
+    """The Gateway row's copy of a heartbeat (what is malformed or implausible is left out)."""
     fields: dict[str, Any] = {}
-    try:
-        fields["last_beat"] = datetime.fromtimestamp(float(beat["at"]), timezone.utc)
-    except (KeyError, TypeError, ValueError, OverflowError, OSError):
-        pass
-    try:
-        fields["started"] = parse_time(beat["started"])
-    except (KeyError, FactRejected):
-        pass
+    if (at := beat_at(beat.get("at"))) is not None:
+        fields["last_beat"] = at
+    if (started := beat_started(beat.get("started"))) is not None:
+        fields["started"] = started
     fields["stopped"] = bool(beat.get("stopped"))
     for name, size in (("instance", 32), ("version", 64), ("host", 255)):
         if isinstance(beat.get(name), str):

@@ -38,7 +38,8 @@ class WebhookReceiver:
         class Handler(BaseHTTPRequestHandler):
             def do_POST(self) -> None:  # noqa: N802 - http.server's name
                 body = self.rfile.read(int(self.headers.get("Content-Length", 0)))
-                receiver.requests.append({"headers": dict(self.headers), "body": body, "at": time.monotonic()})
+                receiver.requests.append({"headers": dict(self.headers), "body": body, "at": time.monotonic(),
+                                          "path": self.path})
                 if receiver.hold is not None:
                     receiver.hold.wait(10)
                 status = receiver.answers.pop(0) if receiver.answers else 200
