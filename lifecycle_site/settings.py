@@ -32,6 +32,21 @@ def env_float(name: str, default: float) -> float:
     return float(os.environ.get(name, default))
 
 
+def _megabytes(name: str) -> int | None:
+    """A size in MB from the environment, as bytes; unset is None, anything but a positive
+    number stops the process (a typo must not silently mean "no limit")."""
+    value = os.environ.get(name, "").strip()
+    if not value:
+        return None
+    try:
+        size = float(value)
+    except ValueError:
+        size = -1.0
+    if not 0 < size < 1_000_000:
+        raise ImproperlyConfigured(f"{name}: {value!r} is not a size in MB (e.g. 16)")
+    return int(size * 1024 * 1024)
+
+
 def env_list(name: str, default: str) -> list[str]:
     return [item.strip() for item in os.environ.get(name, default).split(",") if item.strip()]
 
@@ -176,6 +191,10 @@ DATABASES = {
 if DATABASES["default"]["ENGINE"] == "django.db.backends.postgresql":
     # A database that does not answer fails the request within seconds, not after minutes.
     DATABASES["default"].setdefault("OPTIONS", {}).setdefault("connect_timeout", 10)
+    # A process frozen (SIGSTOP, a paused container) inside a transaction holds its row locks:
+    # PostgreSQL ends such a session after this long, so the others' writes go on (docs/architecture.md).
+    _idle_ms = int(env_float("LIFECYCLE_DB_IDLE_IN_TRANSACTION_S", 10) * 1000)
+    DATABASES["default"]["OPTIONS"].setdefault("options", f"-c idle_in_transaction_session_timeout={_idle_ms}")
 elif DATABASES["default"]["ENGINE"] == "django.db.backends.sqlite3":
     # WAL lets the gateway write while the site reads; IMMEDIATE avoids lock upgrades failing.
     DATABASES["default"]["OPTIONS"] = {
@@ -295,6 +314,9 @@ LIFECYCLE = {
     "LOG_KEEP_HOURS": env_float("LIFECYCLE_LOG_KEEP_HOURS", 72.0),
     # In-memory log buffer of the gateway; records beyond it are dropped and counted.
     "LOG_BUFFER": int(os.environ.get("LIFECYCLE_LOG_BUFFER", 20000)),
+    # Bytes each gateway's Redis keys may hold before the site cuts it off (fleet/redis_guard.py);
+    # None: an eighth of Redis's maxmemory, at most 64 MB (fleet.gateways.redis_quota).
+    "GATEWAY_REDIS_QUOTA": _megabytes("LIFECYCLE_GATEWAY_REDIS_QUOTA_MB"),
 }
 
 # GET /metrics answers without an API token to these client addresses (comma-separated

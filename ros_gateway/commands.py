@@ -159,7 +159,8 @@ class CommandHandler:
                 if not isinstance(values, dict) or not values:
                     raise CommandError("bad_request", "Give the parameters to set as {name: value}.")
                 results, facts = await parts.params.set(
-                    node, values, timeout, str(command.get("source") or "api"), _user(command)
+                    node, values, timeout, str(command.get("source") or "api"), _user(command),
+                    vouching=protocol.vouching(command),
                 )
                 return {"ok": True, "results": results, "facts": facts}
         except NodeUnreachable as exc:
@@ -219,7 +220,7 @@ class CommandHandler:
                 driven = await self.parts.driver.transition(
                     node, requested, timeout, source=str(command.get("source") or "api"),
                     user_id=_user(command), run_id=str(command.get("run_id") or ""),
-                    read_timeout=read_timeout, delivered_by_reply=True,
+                    read_timeout=read_timeout, delivered_by_reply=True, vouching=protocol.vouching(command),
                 )
             except NodeUnreachableRecorded as exc:
                 raise CommandError("node_unreachable", str(exc), facts=[exc.fact]) from None

@@ -341,12 +341,11 @@ class _Progress:
         self.last_push = time.monotonic()
         run = self.run
         # The robot's and the fleet's pages follow every run; a node page only its own node's
-        # (always so for a restart or recovery, which are about one node).
-        node_groups = [protocol.node_group(key) for key in dict.fromkeys(self.fresh_nodes)]
+        # (always so for a restart or recovery, which are about one node): ``nodes`` names them.
+        nodes = list(dict.fromkeys(self.fresh_nodes))
         self.fresh_nodes = []
         await self.runner.relay.publish(
-            [protocol.robot_group(run.robot.id), protocol.FLEET_GROUP, *node_groups],
-            {"type": "run.progress", "run": {"id": run.id, "robot": run.robot.name, "operation": run.operation,
-                                             "policy": run.policy, "status": status, "message": message,
-                                             "results": self.results()}},
+            {"type": "run.progress", "nodes": nodes,
+             "run": {"id": run.id, "robot": run.robot.name, "operation": run.operation, "policy": run.policy,
+                     "status": status, "message": message, "results": self.results()}},
         )

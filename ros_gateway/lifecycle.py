@@ -237,7 +237,7 @@ class NodeDriver:
     async def transition(
         self, node: LiveNode, requested, timeout: float, *, source: str, user_id: int | None = None,
         run_id: str = "", known_state: int | None = None, read_timeout: float | None = None,
-        delivered_by_reply: bool = False,
+        delivered_by_reply: bool = False, vouching: dict | None = None,
     ) -> Driven:
         """Carry out one transition; the caller holds ``node.lock``. Raises
         NodeUnreachableRecorded (reported too) when nothing could be sent. Returns once its
@@ -248,7 +248,8 @@ class NodeDriver:
         node.in_transition = True
         try:
             driven = await self._transition(node, requested, timeout, source=source, user_id=user_id,
-                                            run_id=run_id, known_state=known_state, read_timeout=read_timeout)
+                                            run_id=run_id, known_state=known_state, read_timeout=read_timeout,
+                                            vouching=vouching or {})
         except NodeUnreachableRecorded as exc:
             if not delivered_by_reply:
                 await self.outbox.delivered(exc.fact, DELIVERY_WAIT_S)
@@ -260,11 +261,12 @@ class NodeDriver:
         return driven
 
     async def _transition(self, node: LiveNode, requested, timeout: float, *, source: str, user_id: int | None,
-                          run_id: str, known_state: int | None, read_timeout: float | None) -> Driven:
+                          run_id: str, known_state: int | None, read_timeout: float | None,
+                          vouching: dict) -> Driven:
         domain = self.domains[node.robot.domain_id]
         requested_at = datetime.now(timezone.utc)
         audit = dict(robot=node.robot.name, node=node.name, source=source, user_id=user_id, run_id=run_id,
-                     requested_at=requested_at.isoformat())
+                     requested_at=requested_at.isoformat(), **vouching)
         try:
             result = await perform_transition(domain, node.name, requested, timeout,
                                               on_send=lambda t: self._claim(node, t), known_state=known_state,

@@ -14,6 +14,7 @@ from collections import deque
 from datetime import datetime, timezone
 from typing import Any
 
+from ros_gateway.budget import StreamBudget
 from ros_gateway.relay import Relay
 from ros_gateway.shared import protocol
 
@@ -24,10 +25,13 @@ RETRY_AFTER_S = 0.5
 
 
 class _Stream:
-    """One outgoing stream: its bounded queue, sequence and counters."""
+    """One outgoing stream: its bounded queue, sequence and counters, and its share of the
+    gateway's Redis quota (its MAXLEN with each XADD)."""
 
-    def __init__(self, key: str, maxlen: int, limit: int) -> None:
-        self.key, self.maxlen = key, maxlen
+    def __init__(self, key: str, maxlen: int, limit: int, share: float, largest: int) -> None:
+        self.key = key
+        self.budget = StreamBudget(share, maxlen)
+        self.largest = largest  # bytes; the site reads no larger entry
         self.queue: deque[dict] = deque()
         self.limit = limit
         self.seq = 0
@@ -44,8 +48,10 @@ class _Stream:
 class Outbox:
     def __init__(self, relay: Relay, gateway: str, instance: str) -> None:
         self.relay, self.gateway, self.instance = relay, gateway, instance
-        self.facts = _Stream(relay.key("facts"), protocol.FACTS_MAXLEN, protocol.OUTBOX_FACTS_LIMIT)
-        self.logs = _Stream(relay.key("logs"), protocol.LOGS_MAXLEN, protocol.OUTBOX_LOG_BATCHES_LIMIT)
+        self.facts = _Stream(relay.key("facts"), protocol.FACTS_MAXLEN, protocol.OUTBOX_FACTS_LIMIT,
+                             protocol.STREAM_SHARES["facts"], protocol.MAX_FACT_BYTES)
+        self.logs = _Stream(relay.key("logs"), protocol.LOGS_MAXLEN, protocol.OUTBOX_LOG_BATCHES_LIMIT,
+                            protocol.STREAM_SHARES["logs"], protocol.MAX_LOG_BATCH_BYTES)
         self._wake = asyncio.Event()
         self._flushed = asyncio.Condition()
         self._sending = asyncio.Lock()  # one pipeline at a time: the streams stay in seq order
@@ -90,6 +96,11 @@ class Outbox:
             return True
         except asyncio.TimeoutError:
             return False
+
+    def set_quota(self, quota: int) -> None:
+        """The site's quota for this gateway's Redis keys (bytes): the streams keep within it."""
+        self.facts.budget.set_quota(quota)
+        self.logs.budget.set_quota(quota)
 
     def counters(self) -> dict:
         return {"facts": len(self.facts.queue), "log_batches": len(self.logs.queue),
@@ -151,8 +162,14 @@ class Outbox:
     @staticmethod
     def _add(pipe: Any, stream: _Stream, batch: list[dict], replied: bool = False) -> None:
         for entry in batch:
-            fields = {"f": protocol.encode(entry), **({protocol.REPLIED: "1"} if replied else {})}
-            pipe.xadd(stream.key, fields, maxlen=stream.maxlen, approximate=True)
+            body = protocol.encode(entry)
+            if len(body) > stream.largest:  # the site would not read it (and cut this gateway off)
+                log.error("dropped an entry of %d bytes for %s (at most %d): %s", len(body), stream.key,
+                          stream.largest, body[:200])
+                stream.dropped += 1
+                continue
+            fields = {"f": body, **({protocol.REPLIED: "1"} if replied else {})}
+            pipe.xadd(stream.key, fields, maxlen=stream.budget.add(len(body)), approximate=False)
 
     def _unreachable(self, what: str, exc: Exception) -> None:
         if self.unreachable_since is None:

@@ -41,13 +41,14 @@ class ParameterKeeper:
         return parameters
 
     def _record(self, node: LiveNode, name: str, old: Any, new: Any, outcome: str, reason: str, source: str,
-                user_id: int | None) -> dict:
+                user_id: int | None, vouching: dict | None = None) -> dict:
         """Report one parameter change or refused attempt to the site (an audit fact)."""
-        return self.outbox.emit(protocol.PARAMETER, robot=node.robot.name, node=node.name, name=name, old=old,
-                                new=new, outcome=outcome, reason=reason, source=source, user_id=user_id)
+        return self.outbox.emit(protocol.PARAMETER, robot=node.robot.name, node=node.name, name=name,
+                                old=protocol.bounded(old), new=protocol.bounded(new), outcome=outcome, reason=reason,
+                                source=source, user_id=user_id, **(vouching or {}))
 
     async def set(self, node: LiveNode, values: dict, timeout: float, source: str,
-                  user_id: int | None) -> tuple[list[dict], list[dict]]:
+                  user_id: int | None, vouching: dict | None = None) -> tuple[list[dict], list[dict]]:
         """Check each value against the node's descriptors, send the good ones together, and
         record every outcome. Returns one result per requested name, in request order, and
         the audit facts reporting them."""
@@ -98,7 +99,7 @@ class ParameterKeeper:
                 known[name] = {**known[name], "value": new}
                 changes.append({"name": name, "old": old, "new": new})
             outcome = result.pop("outcome", "succeeded" if result["successful"] else "rejected")
-            facts.append(self._record(node, name, old, new, outcome, result["reason"], source, user_id))
+            facts.append(self._record(node, name, old, new, outcome, result["reason"], source, user_id, vouching))
             ordered.append({"name": name, "old": old, "new": new, **result})
         if changes:
             self._push(node, changes)
@@ -136,9 +137,8 @@ class ParameterKeeper:
             self._push(node, changes)
 
     def _push(self, node: LiveNode, changes: list[dict]) -> None:
-        spawn(self.relay.publish(
-            [protocol.node_group(node.key)], {"type": "node.parameters", "node": node.key, "changes": changes}
-        ))
+        spawn(self.relay.publish({"type": "node.parameters", "robot": node.robot.name, "name": node.name,
+                                  "node": node.key, "changes": changes}))
 
     def forget(self, node_key: str) -> None:
         """The node may be a new process: what we knew of its parameters is the old one's."""

@@ -2,8 +2,12 @@
 
 Commands in and replies out (lists), the heartbeat and the lease (strings), the robots to
 watch (the config key the site writes), facts out (streams, through outbox.py) and live
-updates to browsers (Channels groups). Redis being down is survived: calls fail, are logged
-at most once per ``quiet`` seconds, and work resumes when it is back.
+updates for open pages (the ``live`` stream, which the site checks and sends on). Redis being
+down is survived: calls fail, are logged at most once per ``quiet`` seconds, and work resumes
+when it is back.
+
+The gateway's Redis user may run only what is needed here (lifecycle_site/fleet/redis_users.py):
+no scripts, so the lease's compare-and-delete is a WATCH/MULTI transaction.
 """
 from __future__ import annotations
 
@@ -13,12 +17,12 @@ import logging
 import time
 
 import redis.asyncio as aioredis
-from channels.layers import get_channel_layer
 from redis.asyncio.retry import Retry
 from redis.backoff import ExponentialBackoff
-from redis.exceptions import ConnectionError, TimeoutError
+from redis.exceptions import ConnectionError, TimeoutError, WatchError
 
 from ros_gateway import lease
+from ros_gateway.budget import StreamBudget
 from ros_gateway.shared import protocol
 
 log = logging.getLogger(__name__)
@@ -51,11 +55,6 @@ def safe_url(url: str) -> str:
     return f"{scheme}://{user + ':***' if user else '***'}@{tail}"
 
 
-# Compare-and-delete: a lease is removed only while it still names the holder that was checked.
-DELETE_IF = "if redis.call('get', KEYS[1]) == ARGV[1] then return redis.call('del', KEYS[1]) end return 0"
-
-
-PUBLISH_CONCURRENCY = 20  # messages; each goes to a few groups (node, robot, fleet)
 
 
 class Relay:
@@ -66,14 +65,11 @@ class Relay:
         self.client_name = protocol.client_name(gateway, self.instance)
         self.url = safe_url(redis_url)
         self.redis = redis_client(redis_url, self.client_name)
-        self.layer = get_channel_layer()
         self._quiet = quiet
         self._last_complaint = 0.0
         self.published = 0
         self.publish_failures = 0
-        # Updates sent at once: a burst (discovery of a whole robot) beyond the channel layer's
-        # Redis pool of 100 connections failed with "Too many connections" and was lost.
-        self._publishing = asyncio.Semaphore(PUBLISH_CONCURRENCY)
+        self.live = StreamBudget(protocol.STREAM_SHARES["live"], protocol.LIVE_MAXLEN)
 
     def key(self, what: str) -> str:
         return protocol.gateway_key(self.prefix, self.gateway, what)
@@ -85,18 +81,20 @@ class Relay:
             log.warning("%s failed (Redis at %s): %s", what, self.url, exc)
 
     # -- live updates -----------------------------------------------------------------
-    async def publish(self, groups: list[str], message: dict) -> None:
-        """Send ``message`` to the groups (together: one round trip's wait, not one per group);
-        a failure is counted, never raised."""
-        async with self._publishing:
-            results = await asyncio.gather(*(self.layer.group_send(g, message) for g in groups),
-                                           return_exceptions=True)
-        for result in results:
-            if isinstance(result, Exception):  # Redis down, message too large: the gateway goes on
-                self.publish_failures += 1
-                self.complain("publishing an update", result)
-            else:
-                self.published += 1
+    async def publish(self, message: dict) -> None:
+        """Hand a live update to the site (its ``live`` stream; the site checks it and sends it
+        to the pages that show what it is about); a failure is counted, never raised."""
+        body = protocol.encode(message)
+        if len(body) > protocol.MAX_LIVE_BYTES:  # the site would not read it (and quarantine us)
+            self.publish_failures += 1
+            log.warning("a live update of %d bytes was not sent (at most %d)", len(body), protocol.MAX_LIVE_BYTES)
+            return
+        try:
+            await self.redis.xadd(self.key("live"), {"m": body}, maxlen=self.live.add(len(body)), approximate=False)
+            self.published += 1
+        except Exception as exc:  # Redis down: the gateway goes on, the pages catch up on reload
+            self.publish_failures += 1
+            self.complain("publishing an update", exc)
 
     # -- commands -----------------------------------------------------------------------
     async def next_command(self, wait: float = COMMAND_WAIT_S) -> dict | None:
@@ -187,7 +185,7 @@ class Relay:
                 return None
             if not (current is not None and lease.provably_dead(holder)):
                 break
-            if await self.redis.eval(DELETE_IF, 1, key, current):
+            if await self._delete_if(key, current):
                 log.info("took over gateway %r from instance %s: its process %s on this host has ended", self.gateway,
                          holder.get("instance"), holder.get("pid"))
         if current is None:
@@ -222,9 +220,22 @@ class Relay:
         try:
             current = await self.redis.get(self.key("lease"))
             if current is not None and _parse(current).get("instance") == instance:
-                await self.redis.eval(DELETE_IF, 1, self.key("lease"), current)
+                await self._delete_if(self.key("lease"), current)
         except Exception:
             pass
+
+    async def _delete_if(self, key: str, expected: bytes) -> bool:
+        """Delete ``key`` only while it still holds ``expected`` (a lease that was checked)."""
+        async with self.redis.pipeline(transaction=True) as pipe:
+            try:
+                await pipe.watch(key)
+                if await pipe.get(key) != expected:
+                    return False
+                pipe.multi()
+                pipe.delete(key)
+                return bool((await pipe.execute())[0])
+            except WatchError:  # it changed meanwhile: someone else holds it now
+                return False
 
     async def close(self) -> None:
         try:

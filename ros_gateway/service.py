@@ -21,7 +21,7 @@ import os
 import socket
 from datetime import datetime, timezone
 
-from ros_gateway import tasks
+from ros_gateway import budget, tasks
 from ros_gateway.commands import CommandHandler, Parts
 from ros_gateway.config import GatewayConfig
 from ros_gateway.discovery import Discovery
@@ -108,7 +108,7 @@ class Gateway:
         async def send() -> None:
             if previous is not None and not previous.done():
                 await asyncio.gather(previous, return_exceptions=True)
-            await self.relay.publish(node.groups(), message)
+            await self.relay.publish(message)
 
         node.last_push = tasks.spawn(send())
 
@@ -198,6 +198,10 @@ class Gateway:
     async def refresh_robots(self) -> None:
         config = await self.relay.read_config()
         if config is not None:
+            quota = budget.quota_of(config)
+            if quota is not None:
+                self.outbox.set_quota(quota)
+                self.relay.live.set_quota(quota)
             await self.discovery.apply_config(config)
 
     def _beat(self) -> dict:

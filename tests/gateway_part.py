@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from datetime import datetime, timedelta, timezone
 
+from lifecycle_site.fleet import attribution
 from lifecycle_site.fleet.gateways import channel_prefix
 from ros_gateway.shared import protocol
 from tests import stack
@@ -47,11 +48,22 @@ class GatewayPart:
 
     def transition(self, robot: str, node: str, transition_id: int, label: str, start: int, result: int,
                    outcome: str = "succeeded", **extra) -> dict:
+        """A transition's audit fact; one of the site's sources (api, dashboard, cli) comes with
+        the site's grant, as a gateway answering the site's command sends it."""
         now = self.tick()
-        return self.fact(protocol.TRANSITION, robot=robot, node=node, transition_id=transition_id,
+        fact = self.fact(protocol.TRANSITION, robot=robot, node=node, transition_id=transition_id,
                          transition_label=label, start_state=start, result_state=result, outcome=outcome,
                          source=extra.pop("source", "api"), user_id=extra.pop("user_id", None), requested_at=now,
                          completed_at=now, error=extra.pop("error", ""), run_id=extra.pop("run_id", ""), **extra)
+        return fact if fact["source"] in attribution.GATEWAY_SOURCES or fact["run_id"] else self.vouch(fact)
+
+    @staticmethod
+    def vouch(fact: dict) -> dict:
+        """The fact with the grant the site gave the command it answers (lifecycle_site/fleet/attribution.py)."""
+        fact["request_id"] = fact["id"]
+        fact["grant"] = attribution.grant(fact["id"], fact.get("user_id"), fact.get("source"), fact.get("robot"),
+                                          fact.get("node"))
+        return fact
 
     def log_batch(self, records: list[list], dropped: int = 0) -> dict:
         self.log_seq += 1
@@ -83,3 +95,10 @@ def clear_streams(name: str) -> None:
     keys = list(client.scan_iter(match=protocol.gateway_keys_pattern(channel_prefix(), name)))
     if keys:
         client.delete(*keys)
+
+
+def forget_ingest_processes() -> None:
+    """Drop every ingest process's leases and turns (a test's Ingest objects are not stopped)."""
+    client = stack.redis_client()
+    keys = list(client.scan_iter(match=f"{channel_prefix()}:site:ingest:*")) + [f"{channel_prefix()}:site:quarantined"]
+    client.delete(*keys)

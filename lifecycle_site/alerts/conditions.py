@@ -96,7 +96,8 @@ def gateway_conditions(rule: Rule, now: datetime) -> dict[str, Condition]:
     for row, status in zip(rows, gateways.statuses(rows), strict=True):
         if status.online or status.state == gateways.NEVER:  # one that never ran is not alerted
             continue
-        summary = f"Gateway {row.name} is offline ({status.reason()}): its robots cannot be reached or operated."
+        what = "quarantined" if status.state == gateways.QUARANTINED else "offline"
+        summary = f"Gateway {row.name} is {what} ({status.reason()}): its robots cannot be reached or operated."
         found[row.name] = Condition(row.name, status.last_beat or now, summary, row.name)
     return found
 

@@ -100,7 +100,7 @@ class Rule(models.Model):
         STATE = "state", "node is in a state"
         GONE = "gone", "node vanished from the ROS graph"
         NOT_DESIRED = "not_desired", "node is not in its desired state"
-        GATEWAY_OFFLINE = "gateway_offline", "gateway is offline"
+        GATEWAY_OFFLINE = "gateway_offline", "gateway is offline or quarantined"
 
     STATE_CHOICES = [(label, label) for state_id, label in sorted(sm.STATE_LABELS.items()) if state_id]
 

@@ -7,6 +7,7 @@ from lifecycle_site.api.auth import api_view, error, json_body
 from lifecycle_site.api.limits import MAX_PARAMETERS
 from lifecycle_site.api.views import get_node
 from lifecycle_site.audit.models import ParameterRecord
+from lifecycle_site.fleet import gateway_input as checks
 from lifecycle_site.fleet.facts import apply_facts
 from lifecycle_site.fleet.gateway_client import GatewayError, call_gateway
 from lifecycle_site.fleet.live_updates import AUDIT_STORED, push, record_messages
@@ -15,8 +16,13 @@ from ros_gateway.shared import protocol
 
 
 def fetch(node) -> list[dict]:
-    return call_gateway(node.robot.gateway.name, protocol.GET_PARAMETERS, robot=node.robot.name,
-                        node=node.name)["parameters"]
+    gateway = node.robot.gateway.name
+    listing = call_gateway(gateway, protocol.GET_PARAMETERS, robot=node.robot.name, node=node.name).get("parameters")
+    if not isinstance(listing, list) or not all(isinstance(p, dict) and isinstance(p.get("name"), str)
+                                                 for p in listing):
+        raise GatewayError("gateway_error", f"Gateway {gateway} answered with a parameter list the site cannot read.",
+                           carried_out=False)
+    return listing
 
 
 def apply(node, values: dict, user, source: str) -> list[dict]:
@@ -41,7 +47,12 @@ def apply(node, values: dict, user, source: str) -> list[dict]:
         raise
     if reply.get("facts"):
         _store(gateway, reply["facts"])
-    return reply["results"]
+    try:
+        return checks.parameter_results(reply.get("results"), values)
+    except checks.GatewayInputRefused as exc:
+        raise GatewayError("gateway_error", f"Gateway {gateway} answered with results the site cannot read ({exc}); "
+                           "the audit log shows what it reported. Check the parameters before you try again.",
+                           carried_out=None) from None
 
 
 def _store(gateway: str, facts: list) -> None:

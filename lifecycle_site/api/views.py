@@ -9,6 +9,7 @@ from django.http import Http404, HttpRequest, JsonResponse
 from lifecycle_site.api.auth import api_view, error, json_body
 from lifecycle_site.api.limits import shown
 from lifecycle_site.audit.models import TransitionRecord
+from lifecycle_site.fleet import gateway_input as checks
 from lifecycle_site.fleet import gateways as gateway_status
 from lifecycle_site.fleet.gateway_client import MAX_SERVICE_TIMEOUT, GatewayError, call_gateway
 from lifecycle_site.fleet.models import Gateway, LogRecord, ManagedNode, Robot
@@ -111,8 +112,14 @@ def _described_by_node(node: ManagedNode) -> tuple[list, list]:
     described = cache.get(key)
     if described is None:
         gateway, where = node.robot.gateway.name, {"robot": node.robot.name, "node": node.name}
-        states = call_gateway(gateway, protocol.GET_AVAILABLE_STATES, **where)["states"]
-        graph = call_gateway(gateway, protocol.GET_TRANSITION_GRAPH, **where)["graph"]
+        try:
+            states = checks.small_list(call_gateway(gateway, protocol.GET_AVAILABLE_STATES, **where).get("states"),
+                                       "states")
+            graph = checks.small_list(call_gateway(gateway, protocol.GET_TRANSITION_GRAPH, **where).get("graph"),
+                                      "graph")
+        except checks.GatewayInputRefused as exc:
+            raise GatewayError("gateway_error", f"Gateway {gateway} answered with something the site cannot read "
+                               f"({exc}).", carried_out=False) from None
         described = (states, graph)
         cache.set(key, described, DESCRIPTION_TTL_S)
     return described

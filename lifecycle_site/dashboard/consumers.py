@@ -65,6 +65,21 @@ class LiveConsumer(AsyncWebsocketConsumer):
             if watcher is not None:
                 watcher.cancel()
 
+    async def dispatch(self, message: dict) -> None:
+        """A group message this page cannot show is dropped (and logged), never the socket:
+        what reaches the groups is checked by the site (fleet/live_relay.py), but one bad
+        message must not close every open page."""
+        if str(message.get("type", "")).startswith("websocket."):
+            await super().dispatch(message)
+            return
+        try:
+            await super().dispatch(message)
+        except LINK_ERRORS:
+            raise
+        except Exception:  # noqa: BLE001
+            log.exception("WebSocket %s: dropped a %s message it could not show", self.scope.get("path"),
+                          str(message.get("type"))[:40])
+
     async def accept(self, subprotocol=None, headers=None) -> None:
         await super().accept(subprotocol, headers)
         self.accepted = True

@@ -1,5 +1,6 @@
+import redis
 from django import forms
-from django.contrib import admin
+from django.contrib import admin, messages
 from django.db.models import Count
 from django.urls import reverse
 from django.utils.html import format_html
@@ -7,6 +8,7 @@ from django.utils.html import format_html
 from lifecycle_site.fleet import (
     accounts_admin,  # noqa: F401  (users and groups, limited by role)
     gateways,
+    quarantine,
 )
 from lifecycle_site.fleet.models import Gateway, ManagedNode, NodeAbsence, Robot
 
@@ -119,15 +121,35 @@ class GatewayAdmin(admin.ModelAdmin):
     search_fields = ("name", "description", "host")
     reported = ("last_beat", "started", "stopped", "instance", "version", "host", "pid", "domains", "dds",
                 "node_count", "outbox")
-    accounts = ("backlog", "facts_lost", "facts_rejected", "logs_lost", "logs_dropped", "facts_cursor",
-                "logs_cursor")
-    readonly_fields = ("status", "credentials", "created", *reported, *accounts)
+    accounts = ("backlog", "facts_lost", "facts_rejected", "live_refused", "logs_lost", "logs_dropped",
+                "facts_cursor", "logs_cursor")
+    trust = ("quarantined", "quarantine_reason", "quarantines", "redis_bytes")
+    readonly_fields = ("status", "credentials", "created", *reported, *accounts, *trust)
     fieldsets = (
         (None, {"fields": ("name", "description", "status", "credentials", "created")}),
+        ("Quarantine (the site cuts off a gateway that breaks the rules)", {"fields": trust}),
         ("What it reports (its heartbeat)", {"fields": reported}),
         ("What the site stored of its streams", {"fields": accounts}),
     )
     inlines = [RobotInline]
+    actions = ["lift_quarantine"]
+
+    @admin.action(description="Lift the quarantine of the selected gateways (deal with its cause first)")
+    def lift_quarantine(self, request, queryset) -> None:
+        lifted = []
+        for gateway in queryset.filter(quarantined__isnull=False):
+            try:
+                quarantine.lift(gateway)
+            except redis.RedisError as exc:
+                self.message_user(request, f"Redis did not answer ({exc}); nothing was lifted.", messages.ERROR)
+                return
+            lifted.append(gateway.name)
+        if lifted:
+            self.message_user(request, f"Lifted the quarantine of {', '.join(lifted)}: the site reads what they send "
+                              "again. If the device may have been tampered with, give it new credentials "
+                              "(manage.py add_gateway NAME --env-file FILE).", messages.SUCCESS)
+        else:
+            self.message_user(request, "None of the selected gateways is quarantined.", messages.INFO)
 
     def get_queryset(self, request):
         return super().get_queryset(request).annotate(robots_total=Count("robots"))

@@ -27,6 +27,7 @@ class Applied:
     parameters: dict[str, ParameterRecord] = field(default_factory=dict)
     created: list[TransitionRecord] = field(default_factory=list)  # made by this call (pages get them)
     created_parameters: list[ParameterRecord] = field(default_factory=list)  # made by this call
+    accepted: list[dict] = field(default_factory=list)  # the facts applied (not rejected), in order
     rejected: int = 0
 
     def transition_record(self, facts: Iterable[dict]) -> TransitionRecord | None:

@@ -17,9 +17,10 @@ from django.db.models import Q
 from django.db.models.functions import Coalesce
 
 from lifecycle_site.audit.models import ParameterRecord, TransitionRecord
-from lifecycle_site.fleet import verdicts
+from lifecycle_site.fleet import attribution, state_chain, verdicts
+from lifecycle_site.fleet import gateway_input as checks
 from lifecycle_site.fleet.absences import node_back, node_left
-from lifecycle_site.fleet.fact_context import Applied, FactRejected, Hints, KnownRecords, optional_time, parse_time
+from lifecycle_site.fleet.fact_context import Applied, FactRejected, Hints, KnownRecords
 from lifecycle_site.fleet.models import GroupRun, ManagedNode
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
@@ -34,6 +35,7 @@ DONE = (GroupRun.Status.SUCCEEDED, GroupRun.Status.FAILED, GroupRun.Status.PARTI
 # PostgreSQL's codes for "your transaction lost a conflict with another; run it again".
 CONFLICT_STATES = {"40P01", "40001"}
 CONFLICT_ATTEMPTS = 3
+ROBOT_NODES_LIMIT = 5000  # nodes of one robot a robot.nodes fact may list
 
 
 def apply_facts(gateway: str, facts: Iterable[dict], hints: Hints | None = None) -> Applied:
@@ -85,10 +87,12 @@ def _apply_all(gateway: str, facts: list, hints: Hints | None, isolated: bool) -
         for fact in facts:
             if not isolated:
                 apply_fact(known, fact, applied)
+                applied.accepted.append(fact)
                 continue
             try:
                 with transaction.atomic():  # a savepoint: a fact that fails, fails alone
                     apply_fact(known, fact, applied)
+                applied.accepted.append(fact)
             except (OperationalError, InterfaceError):
                 raise
             except Exception as exc:  # noqa: BLE001 - whatever a malformed fact causes, it must not block the rest
@@ -109,14 +113,15 @@ def apply_fact(known: KnownRecords, fact: dict, applied: Applied) -> None:
     handler = HANDLERS.get(kind)
     if handler is None:
         raise FactRejected(f"unknown fact type {kind!r}")
-    handler(known, fact, parse_time(fact.get("at"), "at"), applied)
+    handler(known, fact, checks.moment(fact.get("at"), "at"), applied)
 
 
 def _node_seen(known: KnownRecords, fact: dict, at: datetime, applied: Applied) -> None:
     robot = known.robot(fact)
-    node = known.node(robot, fact["node"])
+    name = checks.node_name(fact.get("node"))
+    node = known.node(robot, name)
     if node is None:
-        known.new_node(robot, fact["node"], at)
+        known.new_node(robot, name, at)
         return
     ManagedNode.objects.filter(pk=node.pk).update(alive=True, gone_reason="", last_seen=at,
                                                   first_seen=Coalesce("first_seen", at))
@@ -125,13 +130,13 @@ def _node_seen(known: KnownRecords, fact: dict, at: datetime, applied: Applied) 
 
 def _node_gone(known: KnownRecords, fact: dict, at: datetime, applied: Applied) -> None:
     robot = known.robot(fact)
-    node = known.node(robot, fact["node"])
+    node = known.node(robot, checks.node_name(fact.get("node")))
     if node is not None:
         reason = fact.get("reason") if fact.get("reason") in GONE_REASONS else ""
         ManagedNode.objects.filter(pk=node.pk).update(alive=False, gone_reason=reason, last_seen=at)
         node_left([node.pk], at, reason)
         if reason == protocol.PROCESS_LOST:
-            _process_seen(node, "lost", optional_time(fact.get("since"), "since") or at)
+            _process_seen(node, "lost", checks.optional_moment(fact.get("since"), "since") or at)
 
 
 def _process_seen(node: ManagedNode, status: str, at: datetime) -> None:
@@ -144,24 +149,27 @@ def _process_seen(node: ManagedNode, status: str, at: datetime) -> None:
 
 def _node_state(known: KnownRecords, fact: dict, at: datetime, applied: Applied) -> None:
     robot = known.robot(fact)
-    state_id = int(fact["state_id"])
+    state_id = checks.state_id(fact.get("state_id"))
+    name = checks.node_name(fact.get("node"))
     changes = {"state_id": state_id, "state_label": sm.state_label(state_id), "state_changed": at}
-    node = known.node(robot, fact["node"])
+    node = known.node(robot, name)
     if node is None:
-        known.new_node(robot, fact["node"], at, **changes)
+        chain = {"audited_state_id": state_id} if sm.is_primary(state_id) else {}
+        known.new_node(robot, name, at, **changes, **chain)
         return
     # Applied twice or late (the request path and the ingest process both apply a reply's
     # facts), an older state never overwrites a newer one.
     ManagedNode.objects.filter(pk=node.pk).filter(Q(state_changed__isnull=True) | Q(state_changed__lte=at)).update(
-        last_seen=at, **changes
+        last_seen=at, **changes, **state_chain.seen_in(state_id)
     )
 
 
 def _robot_nodes(known: KnownRecords, fact: dict, at: datetime, applied: Applied) -> None:
     robot = known.robot(fact)
-    listed = fact["nodes"]
-    if not isinstance(listed, list) or not all(isinstance(n, str) for n in listed):
-        raise FactRejected("nodes must be a list of node names")
+    listed = fact.get("nodes")
+    if not isinstance(listed, list) or len(listed) > ROBOT_NODES_LIMIT:
+        raise FactRejected(f"nodes must be a list of at most {ROBOT_NODES_LIMIT} node names")
+    listed = [checks.node_name(name) for name in listed]
     unlisted = ManagedNode.objects.filter(robot=robot).exclude(name__in=listed)
     node_left(unlisted.filter(alive=True).values_list("id", flat=True), at)
     unlisted.update(alive=False)
@@ -174,21 +182,32 @@ def _robot_nodes(known: KnownRecords, fact: dict, at: datetime, applied: Applied
             known.new_node(robot, name, at)
 
 
-def _requester(known: KnownRecords, value: Any) -> dict[str, Any]:
-    """The audit record's requested_by fields for the fact's user_id (none for a deleted user)."""
-    if value is None:
+def _requester(known: KnownRecords, user_id: int | None) -> dict[str, Any]:
+    """The audit record's requested_by fields for a user (none for a deleted user)."""
+    if user_id is None:
         return {}
-    user_id = int(value)
     name = known.username(user_id)
     return {} if name is None else {"requested_by_id": user_id, "requested_by_name": name}
 
 
+def _transition_id(value: Any) -> int | None:
+    if value is None:
+        return None
+    if value not in sm.TRANSITIONS_BY_ID or isinstance(value, bool):
+        raise FactRejected(f"transition_id {str(value)[:20]!r} is not a lifecycle transition")
+    return int(value)
+
+
+def _run_id(value: Any) -> str:
+    if value in (None, ""):
+        return ""
+    if not isinstance(value, str) or not checks.RUN_ID_RE.match(value):
+        raise FactRejected("run_id must be up to 32 hexadecimal digits")
+    return value
+
+
 def _label(state_id: int | None) -> str:
     return "" if state_id is None else sm.state_label(state_id)
-
-
-def _optional_int(value: Any) -> int | None:
-    return None if value is None else int(value)
 
 
 def _transition(known: KnownRecords, fact: dict, at: datetime, applied: Applied) -> None:
@@ -197,24 +216,30 @@ def _transition(known: KnownRecords, fact: dict, at: datetime, applied: Applied)
     if existing is not None:
         applied.transitions[fact_id] = existing
         return
-    robot = known.robot(fact, required=False)
-    node = known.node(robot, fact["node"]) if robot else None
-    transition_id = _optional_int(fact.get("transition_id"))
-    start, result = _optional_int(fact.get("start_state")), _optional_int(fact.get("result_state"))
+    robot = known.robot(fact)
+    name = checks.node_name(fact.get("node"))
+    node = known.node(robot, name)
+    transition_id = _transition_id(fact.get("transition_id"))
+    start = checks.optional_state_id(fact.get("start_state"))
+    result = checks.optional_state_id(fact.get("result_state"))
     goal = sm.SUCCESS_GOAL.get(transition_id) if transition_id is not None else None
-    requested_at = parse_time(fact["requested_at"], "requested_at")
-    completed_at = optional_time(fact.get("completed_at"), "completed_at")
-    outcome, source = fact["outcome"], fact["source"]
-    if outcome not in TransitionRecord.Outcome.values or source not in TransitionRecord.Source.values:
-        raise FactRejected(f"outcome {outcome!r} or source {source!r} is not one the audit log knows")
+    requested_at = checks.moment(fact.get("requested_at"), "requested_at")
+    completed_at = checks.optional_moment(fact.get("completed_at"), "completed_at")
+    outcome = checks.choice(fact.get("outcome"), TransitionRecord.Outcome.values, "outcome")
+    source, user_id, claimed = attribution.requester(known, fact, robot)
+    error = checks.text(fact.get("error")) + claimed
+    if outcome == TransitionRecord.Outcome.OBSERVED and start is None and node is not None:
+        start, error = state_chain.start_of_observed(node, result, requested_at)
+    elif node is not None and (bridged := state_chain.bridge(node, start, requested_at)) is not None:
+        applied.created.append(bridged)
     record = TransitionRecord(
         fact_id=fact_id,
         node=node,
         robot=robot,
-        robot_name=str(fact["robot"]),
-        node_name=str(fact["node"]),
+        robot_name=robot.name,
+        node_name=name,
         transition_id=transition_id,
-        transition_label=str(fact.get("transition_label") or ""),
+        transition_label=checks.text(fact.get("transition_label"), checks.LABEL_LENGTH),
         start_state_id=start,
         start_state_label=_label(start),
         goal_state_id=goal,
@@ -223,15 +248,17 @@ def _transition(known: KnownRecords, fact: dict, at: datetime, applied: Applied)
         result_state_label=_label(result),
         outcome=outcome,
         source=source,
-        **_requester(known, fact.get("user_id")),
+        **_requester(known, user_id),
         requested_at=requested_at,
         completed_at=completed_at,
         duration_ms=round((completed_at - requested_at).total_seconds() * 1000, 2) if completed_at else None,
-        error=str(fact.get("error") or ""),
-        run_id=str(fact.get("run_id") or ""),
+        error=error,
+        run_id=_run_id(fact.get("run_id")),
     )
     if _save_once(known, record):
         applied.created.append(record)
+        if node is not None:
+            state_chain.recorded(node, result, completed_at or requested_at)
         if node is not None and outcome in PROCESS_STATUS:
             _process_seen(node, PROCESS_STATUS[outcome], completed_at or requested_at)
     else:
@@ -245,22 +272,22 @@ def _parameter(known: KnownRecords, fact: dict, at: datetime, applied: Applied) 
     if existing is not None:
         applied.parameters[fact_id] = existing
         return
-    robot = known.robot(fact, required=False)
-    outcome, source = fact["outcome"], fact["source"]
-    if outcome not in ("succeeded", "rejected", "observed") or source not in TransitionRecord.Source.values:
-        raise FactRejected(f"outcome {outcome!r} or source {source!r} is not one the audit log knows")
+    robot = known.robot(fact)
+    name = checks.node_name(fact.get("node"))
+    outcome = checks.choice(fact.get("outcome"), ("succeeded", "rejected", "observed", "timed_out"), "outcome")
+    source, user_id, claimed = attribution.requester(known, fact, robot)
     record = ParameterRecord(
         fact_id=fact_id,
-        node=known.node(robot, fact["node"]) if robot else None,
-        robot_name=str(fact["robot"]),
-        node_name=_text(fact["node"], 255),
-        name=_text(fact["name"], 255),
-        old_value=_json_value(fact.get("old")),
-        new_value=_json_value(fact.get("new")),
+        node=known.node(robot, name),
+        robot_name=robot.name,
+        node_name=name,
+        name=checks.text(fact.get("name"), 255),
+        old_value=checks.storable(checks.value(fact.get("old"))),
+        new_value=checks.storable(checks.value(fact.get("new"))),
         outcome=outcome,
-        reason=str(fact.get("reason") or ""),
+        reason=checks.text(fact.get("reason")) + claimed,
         source=source,
-        **_requester(known, fact.get("user_id")),
+        **_requester(known, user_id),
         at=at,
     )
     if _save_once(known, record):
@@ -268,28 +295,6 @@ def _parameter(known: KnownRecords, fact: dict, at: datetime, applied: Applied) 
     else:
         record = ParameterRecord.objects.get(fact_id=fact_id)
     applied.parameters[fact_id] = record
-
-
-def _storable(text: str) -> str:
-    """A string inside a JSON value as every database stores it: PostgreSQL's jsonb refuses NUL
-    characters and lone UTF-16 surrogates (SQLite keeps both, escaped); they become U+FFFD."""
-    return text.replace("\x00", "\ufffd").encode("utf-8", "surrogatepass").decode("utf-8", "replace")
-
-
-def _text(value: object, max_length: int) -> str:
-    """Text cut to its column's length (PostgreSQL enforces it, SQLite does not)."""
-    return str(value)[:max_length]
-
-
-def _json_value(value: Any) -> Any:
-    """A parameter value with its strings storable (see _storable)."""
-    if isinstance(value, str):
-        return _storable(value)
-    if isinstance(value, list):
-        return [_json_value(item) for item in value]
-    if isinstance(value, dict):
-        return {_storable(str(key)): _json_value(item) for key, item in value.items()}
-    return value
 
 
 def _save_once(known: KnownRecords, record: TransitionRecord | ParameterRecord) -> bool:
@@ -308,29 +313,36 @@ def _save_once(known: KnownRecords, record: TransitionRecord | ParameterRecord) 
 
 
 def _run(known: KnownRecords, fact: dict, at: datetime, applied: Applied) -> None:
-    run_id = str(fact["run_id"])
-    status = fact["status"]
-    if status not in GroupRun.Status.values:
-        raise FactRejected(f"run status {status!r} is unknown")
+    run_id = _run_id(fact.get("run_id"))
+    if not run_id:
+        raise FactRejected("a run fact needs its run_id")
+    status = checks.choice(fact.get("status"), GroupRun.Status.values, "run status")
     changes: dict[str, Any] = {"status": status}
-    for name in ("message", "results"):
-        if name in fact:
-            changes[name] = fact[name] if name == "results" else str(fact[name] or "")
+    if "message" in fact:
+        changes["message"] = checks.text(fact["message"])
+    if "results" in fact:
+        changes["results"] = checks.run_results(fact["results"])
     for name in ("started", "finished"):
         if fact.get(name):
-            changes[name] = parse_time(fact[name], name)
+            changes[name] = checks.moment(fact[name], name)
     # The run's row only ("self"): locking its robot's row too would block, until this batch
     # commits, every audit record that refers to that robot (a foreign key check), and once
     # deadlocked the request path applying a reply's facts against the ingest process.
     run = GroupRun.objects.select_for_update(of=("self",)).select_related("robot").filter(pk=run_id).first()
     if run is None:
-        if "operation" not in fact:
-            raise FactRejected(f"there is no run {run_id}")
+        # The one run a gateway starts on its own: the automatic recovery of one node.
+        if fact.get("operation") != GroupRun.Operation.RECOVER or fact.get("source", "recovery") != "recovery":
+            raise FactRejected(f"there is no run {run_id}, and a gateway may start only recoveries")
         robot = known.robot(fact)
+        only = fact.get("only_nodes") or []
+        if not isinstance(only, list) or len(only) != 1:
+            raise FactRejected("a recovery is of one node")
+        timeout = fact.get("node_timeout")
         GroupRun.objects.create(
-            id=run_id, robot=robot, operation=fact["operation"], only_nodes=fact.get("only_nodes") or [],
-            source=str(fact.get("source") or "recovery"), policy=fact.get("policy") or GroupRun.Policy.STOP,
-            node_timeout=float(fact.get("node_timeout") or 5.0), **changes,
+            id=run_id, robot=robot, operation=GroupRun.Operation.RECOVER, only_nodes=[checks.node_name(only[0])],
+            source="recovery", policy=checks.choice(fact.get("policy") or "stop", GroupRun.Policy.values, "policy"),
+            node_timeout=min(max(float(timeout), 0.1), 60.0) if isinstance(timeout, (int, float))
+            and not isinstance(timeout, bool) and timeout == timeout else 5.0, **changes,
         )
         return
     if not known.owns(run.robot.name):

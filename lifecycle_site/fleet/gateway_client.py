@@ -18,13 +18,16 @@ from typing import Any
 import redis
 from django.conf import settings
 
-from lifecycle_site.fleet import gateways, presence
+from lifecycle_site.fleet import attribution, gateways, presence
+from lifecycle_site.fleet import gateway_input as checks
 from lifecycle_site.fleet.gateways import MAX_SERVICE_TIMEOUT, channel_prefix
 from ros_gateway.shared import protocol
 
 __all__ = ["GatewayError", "GatewayOffline", "GatewayNoAnswer", "call_gateway", "channel_prefix",
            "MAX_SERVICE_TIMEOUT"]
 
+# The largest reply read (a node's parameter listing is the largest an honest gateway sends).
+MAX_REPLY_BYTES = 4 * 1024 * 1024
 # The reply is awaited in blocking pops of at most this long, so that a Redis that stops
 # answering or a gateway whose process ended is noticed within about a second.
 WAIT_SLICE_S = 1.0
@@ -114,6 +117,10 @@ def call_gateway(gateway: str, command: str, timeout: float | None = None, **arg
         "timeout": service_timeout,
         **arguments,
     }
+    if command in (protocol.CHANGE_STATE, protocol.SET_PARAMETERS):  # audited: the site vouches for who asked
+        message["grant"] = attribution.grant(message["request_id"], message.get("user_id"),
+                                             str(message.get("source") or "api"), str(message.get("robot")),
+                                             str(message.get("node")))
     call = _Call(gateway, message, robot, wait, asked)
     return call.run()
 
@@ -216,20 +223,26 @@ class _Call:
         raise GatewayNoAnswer(text, self.gateway, requested_at=self.asked)
 
     def result(self, raw: bytes) -> dict:
-        reply = json.loads(raw)
-        if not reply.get("ok"):
-            error = reply.get("error") or {}
-            code = error.get("code", "gateway_error")
+        """The gateway's reply, if it is one the site can read: a JSON object of bounded size;
+        a failure's code and message checked (gateway_input.failure), nothing else of it taken."""
+        try:
+            reply = json.loads(raw) if len(raw) <= MAX_REPLY_BYTES else None
+        except ValueError:
+            reply = None
+        if not isinstance(reply, dict):
+            raise GatewayError("gateway_error", f"Gateway {self.gateway} answered with something the site cannot "
+                               f"read ({len(raw):,} bytes); check the node's state before you try again.",
+                               carried_out=None, requested_at=self.asked)
+        facts = reply.get("facts") if isinstance(reply.get("facts"), list) else []
+        if reply.get("ok") is not True:
+            code, message = checks.failure(reply)
             raise GatewayError(
-                code,
-                error.get("message", f"Gateway {self.gateway} reported an error."),
-                reply.get("facts"),
+                code, message or f"Gateway {self.gateway} reported an error.", facts,
                 # A refusal means nothing reached the node; the gateway's own failure may come midway.
                 carried_out=None if code == "gateway_error" else False,
                 requested_at=self.asked,
-                **{k: v for k, v in reply.items() if k not in ("ok", "error", "request_id", "facts")},
             )
-        return reply
+        return {**reply, "facts": facts}
 
 
 def _instance(holder: bytes | str | None) -> str:

@@ -79,14 +79,19 @@ def safe_url(url: str) -> str:
 # every command otherwise). A gateway that stops cleanly says so in its heartbeat, so commands
 # are refused with the clear "offline" error at most this long after it stopped.
 BEAT_CACHE_S = 1.0
-_beats: dict[str, tuple[float, dict | None, str]] = {}  # name -> (read at, beat, Redis error)
+_beats: dict[str, tuple[float, dict | None, str, dict | None]] = {}  # name -> (read at, beat, Redis error, quarantine)
 _beats_lock = threading.Lock()
+
+
+def forget_beats() -> None:
+    """Read heartbeats and quarantines afresh (this process just changed one)."""
+    with _beats_lock:
+        _beats.clear()
 
 
 def forget(**_: Any) -> None:
     """Read heartbeats (and the Redis address) afresh: settings changed, or a test wrote one."""
-    with _beats_lock:
-        _beats.clear()
+    forget_beats()
     presence.forget()
     redis_client.cache_clear()
 
@@ -104,9 +109,35 @@ def _parse_beat(raw: bytes | None) -> dict | None:
         return None
 
 
-def read_beats(names: Iterable[str]) -> dict[str, tuple[dict | None, str]]:
-    """Each gateway's heartbeat (or None) and the Redis error that hid it (or ""): one MGET
-    for those not read within BEAT_CACHE_S."""
+def quarantine_key(prefix: str | None = None) -> str:
+    """The site's hash of quarantined gateways (fleet/quarantine.py): name -> {"since", "reason"}."""
+    return f"{prefix or channel_prefix()}:site:quarantined"
+
+
+def parse_quarantine(value: bytes | str | None) -> dict | None:
+    """One entry of that hash as {"since": datetime | None, "reason": str}; None for no entry."""
+    if value is None:
+        return None
+    try:
+        data = json.loads(value)
+    except ValueError:
+        data = {}
+    if not isinstance(data, dict):
+        data = {}
+    return {"since": _moment(data.get("since")), "reason": str(data.get("reason") or "")}
+
+
+def _moment(text: Any) -> datetime | None:
+    try:
+        moment = datetime.fromisoformat(str(text))
+    except ValueError:
+        return None
+    return moment if moment.tzinfo else moment.replace(tzinfo=timezone.utc)
+
+
+def read_beats(names: Iterable[str]) -> dict[str, tuple[dict | None, str, dict | None]]:
+    """Each gateway's heartbeat (or None), the Redis error that hid it (or "") and its
+    quarantine (or None): one round trip for those not read within BEAT_CACHE_S."""
     names = list(dict.fromkeys(names))
     now = time.monotonic()
     with _beats_lock:
@@ -115,15 +146,19 @@ def read_beats(names: Iterable[str]) -> dict[str, tuple[dict | None, str]]:
     if stale:
         prefix = channel_prefix()
         try:
-            raws = redis_client().mget([protocol.beat_key(prefix, n) for n in stale])
+            with redis_client().pipeline(transaction=False) as pipe:
+                pipe.mget([protocol.beat_key(prefix, n) for n in stale])
+                pipe.hmget(quarantine_key(prefix), stale)
+                raws, held = pipe.execute()
             read = time.monotonic()  # each beat was written before this
-            fresh = {n: (read, _parse_beat(raw), "") for n, raw in zip(stale, raws, strict=True)}
+            fresh = {n: (read, _parse_beat(raw), "", parse_quarantine(q))
+                     for n, raw, q in zip(stale, raws, held, strict=True)}
         except redis.RedisError as exc:
-            fresh = {n: (now, None, str(exc) or type(exc).__name__) for n in stale}
+            fresh = {n: (now, None, str(exc) or type(exc).__name__, None) for n in stale}
         with _beats_lock:
             _beats.update(fresh)
         kept.update(fresh)
-    return {n: (kept[n][1], kept[n][2]) for n in names}
+    return {n: kept[n][1:] for n in names}
 
 
 def _when(moment: datetime) -> str:
@@ -144,6 +179,7 @@ def _when(moment: datetime) -> str:
 
 
 ONLINE, OFFLINE, STOPPED, NEVER, UNREACHABLE = "online", "offline", "stopped", "never", "unreachable"
+QUARANTINED = "quarantined"  # cut off by the site (fleet/quarantine.py)
 ENDED = "ended"  # a reason, not a status: OFFLINE because its process ended
 
 
@@ -152,11 +188,14 @@ class GatewayStatus:
     """Whether a gateway can take commands now, and since when it cannot."""
 
     name: str
-    state: str  # ONLINE, OFFLINE (silent), STOPPED (said so), NEVER (never reported), UNREACHABLE (Redis)
+    state: str  # ONLINE, OFFLINE (silent), STOPPED (said so), NEVER (never reported), UNREACHABLE (Redis),
+    #             QUARANTINED (cut off by the site)
     last_beat: datetime | None = None
     beat: dict = field(default_factory=dict)
     redis_error: str = ""
     ended: bool = False  # OFFLINE because its process has ended (its Redis connections closed)
+    quarantined: datetime | None = None
+    quarantine_reason: str = ""
 
     @property
     def online(self) -> bool:
@@ -166,6 +205,9 @@ class GatewayStatus:
         """Why it takes no commands, for a person: 'no heartbeat since 10:32:05 UTC, 2 min ago'."""
         if self.state == UNREACHABLE:
             return f"Redis, which links the site and its gateways, is unreachable: {self.redis_error.rstrip('.')}"
+        if self.state == QUARANTINED:
+            when = f" at {_when(self.quarantined)}" if self.quarantined else ""
+            return f"the site cut it off{when}: {self.quarantine_reason.rstrip('.')}"
         if self.state == NEVER or self.last_beat is None:
             return "it has never reported"
         if self.state == STOPPED:
@@ -179,6 +221,9 @@ class GatewayStatus:
         target = f" to {robot}" if robot else ""
         if self.state == UNREACHABLE:
             return f"{self.reason()}; nothing was sent{target} (gateway {self.name})."
+        if self.state == QUARANTINED:
+            return (f"Gateway {self.name} is quarantined ({self.reason()}); nothing was sent{target}. An "
+                    "administrator can lift the quarantine in the admin (Gateways) once the cause is dealt with.")
         return f"Gateway {self.name} is offline ({self.reason()}); nothing was sent{target}."
 
     def as_dict(self) -> dict:
@@ -188,12 +233,17 @@ class GatewayStatus:
             "status": self.state,
             "last_beat": self.last_beat.isoformat() if self.last_beat else None,
             "reason": "" if self.online else self.reason(),
+            "quarantined": self.quarantined.isoformat() if self.quarantined else None,
         }
 
 
-def _status(name: str, beat: dict | None, error: str, known_last_beat: datetime | None,
+def _status(name: str, beat: dict | None, error: str, quarantined: dict | None, known_last_beat: datetime | None,
             read_at: float = 0.0) -> GatewayStatus:
     known_last_beat = plausible(known_last_beat)  # (a row may hold one stored before times were checked)
+    if quarantined is not None:
+        at = (beat_at(beat.get("at")) if beat else None) or known_last_beat
+        return GatewayStatus(name, QUARANTINED, at, beat or {}, quarantined=quarantined["since"],
+                             quarantine_reason=quarantined["reason"])
     if error:
         return GatewayStatus(name, UNREACHABLE, known_last_beat, redis_error=error)
     at = None if beat is None else beat_at(beat.get("at"))
@@ -272,6 +322,9 @@ def describe(gateway: Gateway, state: GatewayStatus, robots: list[str] | None = 
         "backlog": gateway.backlog,
         "facts_lost": gateway.facts_lost,
         "facts_rejected": gateway.facts_rejected,
+        "live_refused": gateway.live_refused,
+        "quarantines": gateway.quarantines,
+        "redis_bytes": gateway.redis_bytes,
         "logs_lost": gateway.logs_lost,
         "logs_dropped": gateway.logs_dropped,
         "outbox": outbox,
@@ -299,8 +352,37 @@ def build_config(gateway_name: str) -> dict:
             for r in robots
         ],
     }
+    body["limits"] = {"redis_bytes": redis_quota()}
     version = hashlib.sha256(protocol.encode(body).encode()).hexdigest()[:16]
-    return {"gateway": gateway_name, "version": version, "robots": body["robots"]}
+    return {"gateway": gateway_name, "version": version, "robots": body["robots"], "limits": body["limits"]}
+
+
+# --- what a gateway may hold in Redis ---------------------------------------------------------
+
+QUOTA_CAP = 64 * 1024 * 1024
+QUOTA_FLOOR = 1024 * 1024
+QUOTA_READ_EVERY_S = 60.0
+_quota: tuple[float, int] = (-QUOTA_READ_EVERY_S, protocol.DEFAULT_REDIS_QUOTA)
+
+
+def redis_quota(client: redis.Redis | None = None) -> int:
+    """Bytes each gateway's Redis keys may hold (fleet/redis_guard.py cuts off one beyond):
+    LIFECYCLE_GATEWAY_REDIS_QUOTA_MB, else an eighth of Redis's maxmemory (at most 64 MB; 64 MB
+    without a maxmemory), else, when Redis will not say, protocol.DEFAULT_REDIS_QUOTA."""
+    global _quota
+    configured = settings.LIFECYCLE.get("GATEWAY_REDIS_QUOTA")
+    if configured:
+        return int(configured)
+    read_at, quota = _quota
+    if time.monotonic() - read_at < QUOTA_READ_EVERY_S:
+        return quota
+    try:
+        maxmemory = int((client or redis_client()).config_get("maxmemory").get("maxmemory") or 0)
+        quota = max(QUOTA_FLOOR, min(QUOTA_CAP, maxmemory // 8)) if maxmemory else QUOTA_CAP
+    except (redis.RedisError, ValueError):
+        quota = protocol.DEFAULT_REDIS_QUOTA
+    _quota = (time.monotonic(), quota)
+    return quota
 
 
 def publish_config(gateway_name: str, client: redis.Redis | None = None) -> dict:

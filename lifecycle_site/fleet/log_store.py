@@ -140,6 +140,10 @@ def prune_logs(keep_per_logger: int, keep_hours: float) -> int:
     return deleted
 
 
+# A /rosout message as stored and shown (a stack trace fits; a gateway cannot fill pages with one line).
+MESSAGE_LENGTH = 8000
+
+
 class LogTargets:
     """A gateway's robots (by name) and their nodes (by robot and name), read once per batch."""
 
@@ -170,7 +174,7 @@ def to_rows(targets: LogTargets, records: list[Any]) -> tuple[list[LogRow], list
         rows.append(LogRow(
             robot_id, node_id, str(logger)[:255], parse_time(stamp, "stamp").astimezone(dt_timezone.utc),
             level if level in LEVEL_NAMES else LogRecord.INFO,
-            str(message), str(file)[:255], str(function)[:255], max(int(line), 0),
+            str(message)[:MESSAGE_LENGTH], str(file)[:255], str(function)[:255], min(max(int(line), 0), 2**31 - 1),
         ))
         keys.append(key)
     return rows, keys

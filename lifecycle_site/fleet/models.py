@@ -61,6 +61,17 @@ class Gateway(models.Model):
     facts_seq = models.PositiveBigIntegerField(default=0)
     logs_instance = models.CharField(max_length=32, blank=True)
     logs_seq = models.PositiveBigIntegerField(default=0)
+    # Kept by the site's checks of what the gateway sends and holds (fleet/quarantine.py).
+    quarantined = models.DateTimeField(
+        null=True, blank=True, editable=False,
+        help_text="When the site cut it off (its Redis user disabled, its streams no longer read); "
+                  "empty while it may work.",
+    )
+    quarantine_reason = models.TextField(blank=True, editable=False)
+    quarantines = models.PositiveIntegerField(default=0, editable=False, help_text="How often it was cut off.")
+    live_refused = models.PositiveBigIntegerField(default=0, help_text="Live updates the site refused.")
+    redis_bytes = models.PositiveBigIntegerField(default=0, editable=False,
+                                                 help_text="What its Redis keys held at the site's last count.")
 
     class Meta:
         ordering = ["name"]
@@ -147,6 +158,11 @@ class ManagedNode(models.Model):
     first_seen = models.DateTimeField(null=True, blank=True)
     last_seen = models.DateTimeField(null=True, blank=True)
     state_changed = models.DateTimeField(null=True, blank=True)
+    # The audit chain (fleet/state_chain.py): the state the node's records leave it in, as of
+    # when, and since when the node has been seen in another state that no record explains yet.
+    audited_state_id = models.PositiveSmallIntegerField(null=True, blank=True, editable=False)
+    audited_at = models.DateTimeField(null=True, blank=True, editable=False)
+    unexplained_since = models.DateTimeField(null=True, blank=True, editable=False)
     order = models.PositiveIntegerField(
         null=True,
         blank=True,

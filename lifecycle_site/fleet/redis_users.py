@@ -16,16 +16,17 @@ from ros_gateway.shared import protocol
 
 log = logging.getLogger(__name__)
 
-# What a gateway may run (checked against Redis 7 by tests/unit/test_gateway_acl.py):
-# its command queue and replies (BRPOP, LPUSH, EXPIRE), its streams (XADD), its heartbeat,
-# lease and config (SET, GET; DEL and EVAL for the lease), and what channels-redis runs to
-# send to a group (ZREMRANGEBYSCORE, ZRANGE, EVAL of ZCOUNT/ZADD/EXPIRE). Keys: its own and
-# the channel layer's.
+# What a gateway may run (checked against Redis 7 by tests/unit/test_gateway_acl.py), each for
+# one job: its command queue (BRPOP), replies (LPUSH, EXPIRE), claims, heartbeat, lease and
+# config (SET, GET, PEXPIRE, DEL; the lease's compare-and-delete with WATCH/MULTI), its streams
+# (XADD), and what a connection needs. No scripts (a script runs as long as it likes, blocking
+# every other client of Redis, and cannot always be killed), no SELECT, no key listing, nothing
+# of the Channels layer: its live updates go to its own stream, which the site checks.
 GATEWAY_COMMANDS = [
-    "-@all", "+@connection", "-@dangerous",
+    "-@all",
+    "+ping", "+hello", "+auth", "+client|setname", "+client|getname", "+client|id", "+quit", "+reset",
     "+brpop", "+lpush", "+expire", "+pexpire", "+get", "+set", "+del", "+xadd",
-    "+zremrangebyscore", "+zrange", "+zcount", "+zadd",
-    "+eval", "+evalsha", "+multi", "+exec", "+discard", "+ping",
+    "+multi", "+exec", "+discard", "+watch", "+unwatch",
 ]
 
 
@@ -33,24 +34,41 @@ def password_sha256(password: str) -> str:
     return hashlib.sha256(password.encode()).hexdigest()
 
 
-def acl_rules(gateway: Gateway, prefix: str | None = None) -> list[str]:
+def _major_version(client: redis.Redis) -> int:
+    try:
+        return int(str(client.info("server").get("redis_version", "7")).split(".")[0])
+    except (redis.RedisError, ValueError):
+        return 7
+
+
+def acl_rules(gateway: Gateway, prefix: str | None = None, redis_major: int = 7) -> list[str]:
+    """The gateway's user: its password, exactly its own keys (those the site writes for it
+    read-only; Redis 6 has no read-only keys, so there they are readable and writable), no
+    Pub/Sub channels, and GATEWAY_COMMANDS."""
     prefix = prefix or channel_prefix()
-    keys = [protocol.gateway_keys_pattern(prefix, gateway.name), *protocol.channel_layer_key_patterns(prefix)]
-    return ["reset", "on", f"#{gateway.redis_password_sha256}", *(f"~{k}" for k in keys), "resetchannels",
-            *GATEWAY_COMMANDS]
+    writes, reads = protocol.gateway_key_patterns(prefix, gateway.name)
+    read_rule = "%R~" if redis_major >= 7 else "~"
+    return ["reset", "on" if gateway.quarantined is None else "off", f"#{gateway.redis_password_sha256}",
+            *(f"~{k}" for k in writes), *(f"{read_rule}{k}" for k in reads), "resetchannels", *GATEWAY_COMMANDS]
 
 
 def apply_user(gateway: Gateway, client: redis.Redis | None = None) -> None:
     """Create or update the gateway's Redis user from the stored hash (no-op without one)."""
     if not gateway.redis_password_sha256:
         return
-    (client or redis_client()).execute_command("ACL", "SETUSER", gateway.redis_user, *acl_rules(gateway))
+    client = client or redis_client()
+    client.execute_command("ACL", "SETUSER", gateway.redis_user,
+                           *acl_rules(gateway, redis_major=_major_version(client)))
 
 
 def user_is_current(gateway: Gateway, client: redis.Redis | None = None) -> bool:
-    """Whether Redis has the gateway's user with the stored password (it may have restarted)."""
+    """Whether Redis has the gateway's user with the stored password, enabled exactly while the
+    gateway is not quarantined (Redis may have restarted without its users)."""
     found = (client or redis_client()).acl_getuser(gateway.redis_user)
-    return bool(found) and list(found.get("passwords") or []) == [gateway.redis_password_sha256]
+    if not found or list(found.get("passwords") or []) != [gateway.redis_password_sha256]:
+        return False
+    flags = [f.decode() if isinstance(f, bytes) else f for f in found.get("flags") or []]
+    return ("on" in flags) == (gateway.quarantined is None)
 
 
 def disconnect_user(gateway_name: str, client: redis.Redis | None = None) -> None:

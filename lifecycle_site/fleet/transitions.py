@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from django.utils import timezone
 
 from lifecycle_site.audit.models import TransitionRecord
+from lifecycle_site.fleet import gateway_input as checks
 from lifecycle_site.fleet.fact_context import Hints
 from lifecycle_site.fleet.facts import apply_facts
 from lifecycle_site.fleet.gateway_client import GatewayError, call_gateway
@@ -76,12 +77,19 @@ def request_transition(node: ManagedNode, requested, user, source: str, timeout:
             details["record_id"] = record_rejection(node, requested, user, source, exc.message).id
         return Outcome(STATUS_BY_CODE.get(exc.code, exc.status), exc.code, exc.message, details)
     record = _apply(gateway, reply.get("facts") or [], Hints(node, user))
+    try:
+        reply = checks.change_state_reply(reply)
+    except checks.GatewayInputRefused as exc:
+        message = (f"Gateway {gateway} answered with a reply the site cannot read ({exc}): whether "
+                   f"{requested} reached {node.name} is not known. Check the node's state before you try again.")
+        return Outcome(502, "gateway_error", message, {"state": node.state,
+                                                      "record_id": record.id if record is not None else None})
     common = {"from": reply["from"], "transition": reply["transition"],
               "record_id": record.id if record is not None else None}
     outcome = reply["outcome"]
     if outcome == "succeeded":
-        label = reply["transition"]["label"]
-        message = f"{label} succeeded: {node.name} is now {reply['to']['label']}."
+        label = (reply["transition"] or {}).get("label", str(requested))
+        message = f"{label} succeeded: {node.name} is now {(reply['to'] or {}).get('label', 'in an unknown state')}."
         return Outcome(200, None, message, {"success": True, **common, "to": reply["to"],
                                             "duration_ms": reply["duration_ms"]})
     if outcome == "rejected":

@@ -59,7 +59,17 @@ class FleetCollector(Collector):
                                 labels=["gateway"])
         backlog = GaugeMetricFamily("lifecycle_gateway_backlog", "Entries of the gateway's streams not yet stored.",
                                     labels=["gateway"])
+        quarantined = GaugeMetricFamily("lifecycle_gateway_quarantined",
+                                        "1 while the site has the gateway cut off (see the fleet page for why).",
+                                        labels=["gateway"])
+        redis_bytes = GaugeMetricFamily("lifecycle_gateway_redis_bytes",
+                                        "Bytes the gateway's Redis keys held at the site's last count.",
+                                        labels=["gateway"])
         counters = {
+            "quarantines": CounterMetricFamily("lifecycle_gateway_quarantines",
+                                               "Times the site cut the gateway off.", labels=["gateway"]),
+            "live_refused": CounterMetricFamily("lifecycle_gateway_live_refused",
+                                                "Live updates of the gateway the site refused.", labels=["gateway"]),
             "facts_lost": CounterMetricFamily("lifecycle_gateway_facts_lost",
                                               "Facts trimmed from Redis before the site stored them.",
                                               labels=["gateway"]),
@@ -79,9 +89,11 @@ class FleetCollector(Collector):
             if state.last_beat is not None:
                 age.add_metric([row.name], max(now - state.last_beat.timestamp(), 0.0))
             backlog.add_metric([row.name], row.backlog)
+            quarantined.add_metric([row.name], 1 if state.state == gateways.QUARANTINED else 0)
+            redis_bytes.add_metric([row.name], row.redis_bytes)
             for field, family in counters.items():
                 family.add_metric([row.name], getattr(row, field))
-        yield from (online, age, backlog, *counters.values())
+        yield from (online, age, backlog, quarantined, redis_bytes, *counters.values())
 
     @staticmethod
     def transitions() -> Iterator[Metric]:

@@ -1,14 +1,16 @@
 """Endpoints for orchestrators and plant monitoring (docs/monitoring.md):
 
 - ``/healthz``: the process answers (liveness; nothing else is asked).
-- ``/readyz``: the database and Redis answer (503 if not); the ingest process and the
-  gateways are reported beside them, as counts (no names: it needs no login).
+- ``/readyz``: the database and Redis answer, and Redis is not full (503 if not); the ingest
+  processes (running, stalled, not running) and the gateways are reported beside them, as
+  counts (no names: it needs no login); "degraded" when one of those is not as it should be.
 - ``/metrics``: Prometheus text format, for an API token of any role, or without one from the
   addresses in LIFECYCLE_METRICS_ALLOW.
 """
 from __future__ import annotations
 
 import ipaddress
+import time
 
 import redis
 from django.conf import settings
@@ -19,10 +21,9 @@ from django.views.decorators.http import require_GET
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
 
 from lifecycle_site.api.auth import api_view
-from lifecycle_site.fleet import gateways
+from lifecycle_site.fleet import gateways, ingest_shares
 from lifecycle_site.fleet.models import Gateway
 from lifecycle_site.monitoring.metrics import FleetCollector
-from ros_gateway.shared import protocol
 
 READY_TIMEOUT_S = 2.0  # each dependency's answer, so a probe never hangs on a frozen Redis
 
@@ -42,35 +43,62 @@ def _database() -> str | None:
     return None
 
 
-def _redis() -> tuple[str | None, bool]:
-    """(problem or None, whether an ingest process holds its lease)."""
+# An ingest process reports each turn of its loop (fleet/ingest_shares.py); one whose last turn is
+# older than this is stalled (frozen, hung on the database, or stopped without a word).
+INGEST_STALLED_S = 10.0
+
+
+def _redis() -> tuple[str | None, dict]:
+    """(problem or None, what the ingest processes last said: {"state", ...})."""
     client = redis.Redis.from_url(settings.REDIS_URL, socket_connect_timeout=READY_TIMEOUT_S,
                                   socket_timeout=READY_TIMEOUT_S)
     try:
         client.ping()
-        return None, bool(client.exists(protocol.ingest_lease_key(gateways.channel_prefix())))
+        memory = client.info("memory")
+        used, limit = int(memory.get("used_memory") or 0), int(memory.get("maxmemory") or 0)
+        if limit and used >= limit:
+            return f"Redis is full ({used:,} of its {limit:,} bytes): it refuses writes", {"state": "unknown"}
+        return None, _ingest(ingest_shares.turns(client, gateways.channel_prefix()))
     except redis.RedisError as exc:
-        return f"{type(exc).__name__}: {exc}", False
+        return f"{type(exc).__name__}: {exc}", {"state": "unknown"}
     finally:
         client.close()
+
+
+def _ingest(turns: list[dict]) -> dict:
+    if not turns:
+        return {"state": "not running"}
+    age = time.time() - turns[0]["at"]
+    if age > INGEST_STALLED_S:
+        return {"state": "stalled", "last_turn_seconds_ago": round(age, 1),
+                "problem": f"no ingest process has finished a turn for {age:.0f} s: facts and logs of the gateways "
+                           "are not stored, alerts not evaluated"}
+    fresh = [t for t in turns if time.time() - t["at"] <= INGEST_STALLED_S]
+    return {"state": "running", "processes": len(fresh)}
 
 
 @require_GET
 @never_cache
 def readyz(request: HttpRequest) -> JsonResponse:
     database = _database()
-    link, ingesting = _redis()
+    link, ingest = _redis()
     body: dict = {
         "database": "ok" if database is None else "unavailable",
         "redis": "ok" if link is None else "unavailable",
-        "ingest": "running" if ingesting else "not running",
+        "ingest": ingest["state"],
     }
+    if link and "full" in link:
+        body["redis_problem"] = link
+    if ingest.get("problem"):
+        body["ingest_problem"] = ingest["problem"]
     if database is None:
         rows = list(Gateway.objects.filter(robots__isnull=False).distinct())
         states = gateways.statuses(rows) if link is None else []
-        body["gateways"] = {"with_robots": len(rows), "online": sum(1 for s in states if s.online)}
+        body["gateways"] = {"with_robots": len(rows), "online": sum(1 for s in states if s.online),
+                            "quarantined": sum(1 for s in states if s.state == gateways.QUARANTINED)}
     ready = database is None and link is None
-    degraded = not ingesting or body.get("gateways", {}).get("online") != body.get("gateways", {}).get("with_robots")
+    degraded = ingest["state"] != "running" or \
+        body.get("gateways", {}).get("online") != body.get("gateways", {}).get("with_robots")
     body["status"] = "unavailable" if not ready else "degraded" if degraded else "ready"
     return JsonResponse(body, status=200 if ready else 503)
 

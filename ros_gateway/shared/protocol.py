@@ -16,6 +16,9 @@ Every gateway has a name (``local`` on one machine) and its own Redis keys, all 
 ``beat``      string  the gateway's heartbeat (JSON, see ``beat``), rewritten every few seconds
 ``config``    string  written by the site: the robots this gateway watches (JSON, ``config``)
 ``lease``     string  held by the running instance, so two processes never act as one gateway
+``live``      stream  the gateway's live updates for open pages (``node.state``, ``node.parameters``,
+                      ``run.progress``), trimmed at LIVE_MAXLEN; the site's ingest process checks each
+                      one and sends it on to the pages' Channels groups
 ``claim:ID``  string  who decides a command's fate: the gateway SET NXes its instance before it
                       carries the command out; a site that stopped waiting SET NXes ABANDONED.
                       Whoever is first decides, so the site can tell the user plainly whether
@@ -25,10 +28,12 @@ Every gateway has a name (``local`` on one machine) and its own Redis keys, all 
                       the gateway only reads it, before a run's next step after a pause, and
                       stops the run if it is there (a verdict is final)
 
-Live updates to browsers go straight from the gateway to Channels groups (the site's
-consumers turn ``node.state`` into ``node_state``): ``node.state``, ``node.parameters`` and
-``run.progress``. Log lines and audit records reach pages from the ingest process, after
-they are stored, so that they carry their database ids.
+A gateway is a stranger to the site (it runs on a plant-floor device): its Redis user reaches
+exactly the keys above, reads ``config`` and ``verdict:*`` without writing them, and never
+touches the Channels layer. Its live updates go to its own ``live`` stream; the site checks
+them (robot and node names exactly its own, known states, bounded sizes) and sends them on.
+Log lines and audit records reach pages from the ingest process, after they are stored, so
+that they carry their database ids.
 """
 from __future__ import annotations
 
@@ -63,6 +68,23 @@ FACTS_MAXLEN = 100_000
 # Log batches (each up to LOG_BATCH records) kept for the ingest process.
 LOGS_MAXLEN = 1_000
 LOG_BATCH = 200
+# Live updates waiting for the site's relay (it reads them within milliseconds; a relay that is
+# down finds only the newest when it is back, which is all a page needs).
+LIVE_MAXLEN = 1_000
+# The largest entry the site reads from a gateway's streams (the stream field's bytes); a larger
+# one is not read, and its gateway is quarantined. Fact fields are bounded far below.
+MAX_FACT_BYTES = 256 * 1024
+MAX_LOG_BATCH_BYTES = 1024 * 1024
+MAX_LIVE_BYTES = 256 * 1024
+# What a gateway keeps of its own streams' bytes in Redis, as shares of its quota (the site
+# publishes the quota in the gateway's config, ``limits.redis_bytes``): it trims its streams to
+# these, so an honest gateway stays within its quota even when the ingest process is stopped.
+STREAM_SHARES = {"facts": 0.4, "logs": 0.3, "live": 0.1}
+# Redis's own bytes per stream entry beyond its fields (an estimate on the high side).
+STREAM_ENTRY_OVERHEAD = 64
+DEFAULT_REDIS_QUOTA = 16 * 1024 * 1024  # the site's, when Redis will not tell its maxmemory
+# A gateway's until its config names its quota (a start's facts take kilobytes).
+START_REDIS_QUOTA = 2 * 1024 * 1024
 # What a gateway holds in memory while Redis is unreachable, before it drops (and counts).
 OUTBOX_FACTS_LIMIT = 50_000
 OUTBOX_LOG_BATCHES_LIMIT = 500
@@ -101,8 +123,20 @@ def gateway_key(prefix: str, gateway: str, what: str) -> str:
 
 
 def gateway_keys_pattern(prefix: str, gateway: str) -> str:
-    """Every key of one gateway (for its Redis ACL)."""
+    """Every key of one gateway (the site's scans of what it holds)."""
     return f"{prefix}:gw:{gateway}:*"
+
+
+# The keys a gateway writes (its Redis user may read and write them) and those the site writes
+# for it (read only); ``*`` stands for a request or run id. Nothing else is within its reach.
+GATEWAY_WRITES = ("commands", "reply:*", "claim:*", "facts", "logs", "live", "beat", "lease")
+GATEWAY_READS = ("config", "verdict:*")
+
+
+def gateway_key_patterns(prefix: str, gateway: str) -> tuple[list[str], list[str]]:
+    """(keys the gateway reads and writes, keys it only reads), as Redis ACL key patterns."""
+    return ([gateway_key(prefix, gateway, what) for what in GATEWAY_WRITES],
+            [gateway_key(prefix, gateway, what) for what in GATEWAY_READS])
 
 
 def command_queue(prefix: str, gateway: str) -> str:
@@ -133,8 +167,13 @@ def lease_key(prefix: str, gateway: str) -> str:
     return gateway_key(prefix, gateway, "lease")
 
 
+def live_stream(prefix: str, gateway: str) -> str:
+    return gateway_key(prefix, gateway, "live")
+
+
 def ingest_lease_key(prefix: str) -> str:
-    """Held by the one ingest process that reads the gateways' streams (the site's side)."""
+    """Held by the one ingest process that does the site-wide work (alert rules, configs, the
+    gateways' Redis users); every ingest process reads the streams of the gateways it holds."""
     return f"{prefix}:site:ingest:lease"
 
 
@@ -151,12 +190,6 @@ def client_name(gateway: str, instance: str) -> str:
     """The name a gateway instance gives its Redis connections (CLIENT SETNAME), so that the
     site sees at once when its process has ended: its connections close with it."""
     return f"lcm-gw:{gateway}:{instance}"
-
-
-def channel_layer_key_patterns(prefix: str) -> list[str]:
-    """Keys channels-redis touches when a gateway sends to a group (group sets, and the
-    browsers' channel queues they list)."""
-    return [f"{prefix}:group:*", f"{prefix}specific.*"]
 
 
 def new_id() -> str:
@@ -177,6 +210,17 @@ def finite(value: Any) -> Any:
     if isinstance(value, dict):
         return {k: finite(v) for k, v in value.items()}
     return value
+
+
+# A parameter value in an audit fact: larger ones are described, not sent (the site keeps no more).
+VALUE_BYTES = 16 * 1024
+
+
+def bounded(value: Any) -> Any:
+    """A parameter value for an audit fact: itself, or a note of its size when its JSON is
+    larger than VALUE_BYTES (a 100,000-element array would make a fact the site refuses)."""
+    size = len(json.dumps(finite(value), default=str))
+    return value if size <= VALUE_BYTES else f"(a value of {size} bytes as JSON, not kept: at most {VALUE_BYTES})"
 
 
 def robot_group(robot_id: int) -> str:
@@ -237,7 +281,7 @@ def not_carried_out(gateway: str, command: dict, reason: str, instance: str, out
         return []
     common = {"gateway": gateway, "instance": instance, "seq": 0, "at": asked, "robot": command.get("robot"),
               "node": command.get("node"), "source": str(command.get("source") or "api"),
-              "user_id": command.get("user_id")}
+              "user_id": command.get("user_id"), **vouching(command)}
     if kind == CHANGE_STATE:
         requested = command.get("transition")
         return [{**common, "id": request_id, "type": TRANSITION, "transition_id": _transition_id(requested),
@@ -248,6 +292,15 @@ def not_carried_out(gateway: str, command: dict, reason: str, instance: str, out
     return [{**common, "id": hashlib.sha256(f"{request_id}\0{name}".encode()).hexdigest()[:32], "type": PARAMETER,
              "name": str(name), "old": None, "new": finite(value), "outcome": "rejected", "reason": reason}
             for name, value in values.items()]
+
+
+def vouching(command: dict) -> dict:
+    """What a command's audit facts carry of the site's word on who asked (its request id and
+    grant), so that the site can check a fact's user and source (lifecycle_site/fleet/attribution.py)."""
+    grant = command.get("grant")
+    if not isinstance(grant, str):
+        return {}
+    return {"request_id": str(command.get("request_id") or ""), "grant": grant}
 
 
 def _transition_id(requested: Any) -> int | None:

@@ -92,9 +92,9 @@ def test_parameter_file_with_nan_and_inf_applies_only_the_finite_values(api, joy
     assert not records("scale_linear").exists() and not records("scale_angular").exists()
 
 
-def test_a_record_that_cannot_be_written_loses_no_other_record(api, joy):
-    """A name with a lone UTF-16 surrogate (valid JSON) cannot be stored in SQLite: its own
-    record fails, but the value sent with it is still recorded and answered."""
+def test_a_name_that_cannot_be_stored_as_it_is_is_recorded_and_loses_no_other_record(api, joy):
+    """A name with a lone UTF-16 surrogate (valid JSON) cannot be stored in SQLite as it is: its
+    record keeps it with U+FFFD in its place, and the value sent with it is recorded and answered."""
     before = node_values(api)["deadman_button"]
     wanted = 9 if before != 9 else 8
     count = records().count()
@@ -107,7 +107,9 @@ def test_a_record_that_cannot_be_written_loses_no_other_record(api, joy):
     assert node_values(api)["deadman_button"] == wanted
     record = records("deadman_button").order_by("-id").first()
     assert (record.old_value, record.new_value, record.outcome) == (before, wanted, "succeeded")
-    assert records().count() == count + 1
+    assert records().count() == count + 2
+    last = {r.name.strip("\ufffd") or "\ufffd": r.outcome for r in records().order_by("-id")[:2]}
+    assert last == {"\ufffd": "rejected", "deadman_button": "succeeded"}
 
 
 def test_gateway_records_a_non_finite_value_as_text_and_every_other_value(api, joy):

@@ -29,7 +29,7 @@ from tests.integration.conftest import register, wait_node
 
 ROBOT = "two-sites-agv"
 PASSWORD = "a-test-password-123"  # tests.conftest.make_user's
-CSRF_META = re.compile(r'"X-CSRFToken": "([^"]+)"')
+CSRF_META = re.compile(r'X-CSRFToken&quot;: &quot;([^&]+)&quot;')
 
 
 @pytest.fixture(scope="module")

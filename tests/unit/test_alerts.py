@@ -12,14 +12,13 @@ from django.utils import timezone
 from lifecycle_site.alerts import lifecycle
 from lifecycle_site.alerts.engine import Evaluator
 from lifecycle_site.alerts.models import Alert, Rule
-from lifecycle_site.fleet import gateways
 from lifecycle_site.fleet.management.commands.ingest import Ingest
 from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 from tests import stack
 from tests.conftest import make_user
-from tests.gateway_part import GatewayPart, clear_streams, iso
+from tests.gateway_part import GatewayPart, clear_streams, forget_ingest_processes, iso
 
 
 @pytest.fixture
@@ -214,7 +213,7 @@ def test_rule_validation():
 
 @pytest.fixture
 def ingest_cell(transactional_db, redis_server):
-    stack.redis_client().delete(protocol.ingest_lease_key(gateways.channel_prefix()))
+    forget_ingest_processes()
     clear_streams("al-ingest")
     robot = Robot.objects.create(name="al-ingest-agv", domain_id=63, gateway=Gateway.objects.create(name="al-ingest"))
     return GatewayPart("al-ingest"), robot

@@ -48,8 +48,8 @@ def test_the_same_transition_fact_twice_makes_one_record(cell):
 
 def test_parameter_facts_are_audited_once_with_their_time(cell):
     part, robot = cell
-    changed = part.fact(protocol.PARAMETER, robot=robot.name, node="/lidar", name="rate", old=10, new=20,
-                        outcome="succeeded", reason="", source="external", user_id=999_999)
+    changed = part.vouch(part.fact(protocol.PARAMETER, robot=robot.name, node="/lidar", name="rate", old=10, new=20,
+                                   outcome="succeeded", reason="", source="api", user_id=999_999))
     apply_facts("cell-f", [part.fact(protocol.NODE_SEEN, robot=robot.name, node="/lidar"), changed, changed])
     record = ParameterRecord.objects.get()
     assert (record.name, record.old_value, record.new_value, record.outcome) == ("rate", 10, 20, "succeeded")
@@ -183,23 +183,31 @@ def test_a_gateway_cannot_write_for_another_gateways_robots_and_bad_facts_fail_a
     assert list(robot.nodes.values_list("name", flat=True)) == ["/lidar"]
 
 
-def test_the_audit_record_of_a_robot_deleted_meanwhile_is_kept_by_name(cell):
-    part, _ = cell
-    apply_facts("cell-f", [part.transition("gone-agv", "/lidar", sm.ACTIVATE, "activate", 2, 3)])
-    record = TransitionRecord.objects.get()
-    assert (record.robot, record.node, record.robot_name, record.node_name) == (None, None, "gone-agv", "/lidar")
+def test_facts_about_robots_the_gateway_does_not_own_are_refused_and_never_stored(cell):
+    """F5: names are matched exactly (no case folding, no trimming, no look-alikes); a robot
+    that does not exist (or no longer does) is not the gateway's either."""
+    part, robot = cell
+    other = Robot.objects.create(name="agv-1", domain_id=41, gateway=Gateway.objects.create(name="cell-other"))
+    names = [other.name, "agv-3", f"{robot.name} ", robot.name.upper(), robot.name.replace("a", "\u0430"),
+             f"{robot.name}\u200b", '=HYPERLINK("http://evil")']
+    facts = [part.transition(name, "/lidar", sm.ACTIVATE, "activate", 2, 3) for name in names]
+    facts += [part.fact(protocol.NODE_STATE, robot=name, node="/lidar", state_id=sm.ACTIVE) for name in names]
+    applied = apply_facts("cell-f", facts)
+    assert applied.rejected == len(facts) and applied.accepted == []
+    assert not TransitionRecord.objects.exists() and not ManagedNode.objects.exists()
 
 
-def test_a_replys_facts_with_the_request_paths_hints_cost_five_queries(cell, django_assert_num_queries):
-    """BEGIN, the node's state, the record's fact id, the insert, COMMIT: no savepoint per fact,
-    no second read of the node, robot or user the request already holds."""
+def test_a_replys_facts_with_the_request_paths_hints_cost_seven_queries(cell, django_assert_num_queries):
+    """BEGIN, the node's state, the record's fact id, where the node's records leave it and the
+    insert, the node's audited state (the chain, fleet/state_chain.py), COMMIT: no savepoint per
+    fact, no second read of the node, robot or user the request already holds."""
     part, robot = cell
     user = make_user("hint-operator", "operator")
     apply_facts("cell-f", [part.fact(protocol.NODE_SEEN, robot=robot.name, node="/lidar")])
     lidar = ManagedNode.objects.select_related("robot__gateway").get(robot=robot, name="/lidar")
     reply = [part.fact(protocol.NODE_STATE, robot=robot.name, node="/lidar", state_id=sm.INACTIVE),
              part.transition(robot.name, "/lidar", sm.CONFIGURE, "configure", 1, 2, user_id=user.pk)]
-    with django_assert_num_queries(5):
+    with django_assert_num_queries(7):
         applied = apply_facts("cell-f", reply, Hints(lidar, user))
     record = applied.transition_record(reply)
     assert (record.requested_by_id, record.requested_by_name, record.node_id) == (user.pk, "hint-operator", lidar.pk)
@@ -256,3 +264,94 @@ def test_a_lost_process_and_its_new_instance_move_the_nodes_process_status(cell)
     assert node(robot).process_status == "restarted"
     outcomes = sorted(TransitionRecord.objects.values_list("outcome", flat=True))
     assert outcomes == ["process_lost", "process_restarted"]
+
+
+def test_a_gateway_cannot_put_a_change_on_a_users_name_or_the_dashboards(cell):
+    """F5: a fact's user and source count only with the site's grant for the request it answers;
+    on its own a gateway may say "external" or "recovery", with nobody's name. What it claims
+    beyond is not taken (and said in the record)."""
+    part, robot = cell
+    admin = make_user("fact-admin", "admin")
+    forged = part.transition(robot.name, "/lidar", sm.ACTIVE_SHUTDOWN, "shutdown", 3, 4, source="external")
+    forged.update(source="dashboard", user_id=admin.pk)  # as a stranger would send it: no grant
+    borrowed = part.transition(robot.name, "/lidar", sm.CONFIGURE, "configure", 1, 2, source="api", user_id=admin.pk)
+    borrowed["user_id"] = make_user("fact-viewer", "viewer").pk  # a real grant, another user put in
+    unnamed_external = part.transition(robot.name, "/lidar", sm.ACTIVATE, "activate", 2, 3, source="external")
+    unnamed_external["user_id"] = admin.pk
+    honest = part.transition(robot.name, "/lidar", sm.ACTIVATE, "activate", 2, 3, source="external")
+    vouched = part.transition(robot.name, "/lidar", sm.DEACTIVATE, "deactivate", 3, 2, source="dashboard",
+                              user_id=admin.pk)
+    applied = apply_facts("cell-f", [forged, borrowed, unnamed_external, honest, vouched])
+    assert applied.rejected == 0  # every change that reached the robot stays on record ...
+    kept = {(r.transition_label, r.source, r.requested_by_name, r.error) for r in TransitionRecord.objects.all()}
+    said = "the site sent it no such request)"
+    assert kept == {  # ... but on nobody's name the site did not vouch for
+        ("shutdown", "external", "", f" (the gateway said source dashboard, user #{admin.pk}; {said}"),
+        ("configure", "external", "", f" (the gateway said source api, user #{borrowed['user_id']}; {said}"),
+        ("activate", "external", "", f" (the gateway said source external, user #{admin.pk}; {said}"),
+        ("activate", "external", "", ""),
+        ("deactivate", "dashboard", "fact-admin", ""),
+    }
+
+
+def test_a_steps_user_is_the_runs_and_a_gateway_may_start_only_recoveries(cell):
+    part, robot = cell
+    operator = make_user("fact-run-operator", "operator")
+    run = GroupRun.objects.create(id=protocol.new_id(), robot=robot, operation="bringup", status="running",
+                                  source="dashboard", requested_by=operator)
+    step = part.transition(robot.name, "/lidar", sm.CONFIGURE, "configure", 1, 2, source="external", run_id=run.id)
+    other_robot = Robot.objects.create(name="facts-arm", domain_id=44, gateway=Gateway.objects.get(name="cell-f"))
+    foreign = part.transition(other_robot.name, "/lidar", sm.CONFIGURE, "configure", 1, 2, source="external",
+                              run_id=run.id)  # a run of another robot
+    started = part.fact(protocol.RUN, run_id=protocol.new_id(), robot=robot.name, status="running",
+                        operation="shutdown", only_nodes=[], source="dashboard")
+    recovery = part.fact(protocol.RUN, run_id=protocol.new_id(), robot=robot.name, status="running",
+                         operation="recover", only_nodes=["/lidar"], source="recovery")
+    applied = apply_facts("cell-f", [step, foreign, started, recovery])
+    assert applied.rejected == 2
+    record = TransitionRecord.objects.get()
+    assert (record.source, record.requested_by_name, record.run_id) == ("dashboard", "fact-run-operator", run.id)
+    assert set(GroupRun.objects.values_list("operation", flat=True)) == {"bringup", "recover"}
+
+
+def test_a_change_no_record_explains_becomes_an_observed_record_with_its_likely_cause(cell):
+    """Requirement 5 of issue 25: the chain of a node's records has no gap. A gateway killed
+    while an activate was under way: the request timed out, the node went active anyway, and
+    the new gateway reports it active. After a grace the site records what it found."""
+    from lifecycle_site.fleet import state_chain
+
+    part, robot = cell
+    user = make_user("chain-operator", "operator")
+    apply_facts("cell-f", [part.fact(protocol.NODE_STATE, robot=robot.name, node="/lidar", state_id=sm.UNCONFIGURED),
+                           part.transition(robot.name, "/lidar", sm.CONFIGURE, "configure", 1, 2, user_id=user.pk),
+                           part.fact(protocol.NODE_STATE, robot=robot.name, node="/lidar", state_id=sm.INACTIVE)])
+    timed_out = part.transition(robot.name, "/lidar", sm.ACTIVATE, "activate", 2, 2, outcome="timed_out",
+                                user_id=user.pk)
+    timed_out["result_state"] = None
+    apply_facts("cell-f", [timed_out])
+    restarted = GatewayPart("cell-f")  # the gateway's next instance reads the node's state
+    apply_facts("cell-f", [restarted.fact(protocol.NODE_STATE, robot=robot.name, node="/lidar", state_id=sm.ACTIVE)])
+    assert state_chain.settle() == []  # within the grace: its record may still come
+    later = datetime.now(timezone.utc) + timedelta(seconds=state_chain.GRACE_S + 1)
+    made = state_chain.settle(later)
+    assert state_chain.settle(later) == []  # once
+    record = TransitionRecord.objects.get(outcome="observed")
+    assert made == [record]
+    assert (record.start_state_label, record.result_state_label, record.transition_label) == \
+        ("inactive", "active", "activate")
+    assert f"request #{TransitionRecord.objects.get(fact_id=timed_out['id']).pk} (activate timed out" in record.error
+    assert "by chain-operator" in record.error and "cause is not known" in record.error
+    chain = [(r.start_state_label, r.result_state_label) for r in
+             TransitionRecord.objects.filter(node=node(robot)).order_by("requested_at", "id")]
+    assert chain == [("unconfigured", "inactive"), ("inactive", ""), ("inactive", "active")]
+
+
+def test_a_state_whose_record_comes_in_the_next_batch_makes_no_observed_record(cell):
+    from lifecycle_site.fleet import state_chain
+
+    part, robot = cell
+    apply_facts("cell-f", [part.fact(protocol.NODE_STATE, robot=robot.name, node="/lidar", state_id=sm.INACTIVE)])
+    apply_facts("cell-f", [part.fact(protocol.NODE_STATE, robot=robot.name, node="/lidar", state_id=sm.ACTIVE)])
+    apply_facts("cell-f", [part.transition(robot.name, "/lidar", sm.ACTIVATE, "activate", 2, 3, source="external")])
+    assert state_chain.settle(datetime.now(timezone.utc) + timedelta(seconds=60)) == []
+    assert node(robot).unexplained_since is None and node(robot).audited_state_id == sm.ACTIVE

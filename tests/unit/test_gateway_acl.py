@@ -1,7 +1,8 @@
 """Least privilege, checked against Debian's redis-server (7.x, what the images and CI run): a
 gateway's Redis user, made by ``manage.py add_gateway``, can do its job (its queue, its
-streams, its heartbeat, lease and config, sending to Channels groups) and nothing else: no
-other gateway's keys, no administration. Running add_gateway again locks the old password out."""
+streams, its heartbeat, lease and config) and nothing else: no other gateway's keys, no keys
+of its own beyond those, nothing it may only read written, no Channels layer, no scripts, no
+administration. Running add_gateway again locks the old password out."""
 from __future__ import annotations
 
 import asyncio
@@ -86,7 +87,7 @@ def test_a_gateway_user_can_do_its_job_and_nothing_else(site, tmp_path):
     mine = redis.Redis.from_url(add_gateway("cell-x", tmp_path / "x.env")["REDIS_URL"])
     add_gateway("cell-y", tmp_path / "y.env")
 
-    # Its job: commands in, replies out, facts and logs, heartbeat, lease, config.
+    # Its job: commands in, replies out, facts, logs and live updates, heartbeat, lease, config, verdicts.
     site.lpush(protocol.command_queue(prefix, "cell-x"), '{"command": "ping"}')
     assert mine.brpop([protocol.command_queue(prefix, "cell-x")], timeout=1)[1] == b'{"command": "ping"}'
     reply = protocol.reply_key(prefix, "cell-x", "r1")
@@ -94,17 +95,28 @@ def test_a_gateway_user_can_do_its_job_and_nothing_else(site, tmp_path):
         pipe.lpush(reply, "{}")
         pipe.expire(reply, protocol.REPLY_TTL_S)
         pipe.execute()
-    for stream in (protocol.facts_stream(prefix, "cell-x"), protocol.logs_stream(prefix, "cell-x")):
-        mine.xadd(stream, {"f": "{}"}, maxlen=protocol.FACTS_MAXLEN, approximate=True)
+    assert mine.set(protocol.claim_key(prefix, "cell-x", "r1"), "{}", nx=True, ex=protocol.CLAIM_TTL_S)
+    for stream in (protocol.facts_stream(prefix, "cell-x"), protocol.logs_stream(prefix, "cell-x"),
+                   protocol.live_stream(prefix, "cell-x")):
+        mine.xadd(stream, {"f": "{}"}, maxlen=100, approximate=False)
     mine.set(protocol.beat_key(prefix, "cell-x"), "{}")
-    assert mine.set(protocol.lease_key(prefix, "cell-x"), "me", nx=True, px=10_000)
-    assert mine.eval("if redis.call('get', KEYS[1]) == ARGV[1] then return redis.call('pexpire', KEYS[1], ARGV[2]) "
-                     "end return 0", 1, protocol.lease_key(prefix, "cell-x"), "me", 10_000) == 1
-    assert mine.delete(protocol.lease_key(prefix, "cell-x")) == 1
+    lease = protocol.lease_key(prefix, "cell-x")
+    assert mine.set(lease, "me", nx=True, px=10_000)
+    assert mine.pexpire(lease, 10_000)
+    with mine.pipeline(transaction=True) as pipe:  # the lease's compare-and-delete
+        pipe.watch(lease)
+        assert pipe.get(lease) == b"me"
+        pipe.multi()
+        pipe.delete(lease)
+        assert pipe.execute() == [1]
     site.set(protocol.config_key(prefix, "cell-x"), '{"robots": []}')
     assert mine.get(protocol.config_key(prefix, "cell-x")) == b'{"robots": []}'
+    site.set(protocol.verdict_key(prefix, "cell-x", "abc"), '{"status": "failed"}')
+    assert mine.get(protocol.verdict_key(prefix, "cell-x", "abc")) == b'{"status": "failed"}'
 
-    # Nothing else: another gateway's queue, streams and keys, the site's lease, administration.
+    # Nothing else: another gateway's queue, streams and keys; what the site writes for it; keys of
+    # its own beyond those it needs; the Channels layer; scripts (they block Redis for everyone);
+    # another database; the site's lease; administration.
     other_queue = protocol.command_queue(prefix, "cell-y")
     forbidden = [
         lambda: mine.lpush(other_queue, "{}"),
@@ -113,39 +125,71 @@ def test_a_gateway_user_can_do_its_job_and_nothing_else(site, tmp_path):
         lambda: mine.get(protocol.config_key(prefix, "cell-y")),
         lambda: mine.set(protocol.beat_key(prefix, "cell-y"), "{}"),
         lambda: mine.xadd(protocol.facts_stream(prefix, "cell-y"), {"f": "{}"}),
+        lambda: mine.xadd(protocol.live_stream(prefix, "cell-y"), {"m": "{}"}),
         lambda: mine.xreadgroup(protocol.INGEST_GROUP, "site", {protocol.facts_stream(prefix, "cell-y"): ">"}),
         lambda: mine.xrange(protocol.facts_stream(prefix, "cell-x")),
+        lambda: mine.set(protocol.config_key(prefix, "cell-x"), '{"robots": [{"name": "agv-9"}]}'),
+        lambda: mine.delete(protocol.config_key(prefix, "cell-x")),
+        lambda: mine.set(protocol.verdict_key(prefix, "cell-x", "abc"), "x"),
+        lambda: mine.set(protocol.gateway_key(prefix, "cell-x", "anything"), "x" * 1000),
+        lambda: mine.zadd(f"{prefix}:group:fleet", {"x": 1}),
+        lambda: mine.zremrangebyscore(f"{prefix}:group:fleet", "-inf", "+inf"),
+        lambda: mine.lpush(f"{prefix}specific.abc!def", "x"),
+        lambda: mine.publish("anything", "x"),
         lambda: mine.set(protocol.ingest_lease_key(prefix), "me"),
-        lambda: mine.eval("return redis.call('lpush', KEYS[1], 'x')", 1, other_queue),
+        lambda: mine.set(f"{prefix}:site:quarantined", "x"),
+        lambda: mine.eval("return 1", 0),
+        lambda: mine.eval("local i=0 while i<1300000000 do i=i+1 end return i", 0),
+        lambda: mine.evalsha("0" * 40, 0),
+        lambda: mine.execute_command("FCALL", "f", 0),
+        lambda: mine.execute_command("FUNCTION", "LIST"),
+        lambda: mine.execute_command("SELECT", 1),
+        lambda: mine.execute_command("SWAPDB", 0, 1),
         lambda: mine.flushall(),
         lambda: mine.config_get("*"),
         lambda: mine.keys("*"),
+        lambda: mine.scan(),
+        lambda: mine.info(),
         lambda: mine.execute_command("ACL", "LIST"),
+        lambda: mine.execute_command("CLIENT", "LIST"),
         lambda: mine.execute_command("CLIENT", "KILL", "USER", "gw-cell-y"),
+        lambda: mine.execute_command("CLIENT", "PAUSE", 1000),
+        lambda: mine.execute_command("SHUTDOWN", "NOSAVE"),
     ]
     for attempt in forbidden:
         with pytest.raises(redis.exceptions.NoPermissionError):
             attempt()
+    assert mine.ping()  # still connected, still the same Redis
 
 
-def test_a_gateway_user_can_send_to_channels_groups(site, debian_redis, tmp_path):
-    """What channels-redis runs for group_send (ZREMRANGEBYSCORE, ZRANGE, a script of ZCOUNT,
-    ZADD and EXPIRE on the browsers' channel keys) is allowed, and the message arrives."""
+def test_a_gateway_user_cannot_reach_the_channels_layer(site, debian_redis, tmp_path):
+    """F4: no group_send into the pages' groups (fake states, fake audit rows), no group_add of
+    its own channel (reading other cells' updates), no deleting a group's members."""
     prefix = gateways.channel_prefix()
     site_layer = RedisChannelLayer(hosts=[debian_redis], prefix=prefix)
     gateway_layer = RedisChannelLayer(hosts=[add_gateway("cell-x", tmp_path / "x.env")["REDIS_URL"]], prefix=prefix)
 
-    async def scenario() -> dict:
+    async def scenario() -> list:
         try:
             channel = await site_layer.new_channel()
             await site_layer.group_add(protocol.FLEET_GROUP, channel)
-            await gateway_layer.group_send(protocol.FLEET_GROUP, {"type": "node.state", "node": {"id": "agv-1.lidar"}})
-            return await asyncio.wait_for(site_layer.receive(channel), 5)
+            tried = []
+            for attempt in (lambda: gateway_layer.group_send(protocol.FLEET_GROUP, {"type": "node.state"}),
+                            lambda: gateway_layer.group_add(protocol.FLEET_GROUP, "own-channel"),
+                            lambda: gateway_layer.group_discard(protocol.FLEET_GROUP, channel)):
+                try:
+                    await attempt()
+                    tried.append("allowed")
+                except redis.exceptions.NoPermissionError:
+                    tried.append("refused")
+            with pytest.raises(asyncio.TimeoutError):  # nothing arrived
+                await asyncio.wait_for(site_layer.receive(channel), 0.5)
+            return tried
         finally:
             await gateway_layer.close_pools()
             await site_layer.close_pools()
 
-    assert asyncio.run(scenario()) == {"type": "node.state", "node": {"id": "agv-1.lidar"}}
+    assert asyncio.run(scenario()) == ["refused"] * 3
 
 
 def test_deleting_a_gateway_drops_its_redis_user_and_closes_its_connections(

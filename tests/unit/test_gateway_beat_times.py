@@ -16,7 +16,7 @@ from lifecycle_site.fleet.models import Gateway, Robot
 from lifecycle_site.fleet.stream_entries import MAX_CLOCK_SKEW, beat_fields
 from ros_gateway.shared import protocol
 from tests import stack
-from tests.gateway_part import clear_streams
+from tests.gateway_part import clear_streams, forget_ingest_processes
 
 NOW = "now"
 IMPLAUSIBLE = {  # a beat's "at" (seconds since the epoch) and "started"
@@ -50,7 +50,7 @@ def test_a_clock_a_little_ahead_is_fine():
 
 @pytest.fixture
 def cell(transactional_db, redis_server) -> Gateway:
-    stack.redis_client().delete(protocol.ingest_lease_key(gateways.channel_prefix()))
+    forget_ingest_processes()
     clear_streams("cell-t")
     row = Gateway.objects.create(name="cell-t")
     Robot.objects.create(name="time-agv", domain_id=43, gateway=row)

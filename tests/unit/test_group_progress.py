@@ -12,7 +12,7 @@ class Relay:
         self.messages: list[dict] = []
         self.calls = 0
 
-    async def publish(self, _groups: list[str], message: dict) -> None:
+    async def publish(self, message: dict) -> None:
         # A Redis round trip; the first one slow, as after a reconnect.
         self.calls += 1
         await asyncio.sleep(0.05 if self.calls == 1 else 0.005)

@@ -14,7 +14,7 @@ from channels.layers import get_channel_layer
 from django.test import Client
 
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.fleet import gateways, redis_users
+from lifecycle_site.fleet import gateways, ingest_shares, redis_users
 from lifecycle_site.fleet.management.commands import ingest as ingest_command
 from lifecycle_site.fleet.management.commands.ingest import Ingest
 from lifecycle_site.fleet.models import Gateway, LogRecord, ManagedNode, Robot
@@ -22,12 +22,12 @@ from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 from tests import stack
 from tests.conftest import make_user
-from tests.gateway_part import GatewayPart, clear_streams, iso
+from tests.gateway_part import GatewayPart, clear_streams, forget_ingest_processes, iso
 
 
 @pytest.fixture
 def cell(transactional_db, redis_server) -> tuple[GatewayPart, Robot]:
-    stack.redis_client().delete(protocol.ingest_lease_key(gateways.channel_prefix()))
+    forget_ingest_processes()
     clear_streams("cell-i")
     robot = Robot.objects.create(name="ingest-agv", domain_id=42, gateway=Gateway.objects.create(name="cell-i"))
     return GatewayPart("cell-i"), robot
@@ -259,3 +259,81 @@ def test_runs_of_a_gateway_silent_past_the_bound_end_failed_and_others_stay(cell
     assert (said["status"], said["message"]) == ("failed", failed.message)
     assert 0 < client.ttl(protocol.verdict_key(prefix, "cell-i", failed.id)) <= protocol.VERDICT_TTL_S
     assert not client.exists(protocol.verdict_key(prefix, "cell-j", runs["ingest-arm"].id))
+
+
+def test_two_ingest_processes_share_the_gateways_and_apply_nothing_twice(cell):
+    """Two ingest processes side by side: each reads the streams of its share of the gateways
+    (one process per gateway at a time, so each gateway's facts are applied in order), and when
+    one is killed the other takes its gateways over."""
+    part, robot = cell
+    parts = [part]
+    for i in range(1, 4):
+        name = f"cell-i{i}"
+        clear_streams(name)
+        Robot.objects.create(name=f"ingest-agv-{i}", domain_id=42, gateway=Gateway.objects.create(name=name))
+        parts.append(GatewayPart(name))
+    robots = {p.name: Robot.objects.get(gateway__name=p.name) for p in parts}
+    states = [sm.UNCONFIGURED, sm.CONFIGURING, sm.INACTIVE, sm.ACTIVATING, sm.ACTIVE]
+
+    def emit(count: int) -> None:
+        for p in parts:
+            name = robots[p.name].name
+            facts = [p.fact(protocol.NODE_STATE, robot=name, node=f"/n{i % 4}", state_id=states[(i // 4) % 5])
+                     for i in range(count)]
+            facts += [p.transition(name, "/n0", sm.CONFIGURE, "configure", 1, 2, source="external")]
+            p.emit(*facts)
+
+    first, second = stack.start_ingest("ingest-share-1"), stack.start_ingest("ingest-share-2")
+    try:
+        emit(200)
+        stack.wait_for(lambda: all(Gateway.objects.get(name=p.name).facts_seq == p.seq for p in parts), 60,
+                       "every gateway's facts stored")
+
+        def shared() -> bool:
+            """Both hold some of these gateways, and each gateway is held by one of them."""
+            held = [set(t.get("gateways") or []) & set(robots)
+                    for t in ingest_shares.turns(part.redis, part.prefix) if t["pid"] in (first.pid, second.pid)]
+            return len(held) == 2 and all(held) and not held[0] & held[1] and held[0] | held[1] == set(robots)
+
+        stack.wait_for(shared, 30, "the two processes sharing the four gateways")
+        print("DEBUG", ingest_shares.turns(part.redis, part.prefix), first.pid, second.pid)
+        transitions = TransitionRecord.objects.filter(robot_name__startswith="ingest-agv").exclude(outcome="observed")
+        assert transitions.count() == 4  # (the states no record explains are the chain's: observed)
+        for p in parts:
+            row = Gateway.objects.get(name=p.name)
+            assert (row.facts_lost, row.facts_rejected) == (0, 0)
+            final = dict(ManagedNode.objects.filter(robot=robots[p.name]).values_list("name", "state_id"))
+            assert final == {f"/n{i}": states[(199 // 4) % 5] for i in range(4)}  # the last of each, in order
+
+        first.kill()  # its gateways' leases run out; the other one takes them over
+        emit(40)
+        stack.wait_for(lambda: all(Gateway.objects.get(name=p.name).facts_seq == p.seq for p in parts), 60,
+                       "the facts of every gateway stored after one process was killed")
+        assert transitions.count() == 8
+        assert all(Gateway.objects.get(name=p.name).facts_lost == 0 for p in parts)
+    finally:
+        first.stop()
+        second.stop()
+
+
+def test_catching_up_the_ingest_holds_the_database_only_briefly(cell):
+    """F9: the ingest's write transactions are short (at most FACTS_PER_TRANSACTION facts or
+    LOG_RECORDS_PER_TRANSACTION log records), so a write of the site waits a fraction of a
+    second for it even while it stores a backlog of 100,000 log records (SQLite: one writer)."""
+    part, robot = cell
+    stamp = iso()
+    for batch in range(500):
+        part.log_batch([[robot.name, "", "launch", stamp, 20, f"line {batch}-{i}", "", "", 0] for i in range(200)])
+    process = stack.start_ingest("ingest-brief")
+    waits = []
+    try:
+        stack.wait_for(lambda: LogRecord.objects.exists() or not process.alive(), 30, "the ingest storing logs")
+        while LogRecord.objects.count() < 100_000 and process.alive() and len(waits) < 2000:
+            began = time.monotonic()
+            Gateway.objects.filter(name="cell-i").update(description=f"written at {began}")  # a write of the site
+            waits.append(time.monotonic() - began)
+            time.sleep(0.02)
+        assert LogRecord.objects.count() == 100_000, process.output()[-2000:]
+    finally:
+        process.stop()
+    assert len(waits) > 10 and max(waits) < 1.0, f"the site's writes waited up to {max(waits):.2f} s"

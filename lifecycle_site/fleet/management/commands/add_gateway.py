@@ -16,7 +16,7 @@ import redis
 from django.conf import settings
 from django.core.management.base import BaseCommand, CommandError
 
-from lifecycle_site.fleet import gateways, redis_users
+from lifecycle_site.fleet import gateways, quarantine, redis_users
 from lifecycle_site.fleet.cli_output import clean_or_fail
 from lifecycle_site.fleet.models import Gateway
 
@@ -73,7 +73,10 @@ class Command(BaseCommand):
             except OSError as exc:
                 raise CommandError(f"Cannot write {env_file}: {exc.strerror}; nothing was changed.") from None
         gateway.save()
+        lifted = gateway.quarantined is not None
         try:
+            if lifted:  # new credentials: the device may work again (fleet/quarantine.py)
+                quarantine.lift(gateway)
             redis_users.apply_user(gateway)
             redis_users.disconnect_user(gateway.name)  # connections made with an old password
         except redis.RedisError as exc:
@@ -95,3 +98,5 @@ class Command(BaseCommand):
             ))
         if not created:
             self.stderr.write("The previous password no longer works.")
+        if lifted:
+            self.stderr.write("Its quarantine is lifted: the site reads what it sends again.")

@@ -1,14 +1,18 @@
 """``manage.py ingest``: the only writer of what gateways report.
 
-One loop: read every gateway's facts and logs streams (a Redis consumer group), apply each
-batch in one transaction that also records how far the stream was applied, acknowledge it,
-then tell the pages. Between reads: copy the heartbeats into the Gateway rows, publish each
-gateway's config, keep the gateways' Redis users in place and prune old log records.
+One loop: read the facts and logs streams of the gateways this process holds (a Redis consumer
+group), apply each batch in short transactions that also record how far the stream was
+applied, acknowledge it, then tell the pages. Beside it, two threads: the live relay (the
+gateways' live updates, checked, to the pages; fleet/live_relay.py) and the Redis guard (no
+gateway fills Redis; fleet/redis_guard.py).
 
-Safe to run twice: one process at a time holds the ingest lease in Redis, the other stands
-by and takes over within LEASE_S; entries up to a stream's recorded cursor are acknowledged
-without being applied again (a crash between commit and acknowledgement), and audit records
-are keyed by fact id.
+Several may run side by side: each gateway's streams are read by one process at a time, the
+gateways shared among them, and one of them does the site-wide work (fleet/ingest_shares.py).
+Entries up to a stream's recorded cursor are acknowledged without being applied again (a crash
+between commit and acknowledgement), and audit records are keyed by fact id.
+
+A gateway whose streams break the rules (a key of another type, an entry malformed or too
+large) is quarantined (fleet/quarantine.py) and the others go on.
 """
 from __future__ import annotations
 
@@ -16,6 +20,7 @@ import logging
 import os
 import signal
 import socket
+import threading
 import time
 import uuid
 from typing import Any
@@ -25,33 +30,45 @@ from django.conf import settings
 from django.core.management.base import BaseCommand
 from django.db import DatabaseError, InterfaceError, OperationalError, connection, transaction
 
+from lifecycle_site.alerts.conditions import observations
 from lifecycle_site.alerts.engine import Evaluator
 from lifecycle_site.fleet import gateways as gw
-from lifecycle_site.fleet import redis_users
+from lifecycle_site.fleet import quarantine, state_chain
 from lifecycle_site.fleet.absences import prune_absences
 from lifecycle_site.fleet.fact_context import FactRejected
 from lifecycle_site.fleet.facts import apply_facts
+from lifecycle_site.fleet.ingest_duties import SiteDuties
+from lifecycle_site.fleet.ingest_shares import Shares
+from lifecycle_site.fleet.live_relay import LiveRelay
 from lifecycle_site.fleet.live_updates import push, record_messages
 from lifecycle_site.fleet.log_store import LogTargets, prune_logs, store_batch
 from lifecycle_site.fleet.models import Gateway
+from lifecycle_site.fleet.redis_guard import RedisGuard
 from lifecycle_site.fleet.runs import fail_runs_of_silent_gateways
-from lifecycle_site.fleet.stream_entries import beat_fields, count_gap, decode, entry_id, is_after, replied, text
+from lifecycle_site.fleet.stream_entries import count_gap, decode, entry_id, is_after, replied, text
+from lifecycle_site.fleet.stream_reader import StreamReader
 from ros_gateway.shared import protocol
 
 log = logging.getLogger("lifecycle_site.ingest")
 
-# Every ingest process reads as the same consumer: only the lease holder reads at all, and
-# whoever holds it next finds the entries delivered but not acknowledged as its own.
+# Every ingest process reads as the same consumer: a gateway's streams are read by one process
+# at a time (its lease), and whoever holds them next finds the entries delivered but not
+# acknowledged as its own.
 CONSUMER = "site"
-LEASE_S = 15.0
 READ_COUNT = 500
 BLOCK_MS = 1000
-REFRESH_S = 3.0  # re-read the Gateway rows
+REFRESH_S = 3.0  # re-read the Gateway rows, renew and share the leases
 BEATS_S = 2.0  # copy heartbeats and backlogs, check configs
-CONFIG_EVERY_S = 60.0  # publish configs even when unchanged
 USERS_S = 10.0  # check the gateways' Redis users
 PRUNE_S = 60.0
+TURN_S = 1.0  # how often this process says it is alive and turning (/readyz)
 COMPLAIN_EVERY_S = 30.0
+# A write transaction of this process (SQLite: the database's one write lock) holds at most this
+# many facts, log records or this much time; then it commits and the next one begins, so that a
+# request of the site never waits long for it (and a frozen ingest holds as little as it can).
+FACTS_PER_TRANSACTION = 100
+LOG_RECORDS_PER_TRANSACTION = 2000
+YIELD_SHARE, MAX_YIELD_S = 0.5, 0.05  # SQLite: pause this share of a transaction's time after it
 # A gateway appends a request's facts to its stream (marked protocol.REPLIED) in one round trip
 # with its reply, which carries the same facts to the site, which applies them at once. Reading
 # them, ingest waits this long before applying them, so that the two do not write at the same
@@ -63,9 +80,6 @@ SETTLE_S = 0.03
 # the CPU from it on a small machine (push median 8 -> 10 ms on 2 cores, docs/performance.md).
 SETTLE_OTHERS_S = 0.01
 
-RENEW = "if redis.call('get', KEYS[1]) == ARGV[1] then return redis.call('pexpire', KEYS[1], ARGV[2]) end return 0"
-RELEASE = "if redis.call('get', KEYS[1]) == ARGV[1] then return redis.call('del', KEYS[1]) end return 0"
-
 
 class Ingest:
     """The loop's state; ``step()`` is one turn (tests drive it directly)."""
@@ -74,64 +88,76 @@ class Ingest:
         self.redis = client or gw.redis_client()
         self.prefix = gw.channel_prefix()
         self.me = f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:8]}"
-        self.lease_key = protocol.ingest_lease_key(self.prefix)
         self.stopping = False
-        self.streams: dict[str, tuple[str, str]] = {}  # stream key -> (gateway, "facts" | "logs")
-        self.ready: set[str] = set()  # streams whose consumer group exists
+        self.shares = Shares(self.redis, self.prefix, self.me)
+        self.duties = SiteDuties(self.redis, self.prefix)
+        self.reader = StreamReader(self.redis, protocol.INGEST_GROUP, CONSUMER, self.quarantine)
+        self.gateways: list[str] = []  # every gateway not quarantined (the site's work is for all)
+        self.streams: dict[str, tuple[str, str]] = {}  # stream key -> (gateway, "facts" | "logs"), held
         self.catching_up: set[str] = set()  # streams whose delivered, unacknowledged entries come first
-        self.published: dict[str, tuple[str, float]] = {}  # gateway -> (config version, when)
         self.due: dict[str, float] = {}
         self.last_complaint = 0.0
         self.applied = 0
-        self.alerts = Evaluator()  # alert rules, evaluated here: once per site (docs/alerts.md)
+        self.alerts = Evaluator()  # alert rules, evaluated by the leader: once per site (docs/alerts.md)
 
     # --- the loop --------------------------------------------------------------------------
 
     def run(self) -> None:
-        holding = False
-        while not self.stopping:
-            try:
-                if not self.hold_lease():
-                    if holding:
-                        log.warning("lost the ingest lease; standing by")
-                    holding = False
-                    self.catching_up = set(self.streams)
+        stopping = threading.Event()
+        threads = [
+            threading.Thread(target=LiveRelay(gw.redis_client(), self.prefix, lambda: set(self.held()),
+                                              self.quarantine).run, args=(stopping,), name="live-relay", daemon=True),
+            threading.Thread(target=RedisGuard(gw.redis_client()).run, args=(stopping,), name="redis-guard",
+                             daemon=True),
+        ]
+        for thread in threads:
+            thread.start()
+        try:
+            while not self.stopping:
+                try:
+                    self.step()
+                except redis.RedisError as exc:
+                    self.complain(f"Redis at {gw.safe_url(settings.REDIS_URL)} failed: {exc}; retrying")
+                    self.reader.ready.clear()
+                    self.duties.forget()  # a Redis restarted without its data has lost the configs
+                    self.due.pop("refresh", None)
                     time.sleep(1.0)
-                    continue
-                if not holding:
-                    log.info("holding the ingest lease (%s)", self.me)
-                    holding = True
-                self.step()
-            except redis.RedisError as exc:
-                self.complain(f"Redis at {gw.safe_url(settings.REDIS_URL)} failed: {exc}; retrying")
-                self.ready.clear()
-                self.published.clear()  # a Redis restarted without its data has lost the configs
-                time.sleep(1.0)
-            except DatabaseError as exc:
-                self.complain(f"the database failed: {exc}; retrying")
-                connection.close()
-                time.sleep(1.0)
-        self.release_lease()
-        self.alerts.dispatcher.stop()
+                except DatabaseError as exc:
+                    self.complain(f"the database failed: {exc}; retrying")
+                    connection.close()
+                    time.sleep(1.0)
+        finally:
+            stopping.set()
+            try:
+                self.shares.leave()
+            except redis.RedisError:
+                pass
+            self.alerts.dispatcher.stop()
 
     def step(self, block_ms: int = BLOCK_MS) -> int:
         """Read and apply what is there (waiting up to ``block_ms``), then the periodic work."""
         if self.is_due("refresh", REFRESH_S):
             self.refresh()
         applied = self.read(block_ms)
-        self.alerts.tick()
-        if self.is_due("beats", BEATS_S):
-            self.copy_beats()
-            self.publish_configs()
-            fail_runs_of_silent_gateways()
-        if self.is_due("users", USERS_S):
-            self.keep_users()
-        if self.is_due("prune", PRUNE_S):
-            config = settings.LIFECYCLE
-            deleted = prune_logs(config["LOG_KEEP_PER_NODE"], config["LOG_KEEP_HOURS"])
-            if deleted:
-                log.info("pruned %d old log records", deleted)
-            prune_absences()
+        if self.shares.leader:
+            self.alerts.observed.extend(self.shares.take_over())
+            self.alerts.tick()
+            if self.is_due("beats", BEATS_S):
+                self.duties.copy_beats(self.gateways)
+                self.duties.publish_configs(self.gateways)
+                fail_runs_of_silent_gateways()
+                push(record_messages(state_chain.settle()))
+            if self.is_due("users", USERS_S):
+                self.duties.keep_users()
+            if self.is_due("prune", PRUNE_S):
+                config = settings.LIFECYCLE
+                deleted = prune_logs(config["LOG_KEEP_PER_NODE"], config["LOG_KEEP_HOURS"])
+                if deleted:
+                    log.info("pruned %d old log records", deleted)
+                prune_absences()
+        if self.is_due("turn", TURN_S):
+            self.shares.report_turn({"pid": os.getpid(), "host": socket.gethostname(),
+                                     "gateways": sorted(self.held()), "leader": self.shares.leader})
         return applied
 
     def is_due(self, what: str, every: float) -> bool:
@@ -147,67 +173,62 @@ class Ingest:
             self.last_complaint = now
             log.warning(text)
 
-    # --- the lease -------------------------------------------------------------------------
+    # --- leases and shares ------------------------------------------------------------------
 
     def hold_lease(self) -> bool:
-        ms = int(LEASE_S * 1000)
-        if self.redis.set(self.lease_key, self.me, nx=True, px=ms):
-            return True
-        return bool(self.redis.eval(RENEW, 1, self.lease_key, self.me, ms))
+        """The site-wide lease (alert rules, configs, users); the gateways are shared anyway."""
+        return self.shares.hold_site_lease()
 
     def release_lease(self) -> None:
         try:
-            self.redis.eval(RELEASE, 1, self.lease_key, self.me)
+            self.shares.leave()
         except redis.RedisError:
             pass
 
-    # --- streams ---------------------------------------------------------------------------
+    def held(self) -> set[str]:
+        return {name for name, _ in self.streams.values()}
 
     def refresh(self) -> None:
-        """Follow the Gateway rows: a consumer group on the streams of each."""
+        """Follow the Gateway rows and the quarantines; take this process's share of the
+        gateways; a consumer group on the streams of each."""
+        self.hold_lease()
+        held_back = quarantine.current(self.redis)
+        rows = Gateway.objects.filter(quarantined__isnull=True).values_list("name", flat=True)
+        self.gateways = sorted(name for name in rows if name not in held_back)
+        members = self.shares.report_turn({"pid": os.getpid(), "gateways": sorted(self.held())})
+        mine = self.shares.rebalance(self.gateways, members)
         streams = {}
-        for name in Gateway.objects.values_list("name", flat=True):
+        for name in mine:
             streams[protocol.facts_stream(self.prefix, name)] = (name, "facts")
             streams[protocol.logs_stream(self.prefix, name)] = (name, "logs")
-        for stream in streams:
-            if stream not in self.ready:
-                try:
-                    self.redis.xgroup_create(stream, protocol.INGEST_GROUP, id="0", mkstream=True)
-                except redis.ResponseError as exc:
-                    if "BUSYGROUP" not in str(exc):
-                        raise
-                self.ready.add(stream)
-                self.catching_up.add(stream)
-        self.streams = streams
-        self.ready &= set(streams)
-        self.catching_up &= set(streams)
+        self.catching_up |= self.reader.prepare(streams)  # new to this process: what is pending first
+        self.streams = {s: owner for s, owner in streams.items() if s in self.reader.ready}
+        self.catching_up &= set(self.streams)
+
+    def quarantine(self, gateway: str, reason: str, drop: list[str]) -> None:
+        """Cut a gateway off and stop reading it (the others go on)."""
+        quarantine.quarantine(gateway, reason, self.redis, drop=drop)
+        self.streams = {s: owner for s, owner in self.streams.items() if owner[0] != gateway}
+        self.gateways = [name for name in self.gateways if name != gateway]
+        self.catching_up &= set(self.streams)
+
+    # --- streams ---------------------------------------------------------------------------
 
     def read(self, block_ms: int) -> int:
         """First the entries delivered earlier but never acknowledged, then new ones."""
         if not self.streams:
             time.sleep(block_ms / 1000)
             return 0
-        try:
-            if self.catching_up:
-                replies = self.redis.xreadgroup(
-                    protocol.INGEST_GROUP, CONSUMER, {s: "0" for s in self.catching_up}, count=READ_COUNT
-                )
-            else:
-                replies = self.redis.xreadgroup(
-                    protocol.INGEST_GROUP, CONSUMER, {s: ">" for s in self.streams}, count=READ_COUNT,
-                    block=block_ms,
-                )
-        except redis.ResponseError as exc:
-            if "NOGROUP" in str(exc):  # Redis restarted without its data
-                self.ready.clear()
-                self.published.clear()
-                self.due.pop("refresh", None)
-                return 0
-            raise
-        self.settle(replies or [])
+        if self.catching_up:
+            replies = self.reader.read(self.streams, {s: "0" for s in self.catching_up}, READ_COUNT, None)
+            replies += [(s, []) for s in self.catching_up if s not in {r[0] for r in replies}]
+        else:
+            replies = self.reader.read(self.streams, {s: ">" for s in self.streams}, READ_COUNT, block_ms)
+        if not self.reader.ready >= set(self.streams):  # a stream was found broken or without its group
+            self.due.pop("refresh", None)
+        self.settle(replies)
         applied = 0
-        for raw_stream, entries in replies or []:
-            stream = text(raw_stream)
+        for stream, entries in replies:
             if not entries:
                 self.catching_up.discard(stream)
                 continue
@@ -237,32 +258,56 @@ class Ingest:
             time.sleep(wait)
 
     def apply(self, stream: str, entries: list) -> int:
-        """Apply one stream's entries in one transaction, then acknowledge them."""
+        """Apply one stream's entries in short transactions, then acknowledge them."""
         name, kind = self.streams[stream]
         pushes: list[tuple[str, dict]] = []
-        with transaction.atomic():
-            row = Gateway.objects.select_for_update().filter(name=name).first()
-            if row is None:
-                return 0
-            cursor = row.facts_cursor if kind == "facts" else row.logs_cursor
-            fresh = [(entry, fields) for entry, fields in entries if is_after(entry, cursor)]
-            if kind == "facts":
-                pushes = self.apply_facts(row, fresh)
-            else:
-                pushes = self.store_logs(row, fresh)
-            if fresh:
-                setattr(row, f"{kind}_cursor", text(fresh[-1][0]))
-            row.save(update_fields=[
-                f"{kind}_cursor", f"{kind}_instance", f"{kind}_seq", "facts_lost", "facts_rejected",
-                "logs_lost", "logs_dropped", "logs_received",
-            ])
+        applied = 0
+        for chunk in self.chunks(kind, entries):
+            began = time.monotonic()
+            with transaction.atomic():
+                row = Gateway.objects.select_for_update().filter(name=name).first()
+                if row is None:
+                    return applied
+                cursor = row.facts_cursor if kind == "facts" else row.logs_cursor
+                fresh = [(entry, fields) for entry, fields in chunk if is_after(entry, cursor)]
+                pushes += self.apply_facts(row, fresh) if kind == "facts" else self.store_logs(row, fresh)
+                if fresh:
+                    setattr(row, f"{kind}_cursor", text(fresh[-1][0]))
+                row.save(update_fields=[
+                    f"{kind}_cursor", f"{kind}_instance", f"{kind}_seq", "facts_lost", "facts_rejected",
+                    "logs_lost", "logs_dropped", "logs_received",
+                ])
+            applied += len(fresh)
+            took = time.monotonic() - began
+            if took > 1.0:
+                log.warning("gateway %s: a %s transaction took %.1f s", name, kind, took)
+            if connection.vendor == "sqlite":
+                # SQLite serves waiting writers by polling (up to every 100 ms), not in turn: one
+                # that begins again at once keeps the site's writes waiting for seconds while it
+                # catches up. A pause after each transaction lets them in.
+                time.sleep(min(took * YIELD_SHARE, MAX_YIELD_S))
         self.redis.xack(stream, protocol.INGEST_GROUP, *[entry for entry, _ in entries])
         # Stored and acknowledged: Redis keeps only what is not (MAXLEN then bounds a backlog,
         # not a history), so a small Redis (Edge: 40 MB, noeviction) never fills up with it.
-        if entries:
-            self.redis.xtrim(stream, minid=text(entries[-1][0]))
+        self.redis.xtrim(stream, minid=text(entries[-1][0]))
         push(pushes)
-        return len(fresh)
+        return applied
+
+    @staticmethod
+    def chunks(kind: str, entries: list) -> list[list]:
+        """The entries in groups that each make one short transaction."""
+        if kind == "facts":
+            return [entries[i:i + FACTS_PER_TRANSACTION] for i in range(0, len(entries), FACTS_PER_TRANSACTION)]
+        chunks: list[list] = [[]]
+        records = 0
+        for entry, fields in entries:
+            size = protocol.LOG_BATCH  # a batch's records, at most (not decoded yet)
+            if chunks[-1] and records + size > LOG_RECORDS_PER_TRANSACTION:
+                chunks.append([])
+                records = 0
+            chunks[-1].append((entry, fields))
+            records += size
+        return chunks
 
     def apply_facts(self, row: Gateway, entries: list) -> list[tuple[str, dict]]:
         facts = []
@@ -281,7 +326,11 @@ class Ingest:
                             "(the ingest process was behind or stopped)", row.name, lost)
             facts.append(fact)
         applied = apply_facts(row.name, facts)
-        self.alerts.observe(row.name, facts)
+        seen = observations(row.name, applied.accepted)
+        if self.shares.leader:
+            self.alerts.observed.extend(seen)
+        else:
+            self.shares.hand_over(seen)
         row.facts_rejected += applied.rejected
         return record_messages(applied.created, applied.created_parameters)
 
@@ -297,7 +346,8 @@ class Ingest:
                     row.logs_lost += lost
                     log.warning("gateway %s: %d log batches were trimmed from Redis before they could be "
                                 "stored", row.name, lost)
-                row.logs_dropped += max(int(batch.get("dropped") or 0), 0)
+                dropped = batch.get("dropped")
+                row.logs_dropped += min(max(dropped, 0), 10**9) if isinstance(dropped, int) else 0
                 if batch.get("gateway") != row.name:
                     raise FactRejected(f"it names gateway {batch.get('gateway')!r}")
                 with transaction.atomic():
@@ -310,61 +360,10 @@ class Ingest:
                 log.warning("gateway %s: skipped log batch %s: %s", row.name, entry, exc)
         return pushes
 
-    # --- what else the site owes its gateways ----------------------------------------------
+    # --- kept for callers that use the loop's parts (tests) ----------------------------------
 
     def copy_beats(self) -> None:
-        """Each gateway's heartbeat and stream backlog into its row (for pages and the API)."""
-        names = sorted({name for name, _ in self.streams.values()})
-        if not names:
-            return
-        beats = self.redis.mget([protocol.beat_key(self.prefix, n) for n in names])
-        backlogs = self.backlogs(names)
-        for name, raw in zip(names, beats, strict=True):
-            changes: dict[str, Any] = {"backlog": backlogs.get(name, 0)}
-            beat = gw._parse_beat(raw)
-            if beat is not None:
-                changes.update(beat_fields(beat))
-            Gateway.objects.filter(name=name).update(**changes)
-
-    def backlogs(self, names: list[str]) -> dict[str, int]:
-        """Entries not yet stored, per gateway: the group's lag (Redis 7) or an estimate, plus
-        what was delivered and not acknowledged."""
-        streams = [(n, s) for n in names for s in (protocol.facts_stream(self.prefix, n),
-                                                   protocol.logs_stream(self.prefix, n))]
-        pipe = self.redis.pipeline(transaction=False)
-        for _, stream in streams:
-            pipe.xinfo_groups(stream)
-        totals: dict[str, int] = {}
-        for (name, stream), groups in zip(streams, pipe.execute(raise_on_error=False), strict=True):
-            if isinstance(groups, Exception):
-                continue
-            for group in groups:
-                if group.get("name") not in (protocol.INGEST_GROUP, protocol.INGEST_GROUP.encode()):
-                    continue
-                lag = group.get("lag")
-                if lag is None:
-                    last = group.get("last-delivered-id") or b"0-0"
-                    last = text(last)
-                    lag = len(self.redis.xrange(stream, f"({last}", "+", count=10_000))
-                totals[name] = totals.get(name, 0) + int(lag) + int(group.get("pending") or 0)
-        return totals
-
-    def publish_configs(self) -> None:
-        """Each gateway's config when it changed, and at least every CONFIG_EVERY_S."""
-        now = time.monotonic()
-        for name in sorted({name for name, _ in self.streams.values()}):
-            config = gw.build_config(name)
-            version, when = self.published.get(name, ("", 0.0))
-            if config["version"] != version or now - when >= CONFIG_EVERY_S:
-                self.redis.set(protocol.config_key(self.prefix, name), protocol.encode(config))
-                self.published[name] = (config["version"], now)
-
-    def keep_users(self) -> None:
-        """Re-create gateways' Redis users that Redis lost (a restart without persistence)."""
-        for row in Gateway.objects.exclude(redis_password_sha256=""):
-            if not redis_users.user_is_current(row, self.redis):
-                redis_users.apply_user(row, self.redis)
-                log.info("re-created the Redis user %s of gateway %s", row.redis_user, row.name)
+        self.duties.copy_beats(self.gateways)
 
 
 class Command(BaseCommand):

@@ -110,7 +110,9 @@ class Command(BaseCommand):
                 try:
                     reply = call_gateway(gateway, protocol.GET_STATE, timeout=timeout, robot=node.robot.name,
                                          node=node.name)
-                    readings.append((reply["state"], True))
+                    state = reply.get("state") if isinstance(reply.get("state"), dict) else {}
+                    found = state.get("id") if state.get("id") in sm.STATE_LABELS else sm.UNKNOWN
+                    readings.append((sm.state_dict(found), True))
                     continue
                 except GatewayOffline as exc:
                     offline.add(gateway)
