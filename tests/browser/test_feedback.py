@@ -31,12 +31,16 @@ def other_robot(robot):
     from django.utils import timezone
 
     started = timezone.now()
-    register(OTHER, stack.domain(8))
-    process = stack.start_robot("br2-nodes", stack.domain(8), "camera_driver")
-    wait_node(None, KEY, alive=True, state="unconfigured", seen_since=started, timeout=30)
-    yield process
-    process.stop()
-    Robot.objects.filter(name=OTHER).delete()  # later modules see the fleet of br-agv alone
+    # A domain of its own: a robot of another module registered for the whole of a shared
+    # domain (it-ops, domain 8) would take its node if the gateway saw the node first.
+    register(OTHER, stack.domain(32))
+    process = stack.start_robot("br2-nodes", stack.domain(32), "camera_driver")
+    try:
+        wait_node(None, KEY, alive=True, state="unconfigured", seen_since=started, timeout=30)
+        yield process
+    finally:
+        process.stop()
+        Robot.objects.filter(name=OTHER).delete()  # later modules see the fleet of br-agv alone
 
 
 def open_fleet(browser, site, **viewport):

@@ -355,3 +355,24 @@ def test_a_state_whose_record_comes_in_the_next_batch_makes_no_observed_record(c
     apply_facts("cell-f", [part.transition(robot.name, "/lidar", sm.ACTIVATE, "activate", 2, 3, source="external")])
     assert state_chain.settle(datetime.now(timezone.utc) + timedelta(seconds=60)) == []
     assert node(robot).unexplained_since is None and node(robot).audited_state_id == sm.ACTIVE
+
+
+def test_a_change_seen_only_at_its_end_during_a_run_names_the_run_and_who_started_it(cell):
+    """F6: a gateway killed while a run's configure was under way; its successor sees only the
+    end of the transition (an "observed" fact without a start). The record starts where the
+    chain had the node and names the run that was under way, and who started it."""
+    part, robot = cell
+    operator = make_user("run-operator", "operator")
+    apply_facts("cell-f", [part.fact(protocol.NODE_STATE, robot=robot.name, node="/lidar", state_id=sm.UNCONFIGURED),
+                           part.transition(robot.name, "/lidar", sm.CLEANUP, "cleanup", 2, 1, source="external")])
+    run = GroupRun.objects.create(id=protocol.new_id(), robot=robot, operation="bringup", status="failed",
+                                  source="dashboard", requested_by=operator,
+                                  message="the gateway cell-f restarted while it ran")
+    successor = GatewayPart("cell-f")
+    seen_end = successor.transition(robot.name, "/lidar", None, "", None, sm.INACTIVE, outcome="observed",
+                                    source="external")
+    seen_end.pop("transition_id")
+    apply_facts("cell-f", [seen_end])
+    record = TransitionRecord.objects.get(fact_id=seen_end["id"])
+    assert (record.start_state_label, record.result_state_label) == ("unconfigured", "inactive")
+    assert f"the bring up run {run.pk[:8]} by run-operator was under way (failed: the gateway cell-f" in record.error

@@ -337,3 +337,22 @@ def test_catching_up_the_ingest_holds_the_database_only_briefly(cell):
     finally:
         process.stop()
     assert len(waits) > 10 and max(waits) < 1.0, f"the site's writes waited up to {max(waits):.2f} s"
+
+
+def test_readyz_says_when_the_ingest_process_is_frozen(cell, client):
+    """F9: an ingest process stopped (SIGSTOP) stores nothing; /readyz says so within its
+    bound (the lease it held would have said "running" for 15 s, then "not running")."""
+    forget_ingest_processes()
+    process = stack.start_ingest("ingest-frozen")
+    try:
+        stack.wait_for(lambda: client.get("/readyz").json()["ingest"] == "running" or not process.alive(), 20,
+                       "the ingest process reported as running")
+        with stack.frozen(process.pid):
+            frozen_at = time.monotonic()
+            ready = stack.wait_for(lambda: (r := client.get("/readyz").json())["ingest"] == "stalled" and r, 20,
+                                   "/readyz to call the ingest stalled")
+            assert time.monotonic() - frozen_at < 15
+            assert ready["status"] == "degraded" and "no ingest process has finished a turn" in ready["ingest_problem"]
+        stack.wait_for(lambda: client.get("/readyz").json()["ingest"] == "running", 20, "running again")
+    finally:
+        process.stop()
