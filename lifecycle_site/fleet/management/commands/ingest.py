@@ -191,7 +191,12 @@ class Ingest:
     def refresh(self) -> None:
         """Follow the Gateway rows and the quarantines; take this process's share of the
         gateways; a consumer group on the streams of each."""
-        self.hold_lease()
+        was_leader = self.shares.leader
+        if self.hold_lease() != was_leader:
+            if self.shares.leader:
+                log.info("holding the ingest lease (%s): this process does the site-wide work", self.me)
+            else:
+                log.warning("lost the ingest lease; another process does the site-wide work")
         held_back = quarantine.current(self.redis)
         rows = Gateway.objects.filter(quarantined__isnull=True).values_list("name", flat=True)
         self.gateways = sorted(name for name in rows if name not in held_back)
