@@ -18,7 +18,7 @@ from typing import Any
 import redis
 from django.conf import settings
 
-from lifecycle_site.fleet import attribution, gateways, presence
+from lifecycle_site.fleet import attribution, gateways, presence, redis_guard
 from lifecycle_site.fleet import gateway_input as checks
 from lifecycle_site.fleet.gateways import MAX_SERVICE_TIMEOUT, channel_prefix
 from ros_gateway.shared import protocol
@@ -142,12 +142,22 @@ class _Call:
     def not_carried_out(self, reason: str, outcome: str = "rejected") -> list[dict]:
         return protocol.not_carried_out(self.gateway, self.message, reason, "site", outcome)
 
+    def send(self) -> None:
+        with self.client.pipeline() as pipe:
+            pipe.lpush(self.queue, self.encoded)
+            pipe.ltrim(self.queue, 0, protocol.COMMAND_QUEUE_LIMIT - 1)
+            pipe.execute()
+
     def run(self) -> dict:
         try:
-            with self.client.pipeline() as pipe:
-                pipe.lpush(self.queue, self.encoded)
-                pipe.ltrim(self.queue, 0, protocol.COMMAND_QUEUE_LIMIT - 1)
-                pipe.execute()
+            try:
+                self.send()
+            except redis.ResponseError as exc:
+                # Redis is full: a gateway beyond its quota, faster than the guard's count. Count
+                # now (cutting it off), and send again once.
+                if not redis_guard.is_out_of_memory(exc) or not redis_guard.relieve():
+                    raise
+                self.send()
         except redis.TimeoutError as exc:  # it may have been queued: the gateway's record will tell
             text = (f"Redis, which links the site and gateway {self.gateway}, did not answer while the command "
                     f"was sent ({exc}): whether it was carried out is not known. Check the node's state when "

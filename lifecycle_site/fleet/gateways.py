@@ -361,7 +361,7 @@ def build_config(gateway_name: str) -> dict:
 
 QUOTA_CAP = 64 * 1024 * 1024
 QUOTA_FLOOR = 1024 * 1024
-QUOTA_READ_EVERY_S = 60.0
+QUOTA_READ_EVERY_S = 10.0
 _quota: tuple[float, int] = (-QUOTA_READ_EVERY_S, protocol.DEFAULT_REDIS_QUOTA)
 
 

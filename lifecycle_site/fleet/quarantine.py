@@ -56,13 +56,15 @@ def quarantine(name: str, reason: str, client: redis.Redis | None = None, drop: 
         log.error("gateway %s (the site's own Redis user) broke a rule: %s; not cut off%s", name, reason,
                   f" (deleted its keys: {', '.join(dropped)})" if dropped else "")
         return False
-    entry = json.dumps({"since": since.isoformat(), "reason": reason})
-    new = bool(client.hsetnx(quarantine_key(prefix), name, entry))
+    # In this order: with Redis full, writes are refused until the keys are deleted (ACL SETUSER,
+    # CLIENT KILL and UNLINK are not), so the hash's entry comes last.
     if row is not None:
         row.quarantined = row.quarantined or since
         redis_users.apply_user(row, client)  # "off": it cannot log in again
         redis_users.disconnect_user(name, client)  # and what it has open is closed
     dropped = drop_keys(name, drop, client)
+    entry = json.dumps({"since": since.isoformat(), "reason": reason})
+    new = bool(client.hsetnx(quarantine_key(prefix), name, entry))
     try:
         Gateway.objects.filter(name=name, quarantined__isnull=True).update(
             quarantined=since, quarantine_reason=reason, quarantines=F("quarantines") + 1)

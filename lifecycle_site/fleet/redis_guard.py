@@ -30,7 +30,7 @@ from ros_gateway.shared import protocol
 
 log = logging.getLogger(__name__)
 
-POLL_S = 0.2
+POLL_S = 0.1
 FULL_S = 1.0
 ROWS_EVERY_S = 5.0  # the rows' redis_bytes (what pages and /metrics show)
 # Replies and claims a gateway may hold at once (each expires; hundreds in a busy second at most).
@@ -45,7 +45,9 @@ class Usage:
 
 
 def is_out_of_memory(exc: Exception) -> bool:
-    return isinstance(exc, redis.ResponseError) and str(exc).startswith("OOM")
+    """Redis refused a write: it is full (``OOM command not allowed when used memory > 'maxmemory'``)."""
+    return isinstance(exc, redis.exceptions.OutOfMemoryError) or (
+        isinstance(exc, redis.ResponseError) and "maxmemory" in str(exc))
 
 
 class RedisGuard:

@@ -176,6 +176,41 @@ def test_f3_a_gateway_filling_redis_is_cut_off_and_commands_for_others_go_on(cel
     assert set(answers) == {200}, answers
 
 
+def test_f3_redis_filled_before_the_guard_counts_the_site_relieves_it_and_answers(cell, api, ingest):
+    """As on an Industrial Edge device, Redis's maxmemory only 40 MB above what it holds, and the
+    guard late (the ingest processes, where it counts, frozen): the gateway fills Redis. The
+    site's next command finds Redis full, has the gateway's keys counted at once (cutting it off)
+    and is sent again: answered, not refused."""
+    evil = attacker("evil-f3s", cell)
+    prefix = gateways.channel_prefix()
+    site = stack.redis_client()
+    before = site.config_get("maxmemory")["maxmemory"]
+    site.config_set("maxmemory", int(site.info("memory")["used_memory"]) + 40 * 1024 * 1024)
+    try:
+        config = protocol.config_key(prefix, "evil-f3s")
+        stack.wait_for(lambda: json.loads(site.get(config) or "{}").get("limits", {}).get("redis_bytes", 1e12)
+                       <= 6 * 1024 * 1024, 30, "the gateways' quota following Redis's maxmemory")
+        with stack.frozen(ingest.current.pid):
+            size, written, refused = 1024 * 1024, 0, 0
+            while size >= 16:  # to the brim: each size until Redis refuses it, then half of it
+                try:
+                    evil.lpush(protocol.reply_key(prefix, "evil-f3s", f"r{written}"), "x" * size)
+                    written += 1
+                except redis.exceptions.OutOfMemoryError:
+                    refused += 1
+                    size //= 2
+            assert written > 30 and refused  # Redis was full, for the gateway and for everyone
+            gateways.forget()
+            node = ManagedNode.objects.get(key=f"{ROBOT}.sg.camera_driver")
+            answer = transition(api, node.key, "cleanup" if node.state_label == "inactive" else "configure")
+            assert answer.status_code == 200, answer.json()
+            seen = status(api, "evil-f3s")
+            assert seen["status"] == "quarantined" and "Redis keys held" in seen["reason"], seen
+            assert int(site.info("memory")["used_memory"]) < int(site.config_get("maxmemory")["maxmemory"]) // 2
+    finally:
+        site.config_set("maxmemory", before)
+
+
 def test_f4_live_updates_reach_pages_only_as_the_site_checked_them(cell, api):
     evil = attacker("evil-f4", cell)
     prefix = gateways.channel_prefix()
