@@ -315,7 +315,7 @@ LIFECYCLE = {
     # In-memory log buffer of the gateway; records beyond it are dropped and counted.
     "LOG_BUFFER": int(os.environ.get("LIFECYCLE_LOG_BUFFER", 20000)),
     # Bytes each gateway's Redis keys may hold before the site cuts it off (fleet/redis_guard.py);
-    # None: an eighth of Redis's maxmemory, at most 64 MB (fleet.gateways.redis_quota).
+    # None: an eighth of Redis's maxmemory, at most 64 MB (fleet.gateway_config.redis_quota).
     "GATEWAY_REDIS_QUOTA": _megabytes("LIFECYCLE_GATEWAY_REDIS_QUOTA_MB"),
 }
 

@@ -7,7 +7,6 @@ bounding, filtering and pausing a fast stream is the browser's job there.
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
 from urllib.parse import parse_qs
 
@@ -365,41 +364,6 @@ class NodeConsumer(RunPanels, LiveConsumer):
     async def node_parameters(self, event: dict) -> None:
         """Values changed by anyone: the 'current value' cells follow."""
         await self.send_html("dashboard/_parameter_values_oob.html", {"changes": event["changes"]})
-
-
-class LogConsumer(LiveConsumer):
-    """``ws/logs/node/<key>/`` or ``ws/logs/robot/<name>/``: records as JSON."""
-
-    async def prepare(self) -> bool:
-        kwargs = self.scope["url_route"]["kwargs"]
-        self.target = (kwargs["scope"], kwargs["name"])
-        group = await database_sync_to_async(snapshots.log_group)(*self.target)
-        self.groups_to_join = [group] if group else []
-        return group is not None
-
-    def gateway_views(self) -> list[dict]:
-        scope, name = self.target
-        return snapshots.node_gateway(name) if scope == "node" else snapshots.robot_gateway(name)
-
-    async def node_logs(self, event: dict) -> None:
-        await self.send(text_data=json.dumps({"records": event["records"]}))
-
-    async def node_state(self, event: dict) -> None:
-        pass
-
-    async def node_parameters(self, event: dict) -> None:
-        pass
-
-    async def run_progress(self, event: dict) -> None:
-        pass
-
-    async def check_runs(self) -> None:
-        pass
-
-    async def send_gateway_status(self, offline: list[dict]) -> None:
-        with script_prefix(self.prefix):
-            banner = render_to_string("dashboard/_gateway_banner.html", {"offline_gateways": offline})
-        await self.send(text_data=json.dumps({"gateway_online": not offline, "gateway_banner": banner}))
 
 
 def _head(view: dict) -> dict:

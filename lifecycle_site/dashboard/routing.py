@@ -3,10 +3,11 @@ from django.urls import path
 
 from lifecycle_site.dashboard import consumers
 from lifecycle_site.dashboard.audit_consumer import AuditConsumer
+from lifecycle_site.dashboard.log_consumer import LogConsumer
 
 websocket_urlpatterns = [
     path("ws/fleet/", consumers.FleetConsumer.as_asgi()),
     path("ws/nodes/<str:key>/", consumers.NodeConsumer.as_asgi()),
-    path("ws/logs/<str:scope>/<str:name>/", consumers.LogConsumer.as_asgi()),
+    path("ws/logs/<str:scope>/<str:name>/", LogConsumer.as_asgi()),
     path("ws/audit/", AuditConsumer.as_asgi()),
 ]

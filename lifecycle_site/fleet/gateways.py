@@ -1,12 +1,12 @@
-"""The site's view of its gateways through Redis: heartbeats and the config each one follows
-(protocol: ros_gateway/shared/protocol.py; the Redis user each one connects with: redis_users.py).
+"""The site's view of its gateways through Redis: heartbeats and quarantines (the config each
+one follows: gateway_config.py; the Redis user each one connects with: redis_users.py;
+protocol: ros_gateway/shared/protocol.py).
 
 Whether a gateway is online comes from its heartbeat key, read at most once a second per
 gateway in each process; pages add what the ingest process copied into the Gateway row.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import threading
@@ -20,13 +20,11 @@ from urllib.parse import urlsplit, urlunsplit
 import redis
 from django.conf import settings
 from django.core.signals import setting_changed
-from django.db import transaction
-from django.db.models.signals import post_delete, post_save
 from redis.backoff import ExponentialBackoff
 from redis.retry import Retry
 
 from lifecycle_site.fleet import presence
-from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
+from lifecycle_site.fleet.models import Gateway
 from lifecycle_site.fleet.stream_entries import beat_at, beat_started, plausible
 from ros_gateway.shared import protocol
 
@@ -331,108 +329,3 @@ def describe(gateway: Gateway, state: GatewayStatus, robots: list[str] | None = 
         "outbox_dropped": int(outbox.get("facts_dropped") or 0) + int(outbox.get("logs_dropped") or 0),
         "robots": robots if robots is not None else [],
     }
-
-
-# --- the config each gateway follows --------------------------------------------------------
-
-def build_config(gateway_name: str) -> dict:
-    """What a gateway watches: its enabled robots and their nodes' order and desired state."""
-    robots = list(Robot.objects.filter(gateway__name=gateway_name, enabled=True).order_by("name"))
-    nodes: dict[int, dict[str, dict]] = {r.id: {} for r in robots}
-    rows = ManagedNode.objects.filter(robot__in=robots).order_by("name").values_list(
-        "robot_id", "name", "order", "desired_state"
-    )
-    for robot_id, name, order, desired in rows:
-        nodes[robot_id][name] = {"order": order, "desired_state": desired}
-    body = {
-        "gateway": gateway_name,
-        "robots": [
-            {"id": r.id, "name": r.name, "domain_id": r.domain_id, "namespace": r.namespace,
-             "auto_recover": r.auto_recover, "nodes": nodes[r.id]}
-            for r in robots
-        ],
-    }
-    body["limits"] = {"redis_bytes": redis_quota()}
-    version = hashlib.sha256(protocol.encode(body).encode()).hexdigest()[:16]
-    return {"gateway": gateway_name, "version": version, "robots": body["robots"], "limits": body["limits"]}
-
-
-# --- what a gateway may hold in Redis ---------------------------------------------------------
-
-QUOTA_CAP = 64 * 1024 * 1024
-QUOTA_FLOOR = 1024 * 1024
-QUOTA_READ_EVERY_S = 10.0
-_quota: tuple[float, int] = (-QUOTA_READ_EVERY_S, protocol.DEFAULT_REDIS_QUOTA)
-
-
-def redis_quota(client: redis.Redis | None = None) -> int:
-    """Bytes each gateway's Redis keys may hold (fleet/redis_guard.py cuts off one beyond):
-    LIFECYCLE_GATEWAY_REDIS_QUOTA_MB, else an eighth of Redis's maxmemory (at most 64 MB; 64 MB
-    without a maxmemory), else, when Redis will not say, protocol.DEFAULT_REDIS_QUOTA."""
-    global _quota
-    configured = settings.LIFECYCLE.get("GATEWAY_REDIS_QUOTA")
-    if configured:
-        return int(configured)
-    read_at, quota = _quota
-    if time.monotonic() - read_at < QUOTA_READ_EVERY_S:
-        return quota
-    try:
-        maxmemory = int((client or redis_client()).config_get("maxmemory").get("maxmemory") or 0)
-        quota = max(QUOTA_FLOOR, min(QUOTA_CAP, maxmemory // 8)) if maxmemory else QUOTA_CAP
-    except (redis.RedisError, ValueError):
-        quota = protocol.DEFAULT_REDIS_QUOTA
-    _quota = (time.monotonic(), quota)
-    return quota
-
-
-def publish_config(gateway_name: str, client: redis.Redis | None = None) -> dict:
-    """Write the gateway's config key; returns the config. Raises redis.RedisError."""
-    config = build_config(gateway_name)
-    (client or redis_client()).set(protocol.config_key(channel_prefix(), gateway_name), protocol.encode(config))
-    return config
-
-
-_pending = threading.local()
-
-
-def publish_on_commit(gateway_names: Iterable[str]) -> None:
-    """Publish these gateways' configs once the current transaction commits (once each, however
-    many changes it holds). A Redis failure is logged: the ingest process publishes again."""
-    waiting: set[str] | None = getattr(_pending, "names", None)
-    if waiting is None:
-        waiting = _pending.names = set()
-    waiting.update(gateway_names)
-    transaction.on_commit(_publish_pending)  # the first callback to run publishes them all
-
-
-def _publish_pending() -> None:
-    names, _pending.names = getattr(_pending, "names", None) or set(), set()
-    for name in sorted(names):
-        try:
-            publish_config(name)
-        except redis.RedisError as exc:
-            log.warning("could not publish the config of gateway %s (Redis: %s); the ingest process will", name, exc)
-
-
-CONFIG_FIELDS = {"name", "order", "desired_state", "robot", "robot_id"}
-
-
-def _robot_changed(sender, instance: Robot, **kwargs) -> None:
-    # A robot may have moved from one gateway to another: every gateway's config is rebuilt
-    # (a handful of small queries), so the one it left forgets it too.
-    publish_on_commit(Gateway.objects.values_list("name", flat=True))
-
-
-def _node_changed(sender, instance: ManagedNode, created: bool = False, update_fields=None, **kwargs) -> None:
-    if kwargs.get("signal") is post_save and not created and update_fields is not None \
-            and not CONFIG_FIELDS & set(update_fields):
-        return
-    gateway = Robot.objects.filter(pk=instance.robot_id).values_list("gateway__name", flat=True).first()
-    if gateway:
-        publish_on_commit([gateway])
-
-
-post_save.connect(_robot_changed, sender=Robot, dispatch_uid="fleet.gateways.robot_saved")
-post_delete.connect(_robot_changed, sender=Robot, dispatch_uid="fleet.gateways.robot_deleted")
-post_save.connect(_node_changed, sender=ManagedNode, dispatch_uid="fleet.gateways.node_saved")
-post_delete.connect(_node_changed, sender=ManagedNode, dispatch_uid="fleet.gateways.node_deleted")

@@ -9,8 +9,8 @@ from typing import Any
 
 import redis
 
+from lifecycle_site.fleet import gateway_config, quarantine, redis_users
 from lifecycle_site.fleet import gateways as gw
-from lifecycle_site.fleet import quarantine, redis_users
 from lifecycle_site.fleet.models import Gateway
 from lifecycle_site.fleet.stream_entries import beat_fields, text
 from ros_gateway.shared import protocol
@@ -69,7 +69,7 @@ class SiteDuties:
         CONFIG_EVERY_S."""
         now = time.monotonic()
         for name in names:
-            config = gw.build_config(name)
+            config = gateway_config.build_config(name)
             version, when = self.published.get(name, ("", 0.0))
             if config["version"] != version or now - when >= CONFIG_EVERY_S:
                 self.redis.set(protocol.config_key(self.prefix, name), protocol.encode(config))

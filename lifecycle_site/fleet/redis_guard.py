@@ -3,7 +3,7 @@
 Redis has no per-user memory limit, and it refuses every write once it is full (maxmemory,
 ``noeviction``): commands to every gateway, the pages' sockets, the ingest process. So the site
 counts what each gateway's keys hold (those it writes: its streams, heartbeat, lease, replies and
-claims) and cuts off a gateway beyond its quota (fleet.gateways.redis_quota) before Redis is
+claims) and cuts off a gateway beyond its quota (fleet.gateway_config.redis_quota) before Redis is
 full: its user disabled, its connections closed, its keys deleted (fleet/quarantine.py).
 
 An honest gateway never gets there: it trims its own streams to shares of the quota
@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import redis
 from django.db import DatabaseError
 
-from lifecycle_site.fleet import gateways, quarantine
+from lifecycle_site.fleet import gateway_config, gateways, quarantine
 from lifecycle_site.fleet.models import Gateway
 from lifecycle_site.fleet.turns import keep_turning
 from ros_gateway.shared import protocol
@@ -82,7 +82,7 @@ class RedisGuard:
     def check(self) -> list[str]:
         """Count, and cut off every gateway beyond its quota; returns their names."""
         with self._lock:  # the ingest's thread and a request's relieve() may come together
-            quota = gateways.redis_quota(self.redis)
+            quota = gateway_config.redis_quota(self.redis)
             self.usage = self.measure()
             self.counted_at = time.monotonic()
             self.counted_memory = self.used_memory()
@@ -111,7 +111,7 @@ class RedisGuard:
         """One look at Redis (every POLL_S): a full count when it is due or memory grew."""
         now = time.monotonic()
         grown = self.used_memory() - self.counted_memory
-        if now - self.counted_at >= FULL_S or grown > gateways.redis_quota(self.redis) // 2:
+        if now - self.counted_at >= FULL_S or grown > gateway_config.redis_quota(self.redis) // 2:
             cut = self.check()
             if now - self.rows_at >= ROWS_EVERY_S:
                 self.rows_at = now
