@@ -25,6 +25,17 @@ class StreamBudget:
     def set_quota(self, quota: int) -> None:
         self.budget = int(quota * self.share)
 
+    def seed(self, entries: int, size: int) -> None:
+        """The stream already holds ``entries`` taking ``size`` bytes (written by this gateway's
+        previous process, not read by the site yet): counted as the oldest, so that the next
+        MAXLEN keeps them while they fit (a fresh count would be 1, and trim them all)."""
+        entries = min(max(entries, 0), self.cap)
+        if not entries:
+            return
+        each = max(size // entries, protocol.STREAM_ENTRY_OVERHEAD)
+        self.sizes.extendleft([each] * entries)
+        self.total += each * entries
+
     def add(self, size: int) -> int:
         """Count one entry of ``size`` bytes; returns how many of the newest entries the stream
         may keep (its exact MAXLEN), at least this one."""

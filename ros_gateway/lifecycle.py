@@ -265,6 +265,7 @@ class NodeDriver:
                           vouching: dict) -> Driven:
         domain = self.domains[node.robot.domain_id]
         requested_at = datetime.now(timezone.utc)
+        # A command of the site carries its grant, and the record the request's id (protocol.vouching).
         audit = dict(robot=node.robot.name, node=node.name, source=source, user_id=user_id, run_id=run_id,
                      requested_at=requested_at.isoformat(), **vouching)
         try:
@@ -275,7 +276,8 @@ class NodeDriver:
         except NodeUnreachable as exc:
             message = f"{node.name} on {node.robot.name} did not answer ({exc}); nothing was sent to it."
             fact = self.outbox.emit(
-                protocol.TRANSITION, **audit, transition_id=None, transition_label=str(requested),
+                protocol.TRANSITION, **audit, transition_id=None,
+                transition_label=protocol.transition_word(requested),
                 start_state=node.state_id, result_state=None, outcome="rejected",
                 completed_at=datetime.now(timezone.utc).isoformat(), error=message,
             )
@@ -300,7 +302,7 @@ class NodeDriver:
         fact = self.outbox.emit(
             protocol.TRANSITION, **audit,
             transition_id=transition.id if transition else None,
-            transition_label=transition.label if transition else str(requested),
+            transition_label=transition.label if transition else protocol.transition_word(requested),
             start_state=result.start_state, result_state=result.result_state, outcome=result.outcome,
             completed_at=datetime.now(timezone.utc).isoformat(), error=result.message,
         )

@@ -56,6 +56,7 @@ class Outbox:
         self._flushed = asyncio.Condition()
         self._sending = asyncio.Lock()  # one pipeline at a time: the streams stay in seq order
         self.unreachable_since: float | None = None
+        self._seeded = False  # what the streams already hold is counted in their budgets
 
     def _envelope(self, stream: _Stream, kind: str | None) -> dict:
         stream.seq += 1
@@ -124,6 +125,7 @@ class Outbox:
             while stream.queue:
                 try:
                     async with self._sending:
+                        await self._seed()
                         batch = list(stream.queue)[:FLUSH_BATCH]
                         if not batch:
                             break
@@ -147,6 +149,7 @@ class Outbox:
             if len(batch) > FLUSH_BATCH:
                 return False
             try:
+                await self._seed()
                 async with self.relay.redis.pipeline(transaction=True) as pipe:
                     self._add(pipe, self.facts, batch, replied=True)
                     pipe.lpush(key, message)
@@ -158,6 +161,20 @@ class Outbox:
             if batch:
                 await self._sent(self.facts, batch)
         return True
+
+    async def _seed(self) -> None:
+        """Before the first XADD of this process: count what its streams hold (a predecessor's
+        entries not read yet), so that the budgets' MAXLEN keeps them. Raises when Redis fails."""
+        if self._seeded:
+            return
+        async with self.relay.redis.pipeline(transaction=False) as pipe:
+            for stream in (self.facts, self.logs):
+                pipe.xlen(stream.key)
+                pipe.memory_usage(stream.key)
+            found = await pipe.execute()
+        for stream, entries, size in ((self.facts, found[0], found[1]), (self.logs, found[2], found[3])):
+            stream.budget.seed(int(entries or 0), int(size or 0))
+        self._seeded = True
 
     @staticmethod
     def _add(pipe: Any, stream: _Stream, batch: list[dict], replied: bool = False) -> None:

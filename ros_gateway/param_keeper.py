@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Any
+from typing import Any, Callable
 
 from ros_gateway.domain import RosDomain
 from ros_gateway.lifecycle import NodeUnreachable
@@ -41,14 +41,16 @@ class ParameterKeeper:
         return parameters
 
     def _record(self, node: LiveNode, name: str, old: Any, new: Any, outcome: str, reason: str, source: str,
-                user_id: int | None, vouching: dict | None = None) -> dict:
-        """Report one parameter change or refused attempt to the site (an audit fact)."""
+                user_id: int | None, vouching: Callable[[str], dict] | None = None) -> dict:
+        """Report one parameter change or refused attempt to the site (an audit fact; for a
+        command of the site with its grant for that name, and the id that goes with it)."""
         return self.outbox.emit(protocol.PARAMETER, robot=node.robot.name, node=node.name, name=name,
                                 old=protocol.bounded(old), new=protocol.bounded(new), outcome=outcome, reason=reason,
-                                source=source, user_id=user_id, **(vouching or {}))
+                                source=source, user_id=user_id, **(vouching(name) if vouching else {}))
 
     async def set(self, node: LiveNode, values: dict, timeout: float, source: str,
-                  user_id: int | None, vouching: dict | None = None) -> tuple[list[dict], list[dict]]:
+                  user_id: int | None, vouching: Callable[[str], dict] | None = None
+                  ) -> tuple[list[dict], list[dict]]:
         """Check each value against the node's descriptors, send the good ones together, and
         record every outcome. Returns one result per requested name, in request order, and
         the audit facts reporting them."""

@@ -59,10 +59,16 @@ class GatewayPart:
 
     @staticmethod
     def vouch(fact: dict) -> dict:
-        """The fact with the grant the site gave the command it answers (lifecycle_site/fleet/attribution.py)."""
-        fact["request_id"] = fact["id"]
-        fact["grant"] = attribution.grant(fact["id"], fact.get("user_id"), fact.get("source"), fact.get("robot"),
-                                          fact.get("node"))
+        """The fact with the grant the site gave the command it answers, and the id that goes
+        with it (lifecycle_site/fleet/attribution.py, protocol.vouching)."""
+        request_id = fact["request_id"] = fact["id"]
+        if fact["type"] == protocol.TRANSITION:
+            what = f"transition:{fact['transition_label']}"
+        else:
+            what = f"parameter:{fact['name']}"
+            fact["id"] = protocol.parameter_fact_id(request_id, fact["name"])
+        fact["grant"] = attribution.grant(request_id, fact.get("user_id"), fact.get("source"), fact.get("robot"),
+                                          fact.get("node"), what)
         return fact
 
     def log_batch(self, records: list[list], dropped: int = 0) -> dict:

@@ -84,7 +84,9 @@ class KnownRecords:
         self.robots = {r.name: r for r in Robot.objects.filter(gateway__name=self.name).select_related("gateway")}
         self.all_robots = True
 
-    def owns(self, robot_name: str) -> bool:
+    def owns(self, robot_name: object) -> bool:
+        if not isinstance(robot_name, str):
+            return False
         if robot_name not in self.robots and not self.all_robots:
             self.load_robots()
         return robot_name in self.robots

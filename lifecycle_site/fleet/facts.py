@@ -193,7 +193,7 @@ def _requester(known: KnownRecords, user_id: int | None) -> dict[str, Any]:
 def _transition_id(value: Any) -> int | None:
     if value is None:
         return None
-    if value not in sm.TRANSITIONS_BY_ID or isinstance(value, bool):
+    if not isinstance(value, int) or isinstance(value, bool) or value not in sm.TRANSITIONS_BY_ID:
         raise FactRejected(f"transition_id {str(value)[:20]!r} is not a lifecycle transition")
     return int(value)
 

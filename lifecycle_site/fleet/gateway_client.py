@@ -117,10 +117,7 @@ def call_gateway(gateway: str, command: str, timeout: float | None = None, **arg
         "timeout": service_timeout,
         **arguments,
     }
-    if command in (protocol.CHANGE_STATE, protocol.SET_PARAMETERS):  # audited: the site vouches for who asked
-        message["grant"] = attribution.grant(message["request_id"], message.get("user_id"),
-                                             str(message.get("source") or "api"), str(message.get("robot")),
-                                             str(message.get("node")))
+    message.update(attribution.grants_for(message))  # audited commands: the site vouches for who asked
     call = _Call(gateway, message, robot, wait, asked)
     return call.run()
 
@@ -237,7 +234,7 @@ class _Call:
         a failure's code and message checked (gateway_input.failure), nothing else of it taken."""
         try:
             reply = json.loads(raw) if len(raw) <= MAX_REPLY_BYTES else None
-        except ValueError:
+        except (ValueError, RecursionError):  # (JSON nested deeper than Python's stack)
             reply = None
         if not isinstance(reply, dict):
             raise GatewayError("gateway_error", f"Gateway {self.gateway} answered with something the site cannot "

@@ -27,6 +27,7 @@ VALUE_BYTES = 16 * 1024  # a parameter value, as JSON
 RUN_ID_RE = re.compile(r"^[0-9a-f]{1,32}$")
 RUN_RESULTS = 2000  # nodes in one run's results
 RUN_STEPS = 8  # transitions of one node in a run (a restart takes four)
+RUN_NODES = 100  # node pages told of one run update (those finished since the last one)
 CHANGES = 500  # parameters in one live update
 # A time a gateway reports may be a little ahead of the site's clock, not years.
 CLOCK_SKEW = timedelta(hours=1)
@@ -203,10 +204,11 @@ def run_progress(message: dict, robots: dict[str, Any], gateway: str) -> tuple[d
         "results": run_results(run.get("results")),
     }
     nodes = message.get("nodes") or []
-    if not isinstance(nodes, list) or len(nodes) > RUN_RESULTS:
+    if not isinstance(nodes, list):
         raise GatewayInputRefused("nodes must be a list of node keys")
-    keys = [key for key in nodes if isinstance(key, str) and key.startswith(f"{robot.name}.") and len(key) < 300]
-    return checked, robot, keys
+    # Only nodes of the run's results (a node page shows the runs of its node), and a bounded few.
+    keys = {protocol.node_key(robot.name, result["node"]) for result in checked["results"]}
+    return checked, robot, [key for key in nodes[:RUN_NODES] if key in keys]
 
 
 def run_results(results: Any) -> list[dict]:
@@ -275,7 +277,7 @@ def change_state_reply(reply: dict) -> dict:
     """A change_state reply's fields, rebuilt: states and transitions from the state machine."""
     transition = reply.get("transition")
     if transition is not None:
-        if not isinstance(transition, dict) or transition.get("id") not in sm.TRANSITIONS_BY_ID:
+        if not isinstance(transition, dict) or not _transition_id(transition.get("id")):
             raise GatewayInputRefused("its transition is not one of the lifecycle state machine")
         transition = sm.TRANSITIONS_BY_ID[transition["id"]].as_dict()
     valid = reply.get("valid_transitions") or []
@@ -291,8 +293,12 @@ def change_state_reply(reply: dict) -> dict:
         and duration == duration and abs(duration) < 1e9 else None,
         "message": text(reply.get("message")),
         "valid_transitions": [sm.TRANSITIONS_BY_ID[t["id"]].as_dict() for t in valid
-                              if isinstance(t, dict) and t.get("id") in sm.TRANSITIONS_BY_ID],
+                              if isinstance(t, dict) and _transition_id(t.get("id"))],
     }
+
+
+def _transition_id(found: Any) -> bool:
+    return isinstance(found, int) and not isinstance(found, bool) and found in sm.TRANSITIONS_BY_ID
 
 
 def parameter_results(results: Any, asked: Iterable[str]) -> list[dict]:

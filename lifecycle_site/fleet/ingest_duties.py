@@ -8,6 +8,7 @@ import time
 from typing import Any
 
 import redis
+from django.utils import timezone
 
 from lifecycle_site.fleet import gateway_config, quarantine, redis_users
 from lifecycle_site.fleet import gateways as gw
@@ -79,7 +80,10 @@ class SiteDuties:
         """Re-create gateways' Redis users that Redis lost (a restart without persistence), and
         keep a quarantined one's user disabled."""
         quarantine.keep_records(self.redis)
+        held = quarantine.current(self.redis)  # (a quarantine under way is in Redis before its row)
         for row in Gateway.objects.exclude(redis_password_sha256=""):
+            if row.quarantined is None and row.name in held:
+                row.quarantined = held[row.name]["since"] or timezone.now()
             if not redis_users.user_is_current(row, self.redis):
                 redis_users.apply_user(row, self.redis)
                 log.info("re-created the Redis user %s of gateway %s", row.redis_user, row.name)

@@ -38,6 +38,7 @@ UNKNOWN_ROBOT_S = 0.2  # and at most this often when an update names a robot not
 COUNTS_S = 2.0  # how often refusals are added to the rows
 LARGEST = protocol.MAX_LIVE_BYTES
 STALE_S = 10.0  # a live update older than this when a relay first reads its stream is not sent
+SEND_CONCURRENCY = 20  # groups sent to side by side
 
 
 class LiveRelay:
@@ -52,6 +53,7 @@ class LiveRelay:
         self.sent = 0
         self.layer = get_channel_layer()
         self.loop = asyncio.new_event_loop()
+        self.sending = asyncio.Semaphore(SEND_CONCURRENCY)  # (a semaphore binds to the loop that first waits)
 
     # --- the thread ----------------------------------------------------------------------
 
@@ -120,7 +122,7 @@ class LiveRelay:
                 break
             try:
                 messages += self.check(gateway, json.loads(raw))
-            except (ValueError, checks.GatewayInputRefused) as exc:
+            except (ValueError, RecursionError, TypeError, checks.GatewayInputRefused) as exc:
                 self.refused[gateway] = self.refused.get(gateway, 0) + 1
                 log.info("gateway %s: refused a live update: %s", gateway, exc)
         if messages:
@@ -162,12 +164,13 @@ class LiveRelay:
 
         async def in_order(group: str, updates: list[dict]) -> list:
             results: list = []
-            for update in updates:
-                try:
-                    await self.layer.group_send(group, update)
-                    results.append(None)
-                except Exception as exc:  # noqa: BLE001 - Redis down or full: the pages catch up on reload
-                    results.append(exc)
+            async with self.sending:  # the channel layer's pool holds 100 connections: a burst beyond fails
+                for update in updates:
+                    try:
+                        await self.layer.group_send(group, update)
+                        results.append(None)
+                    except Exception as exc:  # noqa: BLE001 - Redis down or full: the pages catch up on reload
+                        results.append(exc)
             return results
 
         done = await asyncio.gather(*(in_order(g, u) for g, u in by_group.items()))

@@ -99,10 +99,11 @@ def lift(gateway: Gateway, client: redis.Redis | None = None) -> None:
     """Let a quarantined gateway work again (its user enabled; its streams read from where the
     site stopped). Its counters stay."""
     client = client or redis_client()
+    lifted = Gateway(pk=gateway.pk, name=gateway.name, redis_password_sha256=gateway.redis_password_sha256)
+    client.hdel(quarantine_key(), gateway.name)  # Redis first: if it does not answer, nothing is lifted
+    redis_users.apply_user(lifted, client)
     Gateway.objects.filter(pk=gateway.pk).update(quarantined=None, quarantine_reason="")
     gateway.quarantined, gateway.quarantine_reason = None, ""
-    client.hdel(quarantine_key(), gateway.name)
-    redis_users.apply_user(gateway, client)
     gateways.forget_beats()
     log.warning("gateway %s: quarantine lifted", gateway.name)
 

@@ -19,13 +19,14 @@ log = logging.getLogger(__name__)
 # What a gateway may run (checked against Redis 7 by tests/unit/test_gateway_acl.py), each for
 # one job: its command queue (BRPOP), replies (LPUSH, EXPIRE), claims, heartbeat, lease and
 # config (SET, GET, PEXPIRE, DEL; the lease's compare-and-delete with WATCH/MULTI), its streams
-# (XADD), and what a connection needs. No scripts (a script runs as long as it likes, blocking
-# every other client of Redis, and cannot always be killed), no SELECT, no key listing, nothing
-# of the Channels layer: its live updates go to its own stream, which the site checks.
+# (XADD; XLEN and MEMORY USAGE to count what a predecessor left in them), and what a connection
+# needs. No scripts (a script runs as long as it likes, blocking every other client of Redis, and
+# cannot always be killed), no SELECT, no key listing, nothing of the Channels layer: its live
+# updates go to its own stream, which the site checks.
 GATEWAY_COMMANDS = [
     "-@all",
     "+ping", "+hello", "+auth", "+client|setname", "+client|getname", "+client|id", "+quit", "+reset",
-    "+brpop", "+lpush", "+expire", "+pexpire", "+get", "+set", "+del", "+xadd",
+    "+brpop", "+lpush", "+expire", "+pexpire", "+get", "+set", "+del", "+xadd", "+xlen", "+memory|usage",
     "+multi", "+exec", "+discard", "+watch", "+unwatch",
 ]
 
@@ -43,13 +44,18 @@ def _major_version(client: redis.Redis) -> int:
 
 def acl_rules(gateway: Gateway, prefix: str | None = None, redis_major: int = 7) -> list[str]:
     """The gateway's user: its password, exactly its own keys (those the site writes for it
-    read-only; Redis 6 has no read-only keys, so there they are readable and writable), no
-    Pub/Sub channels, and GATEWAY_COMMANDS."""
+    read-only, and its command queue only to take from: a selector that allows nothing but
+    BRPOP there), no Pub/Sub channels, and GATEWAY_COMMANDS. Redis 6 has neither read-only keys
+    nor selectors: there the site's keys are writable too (the Redis guard counts them)."""
     prefix = prefix or channel_prefix()
     writes, reads = protocol.gateway_key_patterns(prefix, gateway.name)
-    read_rule = "%R~" if redis_major >= 7 else "~"
-    return ["reset", "on" if gateway.quarantined is None else "off", f"#{gateway.redis_password_sha256}",
-            *(f"~{k}" for k in writes), *(f"{read_rule}{k}" for k in reads), "resetchannels", *GATEWAY_COMMANDS]
+    state = "on" if gateway.quarantined is None else "off"
+    if redis_major < 7:
+        return ["reset", state, f"#{gateway.redis_password_sha256}", *(f"~{k}" for k in writes + reads),
+                "resetchannels", *GATEWAY_COMMANDS]
+    queue = protocol.command_queue(prefix, gateway.name)
+    return ["reset", state, f"#{gateway.redis_password_sha256}", *(f"~{k}" for k in writes if k != queue),
+            *(f"%R~{k}" for k in reads), "resetchannels", *GATEWAY_COMMANDS, f"(~{queue} -@all +brpop)"]
 
 
 def apply_user(gateway: Gateway, client: redis.Redis | None = None) -> None:
@@ -59,6 +65,8 @@ def apply_user(gateway: Gateway, client: redis.Redis | None = None) -> None:
     client = client or redis_client()
     client.execute_command("ACL", "SETUSER", gateway.redis_user,
                            *acl_rules(gateway, redis_major=_major_version(client)))
+    if gateway.quarantined is not None:  # "off" keeps open connections working: close them
+        disconnect_user(gateway.name, client)
 
 
 def user_is_current(gateway: Gateway, client: redis.Redis | None = None) -> bool:

@@ -65,19 +65,21 @@ def start_of_observed(node: ManagedNode, result: int | None, at: datetime) -> tu
 
 
 def bridge(node: ManagedNode, start: int | None, requested_at: datetime) -> TransitionRecord | None:
-    """A record about to be stored starts where the node's records do not leave it (the change
-    in between reached no record, and the operator acted on the state seen before the sweep
-    came): the change in between is recorded first, as ``observed``."""
+    """A record about to be stored starts where the node's records do not leave it, and the site
+    has seen the node there, unexplained (the change in between reached no record, and the
+    operator acted on the state seen before the sweep came): the change in between is recorded
+    first, as ``observed``. Not when the site has not seen it: the record that explains it may
+    still be on its way (the ingest behind the request path)."""
     if start is None or not sm.is_primary(start):
         return None
     found = ManagedNode.objects.filter(pk=node.pk).values_list(
         "audited_state_id", "audited_at", "unexplained_since").first()
     # (No record yet: the first state seen only marks where the chain may begin; the first
     # record says where it does. Its own result may even have been seen first.)
-    if found is None or found[0] is None or found[1] is None or found[0] == start:
+    if found is None or found[0] is None or found[1] is None or found[2] is None or found[0] == start:
         return None
     audited, _, since = found
-    moment = since if since is not None and since <= requested_at else requested_at - timedelta(microseconds=1)
+    moment = min(since, requested_at - timedelta(microseconds=1))
     node.audited_state_id, node.unexplained_since = audited, moment
     record = observed(node, moment, found_state=start)
     ManagedNode.objects.filter(pk=node.pk).update(audited_state_id=start, audited_at=moment, unexplained_since=None)
@@ -89,7 +91,9 @@ def settle(now: datetime | None = None) -> list[TransitionRecord]:
     seconds; idempotent: a record's fact id comes from the node and the moment)."""
     now = now or timezone.now()
     made = []
-    due = ManagedNode.objects.select_related("robot").filter(unexplained_since__lte=now - timedelta(seconds=GRACE_S))
+    # (Not while its gateway's facts wait in Redis: the record that explains it may be among them.)
+    due = ManagedNode.objects.select_related("robot").filter(
+        unexplained_since__lte=now - timedelta(seconds=GRACE_S), robot__gateway__backlog=0)
     for node in due:
         if node.audited_state_id == node.state_id or not sm.is_primary(node.state_id):
             ManagedNode.objects.filter(pk=node.pk, unexplained_since=node.unexplained_since).update(

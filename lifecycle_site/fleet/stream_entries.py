@@ -35,19 +35,22 @@ def decode(fields: dict) -> dict:
     raw = fields.get(b"f", fields.get("f"))
     try:
         data = json.loads(raw)
-    except (TypeError, ValueError) as exc:
-        raise FactRejected(f"an entry without a JSON field 'f' ({exc})") from None
+    except (TypeError, ValueError, RecursionError) as exc:  # (JSON nested deeper than Python's stack)
+        raise FactRejected(f"an entry without a JSON field 'f' ({type(exc).__name__})") from None
     if not isinstance(data, dict):
         raise FactRejected("an entry's 'f' must be a JSON object")
     return data
 
 
+MAX_SEQ = 2**53  # a gateway's fact numbers (a database's 64-bit integer holds them; JSON's exact integers)
+
+
 def count_gap(instance: Any, seq: Any, last_instance: str, last_seq: int) -> tuple[int, str, int]:
     """Entries missing before this one (trimmed from Redis before they were read), and the new
     (instance, seq) to remember. Sequences start at 1 with every gateway process."""
-    if not isinstance(seq, int) or isinstance(seq, bool) or seq < 1 or not instance:
+    if not isinstance(seq, int) or isinstance(seq, bool) or not 1 <= seq <= MAX_SEQ \
+            or not isinstance(instance, str) or not 0 < len(instance) <= 32:
         return 0, last_instance, last_seq
-    instance = str(instance)
     if instance != last_instance:
         return seq - 1, instance, seq
     if seq <= last_seq:

@@ -12,6 +12,8 @@ same: their gateway is quarantined; such an entry is acknowledged and never appl
 from __future__ import annotations
 
 import logging
+import time
+from collections import deque
 from typing import Callable
 
 import redis
@@ -26,12 +28,17 @@ LARGEST = {"facts": protocol.MAX_FACT_BYTES, "logs": protocol.MAX_LOG_BATCH_BYTE
 FIELD = {"facts": b"f", "logs": b"f", "live": b"m"}
 
 Quarantine = Callable[[str, str, list[str]], None]  # gateway, reason, keys to drop
+# A gateway whose stream loses its group this often, this fast, is deleting it on purpose.
+LOST_GROUPS, LOST_GROUPS_WITHIN_S = 10, 60.0
+COMPLAIN_EVERY_S = 30.0
 
 
 class StreamReader:
     def __init__(self, client: redis.Redis, group: str, consumer: str, quarantine: Quarantine) -> None:
         self.redis, self.group, self.consumer, self.quarantine = client, group, consumer, quarantine
         self.ready: set[str] = set()  # streams known to have the group
+        self.lost_groups: dict[str, deque[float]] = {}  # gateway -> when its streams lost their group
+        self.complained = -COMPLAIN_EVERY_S
 
     def prepare(self, streams: dict[str, tuple[str, str]], start: str = "0") -> set[str]:
         """Make the consumer group of each stream not known to have it; returns the streams that
@@ -89,14 +96,29 @@ class StreamReader:
             for stream in which:
                 pipe.type(stream)
             types = [text(t) for t in pipe.execute()]
+        now = time.monotonic()
         for stream, found in zip(which, types, strict=True):
             gateway, kind = streams[stream]
+            self.ready.discard(stream)  # made again by prepare(), from its start
             if found not in ("stream", "none"):
-                self.ready.discard(stream)
                 self.quarantine(gateway, self.wrong_type(stream, kind), [kind])
-            else:
-                self.ready.discard(stream)  # made again by prepare(), from its start
-        log.warning("a read of the gateways' streams failed; checked %d of them one by one", len(which))
+                continue
+            missing = found == "none" or not self.has_group(stream)
+            if missing:  # deleted (by its gateway: the site never deletes a stream it reads)
+                times = self.lost_groups.setdefault(gateway, deque(maxlen=LOST_GROUPS))
+                times.append(now)
+                if len(times) == LOST_GROUPS and now - times[0] < LOST_GROUPS_WITHIN_S:
+                    self.quarantine(gateway, f"its {kind} stream was deleted {LOST_GROUPS} times within "
+                                    f"{LOST_GROUPS_WITHIN_S:.0f} s (each time every read of it failed)", [])
+        if now - self.complained > COMPLAIN_EVERY_S:
+            self.complained = now
+            log.warning("a read of the gateways' streams failed; checked %d of them one by one", len(which))
+
+    def has_group(self, stream: str) -> bool:
+        try:
+            return any(text(g.get("name", b"")) == self.group for g in self.redis.xinfo_groups(stream))
+        except redis.ResponseError:
+            return False
 
     def well_formed(self, stream: str, owner: tuple[str, str], entries: list) -> list:
         """The entries of a stream that carry their payload within its size, up to the first
@@ -104,6 +126,13 @@ class StreamReader:
         after it stay pending, read once the quarantine is lifted."""
         gateway, kind = owner
         field, largest = FIELD[kind], LARGEST[kind]
+        # An entry delivered before and trimmed since (the gateway's MAXLEN, while it waited to
+        # be acknowledged) comes back without fields: nothing to apply, nobody's fault (its gap
+        # in the gateway's sequence numbers counts it as lost).
+        trimmed = [entry for entry, fields in entries if not fields]
+        if trimmed:
+            self.redis.xack(stream, self.group, *trimmed)
+            entries = [(entry, fields) for entry, fields in entries if fields]
         for position, (entry, fields) in enumerate(entries):
             payload = fields.get(field, fields.get(field.decode())) if isinstance(fields, dict) else None
             problem = ""

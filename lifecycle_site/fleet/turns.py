@@ -21,10 +21,11 @@ def keep_turning(turn: Callable[[], object], stopping: threading.Event, what: st
     while not stopping.is_set():
         try:
             turn()
-        except (redis.RedisError, DatabaseError) as exc:
+        except Exception as exc:  # noqa: BLE001 - the thread must outlive any one turn
             if time.monotonic() - complained > COMPLAIN_EVERY_S:
                 complained = time.monotonic()
-                log.warning("%s failed: %s; trying again", what, exc)
+                known = isinstance(exc, (redis.RedisError, DatabaseError))
+                log.warning("%s failed: %s; trying again", what, exc, exc_info=not known)
             if isinstance(exc, DatabaseError):
                 connection.close()
             stopping.wait(after_failure)

@@ -78,8 +78,10 @@ MAX_LOG_BATCH_BYTES = 1024 * 1024
 MAX_LIVE_BYTES = 256 * 1024
 # What a gateway keeps of its own streams' bytes in Redis, as shares of its quota (the site
 # publishes the quota in the gateway's config, ``limits.redis_bytes``): it trims its streams to
-# these, so an honest gateway stays within its quota even when the ingest process is stopped.
-STREAM_SHARES = {"facts": 0.4, "logs": 0.3, "live": 0.1}
+# these, so an honest gateway stays within its quota even when the ingest process is stopped. A
+# third is left for its replies, claims, heartbeat and lease, the site's keys for it, and Redis's
+# own rounding (streams were measured 7 % above their budget).
+STREAM_SHARES = {"facts": 0.35, "logs": 0.25, "live": 0.05}
 # Redis's own bytes per stream entry beyond its fields (an estimate on the high side).
 STREAM_ENTRY_OVERHEAD = 64
 DEFAULT_REDIS_QUOTA = 16 * 1024 * 1024  # the site's, when Redis will not tell its maxmemory
@@ -281,26 +283,45 @@ def not_carried_out(gateway: str, command: dict, reason: str, instance: str, out
         return []
     common = {"gateway": gateway, "instance": instance, "seq": 0, "at": asked, "robot": command.get("robot"),
               "node": command.get("node"), "source": str(command.get("source") or "api"),
-              "user_id": command.get("user_id"), **vouching(command)}
+              "user_id": command.get("user_id")}
     if kind == CHANGE_STATE:
         requested = command.get("transition")
-        return [{**common, "id": request_id, "type": TRANSITION, "transition_id": _transition_id(requested),
-                 "transition_label": _transition_label(requested), "start_state": None, "result_state": None,
-                 "outcome": outcome, "requested_at": asked, "completed_at": None, "error": reason,
-                 "run_id": str(command.get("run_id") or "")}]
+        # Not answered (the site gave up after the gateway took it): the gateway's own record of
+        # what it did, should it come, has the request's id; this one stands beside it.
+        record_id = request_id if outcome != "timed_out" else unanswered_id(request_id)
+        return [{**common, **vouching(command), "id": record_id, "type": TRANSITION,
+                 "transition_id": _transition_id(requested), "transition_label": _transition_label(requested),
+                 "start_state": None, "result_state": None, "outcome": outcome, "requested_at": asked,
+                 "completed_at": None, "error": reason, "run_id": str(command.get("run_id") or "")}]
     values = command.get("values") if isinstance(command.get("values"), dict) else {}
-    return [{**common, "id": hashlib.sha256(f"{request_id}\0{name}".encode()).hexdigest()[:32], "type": PARAMETER,
-             "name": str(name), "old": None, "new": finite(value), "outcome": "rejected", "reason": reason}
+    return [{**common, **vouching(command, str(name)), "type": PARAMETER, "name": str(name), "old": None,
+             "new": finite(value), "outcome": "rejected", "reason": reason}
             for name, value in values.items()]
 
 
-def vouching(command: dict) -> dict:
-    """What a command's audit facts carry of the site's word on who asked (its request id and
-    grant), so that the site can check a fact's user and source (lifecycle_site/fleet/attribution.py)."""
-    grant = command.get("grant")
-    if not isinstance(grant, str):
-        return {}
-    return {"request_id": str(command.get("request_id") or ""), "grant": grant}
+def parameter_fact_id(request_id: str, name: str) -> str:
+    """The id of the audit fact of one parameter of a set_parameters command (once per name)."""
+    return hashlib.sha256(f"{request_id}\0{name}".encode()).hexdigest()[:32]
+
+
+def unanswered_id(request_id: str) -> str:
+    """The id of the site's record of a command its gateway took and did not answer."""
+    return hashlib.sha256(f"unanswered\0{request_id}".encode()).hexdigest()[:32]
+
+
+def vouching(command: dict, parameter: str | None = None) -> dict:
+    """What the audit fact of a command carries of the site's word on who asked: its request id,
+    the site's grant (for a transition; per parameter name for parameters) and the id the fact
+    must have (so that a grant makes at most one record), for lifecycle_site/fleet/attribution.py.
+    Empty for a command without grants (not the site's)."""
+    request_id = str(command.get("request_id") or "")
+    if parameter is None:
+        grant = command.get("grant")
+        return {"request_id": request_id, "grant": grant, "id": request_id} if isinstance(grant, str) else {}
+    grants = command.get("grants") if isinstance(command.get("grants"), dict) else {}
+    grant = grants.get(parameter)
+    fields = {"id": parameter_fact_id(request_id, parameter)}
+    return {**fields, "request_id": request_id, "grant": grant} if isinstance(grant, str) else fields
 
 
 def _transition_id(requested: Any) -> int | None:
@@ -313,7 +334,16 @@ def _transition_id(requested: Any) -> int | None:
 
 
 def _transition_label(requested: Any) -> str:
+    return transition_word(requested)
+
+
+def transition_word(requested: Any) -> str:
+    """A requested transition as its label ("3" and "Activate " are "activate"; an unknown word
+    stays as it was asked): what an audit record calls it, and what a grant is given for."""
     from ros_gateway.shared import state_machine as sm
 
     transition_id = _transition_id(requested)
-    return sm.TRANSITIONS_BY_ID[transition_id].label if transition_id is not None else str(requested)
+    if transition_id is not None:
+        return sm.TRANSITIONS_BY_ID[transition_id].label
+    text = str(requested)
+    return text.strip().lower() if text.strip().lower() in sm.EXTERNAL_LABELS else text

@@ -376,3 +376,35 @@ def test_a_change_seen_only_at_its_end_during_a_run_names_the_run_and_who_starte
     record = TransitionRecord.objects.get(fact_id=seen_end["id"])
     assert (record.start_state_label, record.result_state_label) == ("unconfigured", "inactive")
     assert f"the bring up run {run.pk[:8]} by run-operator was under way (failed: the gateway cell-f" in record.error
+
+
+def test_a_grant_makes_one_record_of_what_it_was_given_for(cell):
+    """Review of issue 25: a grant seen once cannot be replayed on new fact ids, nor on another
+    transition, to put more changes on the same user's name."""
+    part, robot = cell
+    user = make_user("grant-operator", "operator")
+    honest = part.transition(robot.name, "/lidar", sm.CONFIGURE, "configure", 1, 2, user_id=user.pk)
+    replayed = {**honest, "id": protocol.new_id()}
+    other = {**honest, "id": honest["request_id"], "transition_id": sm.ACTIVE_SHUTDOWN, "transition_label": "shutdown"}
+    apply_facts("cell-f", [honest])
+    apply_facts("cell-f", [replayed, other])
+    named = TransitionRecord.objects.filter(requested_by_name="grant-operator")
+    assert [r.transition_label for r in named] == ["configure"]
+    assert TransitionRecord.objects.filter(fact_id=replayed["id"], source="external").exists()
+
+
+def test_a_step_takes_the_runs_user_only_while_the_run_is_under_way_and_for_its_nodes(cell):
+    part, robot = cell
+    operator = make_user("window-operator", "operator")
+    run = GroupRun.objects.create(id=protocol.new_id(), robot=robot, operation="restart", status="running",
+                                  source="dashboard", requested_by=operator, only_nodes=["/lidar"])
+    inside = part.transition(robot.name, "/lidar", sm.CONFIGURE, "configure", 1, 2, source="external", run_id=run.id)
+    other_node = part.transition(robot.name, "/camera", sm.CONFIGURE, "configure", 1, 2, source="external",
+                                 run_id=run.id)
+    later = part.transition(robot.name, "/lidar", sm.ACTIVATE, "activate", 2, 3, source="external", run_id=run.id)
+    later["requested_at"] = (datetime.now(timezone.utc) + timedelta(minutes=30)).isoformat()
+    GroupRun.objects.filter(pk=run.pk).update(status="succeeded", finished=datetime.now(timezone.utc))
+    apply_facts("cell-f", [inside, other_node, later])
+    by = {r.fact_id: (r.source, r.requested_by_name) for r in TransitionRecord.objects.all()}
+    assert by[inside["id"]] == ("dashboard", "window-operator")
+    assert by[other_node["id"]] == by[later["id"]] == ("external", "")

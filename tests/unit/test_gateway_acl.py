@@ -120,6 +120,8 @@ def test_a_gateway_user_can_do_its_job_and_nothing_else(site, tmp_path):
     other_queue = protocol.command_queue(prefix, "cell-y")
     forbidden = [
         lambda: mine.lpush(other_queue, "{}"),
+        lambda: mine.lpush(protocol.command_queue(prefix, "cell-x"), "x" * 1000),  # its own queue: take only
+        lambda: mine.rpush(protocol.command_queue(prefix, "cell-x"), "{}"),
         lambda: mine.brpop([other_queue], timeout=1),
         lambda: mine.get(other_queue),
         lambda: mine.get(protocol.config_key(prefix, "cell-y")),

@@ -107,7 +107,7 @@ def test_parameters_set_through_the_gateway_are_on_record_before_the_answer(cell
     assert (command["command"], command["values"]) == (protocol.SET_PARAMETERS, {"rate": 5})
     b = parts["cell-b"]
     fact = b.fact(protocol.PARAMETER, robot="agv-b", node="/lidar", name="rate", old=10, new=5, outcome="succeeded",
-                  reason="", source="api", user_id=command["user_id"], **protocol.vouching(command))
+                  reason="", source="api", user_id=command["user_id"], **protocol.vouching(command, "rate"))
     b.reply(command, ok=True, results=[{"name": "rate", "old": 10, "new": 5, "successful": True, "reason": ""}],
             facts=[fact])
     thread.join(10)

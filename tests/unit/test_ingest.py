@@ -356,3 +356,44 @@ def test_readyz_says_when_the_ingest_process_is_frozen(cell, client):
         stack.wait_for(lambda: client.get("/readyz").json()["ingest"] == "running", 20, "running again")
     finally:
         process.stop()
+
+
+def test_entries_no_fact_can_be_made_of_are_refused_and_the_ingest_goes_on(cell):
+    """Review of issue 25: JSON nested deeper than Python's stack, a robot given as a list, a
+    sequence number beyond any integer column, an instance id of 100 characters. Each was an
+    exception that stopped the ingest process, for every gateway, again after each restart."""
+    part, robot = cell
+    stream = protocol.facts_stream(part.prefix, "cell-i")
+    part.redis.xadd(stream, {"f": "[" * 100_000 + "]" * 100_000})
+    part.redis.xadd(stream, {"f": protocol.encode(part.fact(protocol.NODE_STATE, robot=[robot.name], node="/a",
+                                                            state_id=1))})
+    huge = part.fact(protocol.NODE_SEEN, robot=robot.name, node="/b")
+    huge.update(seq=2**64, instance="x" * 100)
+    part.redis.xadd(stream, {"f": protocol.encode(huge)})
+    good = part.fact(protocol.NODE_SEEN, robot=robot.name, node="/good")
+    part.emit(good)
+    ingest = Ingest()
+    drain(ingest, lambda: ManagedNode.objects.filter(robot=robot, name="/good").exists())
+    row = Gateway.objects.get(name="cell-i")
+    assert row.facts_rejected == 2 and row.quarantined is None
+    assert sorted(robot.nodes.values_list("name", flat=True)) == ["/b", "/good"]  # the numbers left aside
+
+
+def test_entries_trimmed_while_waiting_to_be_acknowledged_do_not_cut_the_gateway_off(cell, monkeypatch):
+    """Review of issue 25: delivered to an ingest process that died before its acknowledgement,
+    then trimmed by the gateway's MAXLEN: read again, they come back without fields."""
+    part, robot = cell
+    part.emit(*[part.fact(protocol.NODE_SEEN, robot=robot.name, node=f"/n{i}") for i in range(5)])
+    crashing = Ingest()
+    crashing.refresh()
+    monkeypatch.setattr(crashing, "apply", lambda *a: (_ for _ in ()).throw(SystemExit("killed")))
+    with pytest.raises(SystemExit):  # the entries delivered, then gone before it applied them
+        for _ in range(10):
+            crashing.step(block_ms=100)
+    crashing.release_lease()
+    part.redis.xtrim(protocol.facts_stream(part.prefix, "cell-i"), maxlen=0, approximate=False)
+    part.emit(part.fact(protocol.NODE_SEEN, robot=robot.name, node="/after"))
+    successor = Ingest()
+    drain(successor, lambda: ManagedNode.objects.filter(robot=robot, name="/after").exists())
+    row = Gateway.objects.get(name="cell-i")
+    assert row.quarantined is None and row.facts_lost == 5

@@ -89,3 +89,26 @@ def test_a_backlog_longer_than_a_batch_is_left_to_the_flusher(clean):
 
     assert run(scenario()) is False
     assert stream_seqs() == []
+
+
+def test_a_new_process_keeps_what_its_predecessor_left_unread_and_stays_within_its_quota(clean):
+    """Each XADD carries the exact MAXLEN of the newest entries within the stream's share of the
+    quota (ros_gateway/budget.py). A new process counts what its predecessor left (the ingest
+    process stopped meanwhile): its first XADD must not trim those (a fresh count would be 1)."""
+    async def scenario(facts: int, quota: int | None = None) -> None:
+        relay, outbox = await outbox_with(settings.REDIS_URL)
+        if quota:
+            outbox.set_quota(quota)
+        for n in range(facts):
+            outbox.emit(protocol.NODE_STATE, robot="r", node=f"/n{n}", state_id=2)
+        assert await outbox.flush()
+        await relay.close()
+
+    run(scenario(50))
+    run(scenario(1))  # the next gateway process
+    assert len(stream_seqs()) == 51
+    run(scenario(3000, quota=256 * 1024))  # 3,000 facts of ~200 bytes: ~35 % of 256 KiB keeps ~350
+    stream = protocol.gateway_key(channel_prefix(), GATEWAY, "facts")
+    kept = stack.redis_client().memory_usage(stream, samples=0)
+    assert kept <= 256 * 1024 * protocol.STREAM_SHARES["facts"] * 1.1, kept
+    assert 0 < stack.redis_client().xlen(stream) < 1000

@@ -39,6 +39,7 @@ from lifecycle_site.fleet.fact_context import FactRejected
 from lifecycle_site.fleet.facts import apply_facts
 from lifecycle_site.fleet.ingest_duties import SiteDuties
 from lifecycle_site.fleet.ingest_shares import Shares
+from lifecycle_site.fleet.ingest_transactions import MAX_YIELD_S, YIELD_SHARE, transactions
 from lifecycle_site.fleet.live_relay import LiveRelay
 from lifecycle_site.fleet.live_updates import push, record_messages
 from lifecycle_site.fleet.log_store import LogTargets, prune_logs, store_batch
@@ -63,12 +64,6 @@ USERS_S = 10.0  # check the gateways' Redis users
 PRUNE_S = 60.0
 TURN_S = 1.0  # how often this process says it is alive and turning (/readyz)
 COMPLAIN_EVERY_S = 30.0
-# A write transaction of this process (SQLite: the database's one write lock) holds at most this
-# many facts, log records or this much time; then it commits and the next one begins, so that a
-# request of the site never waits long for it (and a frozen ingest holds as little as it can).
-FACTS_PER_TRANSACTION = 100
-LOG_RECORDS_PER_TRANSACTION = 2000
-YIELD_SHARE, MAX_YIELD_S = 0.5, 0.05  # SQLite: pause this share of a transaction's time after it
 # A gateway appends a request's facts to its stream (marked protocol.REPLIED) in one round trip
 # with its reply, which carries the same facts to the site, which applies them at once. Reading
 # them, ingest waits this long before applying them, so that the two do not write at the same
@@ -99,14 +94,17 @@ class Ingest:
         self.last_complaint = 0.0
         self.applied = 0
         self.alerts = Evaluator()  # alert rules, evaluated by the leader: once per site (docs/alerts.md)
+        self.refresh_wanted = threading.Event()  # another thread quarantined a gateway
 
     # --- the loop --------------------------------------------------------------------------
 
     def run(self) -> None:
         stopping = threading.Event()
+        relay_client = gw.redis_client()
         threads = [
-            threading.Thread(target=LiveRelay(gw.redis_client(), self.prefix, lambda: set(self.held()),
-                                              self.quarantine).run, args=(stopping,), name="live-relay", daemon=True),
+            threading.Thread(target=LiveRelay(relay_client, self.prefix, lambda: set(self.held()),
+                                              self.quarantine_elsewhere(relay_client)).run, args=(stopping,),
+                             name="live-relay", daemon=True),
             threading.Thread(target=RedisGuard(gw.redis_client()).run, args=(stopping,), name="redis-guard",
                              daemon=True),
         ]
@@ -136,7 +134,8 @@ class Ingest:
 
     def step(self, block_ms: int = BLOCK_MS) -> int:
         """Read and apply what is there (waiting up to ``block_ms``), then the periodic work."""
-        if self.is_due("refresh", REFRESH_S):
+        if self.is_due("refresh", REFRESH_S) or self.refresh_wanted.is_set():
+            self.refresh_wanted.clear()
             self.refresh()
         applied = self.read(block_ms)
         if self.shares.leader:
@@ -206,6 +205,7 @@ class Ingest:
         for name in mine:
             streams[protocol.facts_stream(self.prefix, name)] = (name, "facts")
             streams[protocol.logs_stream(self.prefix, name)] = (name, "logs")
+        self.reader.ready &= set(streams)  # (a gateway let back in reads from where it stopped)
         self.catching_up |= self.reader.prepare(streams)  # new to this process: what is pending first
         self.streams = {s: owner for s, owner in streams.items() if s in self.reader.ready}
         self.catching_up &= set(self.streams)
@@ -216,6 +216,15 @@ class Ingest:
         self.streams = {s: owner for s, owner in self.streams.items() if owner[0] != gateway}
         self.gateways = [name for name in self.gateways if name != gateway]
         self.catching_up &= set(self.streams)
+        self.reader.ready &= set(self.streams)
+
+    def quarantine_elsewhere(self, client: redis.Redis):
+        """The same for another thread (the live relay): the loop's own state is left to the
+        loop, which follows at its next turn."""
+        def cut_off(gateway: str, reason: str, drop: list[str]) -> None:
+            quarantine.quarantine(gateway, reason, client, drop=drop)
+            self.refresh_wanted.set()
+        return cut_off
 
     # --- streams ---------------------------------------------------------------------------
 
@@ -241,9 +250,14 @@ class Ingest:
                 continue
             try:
                 applied += self.apply(stream, entries)
-            except Exception:
+            except (redis.RedisError, DatabaseError):
                 self.catching_up.add(stream)  # not acknowledged: read again
                 raise
+            except Exception as exc:  # noqa: BLE001 - what one gateway sent must not stop the others
+                gateway, kind = self.streams[stream]
+                log.exception("gateway %s: its %s could not be applied", gateway, kind)
+                self.quarantine(gateway, f"an entry of its {kind} stream could not be applied "
+                                f"({type(exc).__name__}: {str(exc)[:200]})", [])
         self.applied += applied
         return applied
 
@@ -267,7 +281,7 @@ class Ingest:
         name, kind = self.streams[stream]
         pushes: list[tuple[str, dict]] = []
         applied = 0
-        for chunk in self.chunks(kind, entries):
+        for chunk in transactions(kind, entries):
             began = time.monotonic()
             with transaction.atomic():
                 row = Gateway.objects.select_for_update().filter(name=name).first()
@@ -297,22 +311,6 @@ class Ingest:
         self.redis.xtrim(stream, minid=text(entries[-1][0]))
         push(pushes)
         return applied
-
-    @staticmethod
-    def chunks(kind: str, entries: list) -> list[list]:
-        """The entries in groups that each make one short transaction."""
-        if kind == "facts":
-            return [entries[i:i + FACTS_PER_TRANSACTION] for i in range(0, len(entries), FACTS_PER_TRANSACTION)]
-        chunks: list[list] = [[]]
-        records = 0
-        for entry, fields in entries:
-            size = protocol.LOG_BATCH  # a batch's records, at most (not decoded yet)
-            if chunks[-1] and records + size > LOG_RECORDS_PER_TRANSACTION:
-                chunks.append([])
-                records = 0
-            chunks[-1].append((entry, fields))
-            records += size
-        return chunks
 
     def apply_facts(self, row: Gateway, entries: list) -> list[tuple[str, dict]]:
         facts = []
