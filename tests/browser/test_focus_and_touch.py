@@ -18,9 +18,11 @@ DANGER = "rgb(166, 27, 11)"  # --danger in site.css
 MIN_GAP_PX = 16
 # Visible controls shorter than 44 px: buttons, fields, the Logs and Timeline links and the top navigation.
 TOO_SMALL = """() => Array.from(document.querySelectorAll(
-    'main button, main .button, main select, main input:not([type=hidden]):not([type=checkbox]), main .logs-link, header.top nav a, header.top nav button'))
+    'main button, main .button, main select, main input:not([type=hidden]):not([type=checkbox]), '
+    + 'main .logs-link, header.top nav a, header.top nav button'))
   .filter((el) => el.getClientRects().length && getComputedStyle(el).visibility !== 'hidden')
-  .map((el) => [(el.textContent.trim() || el.name || el.tagName).slice(0, 30), Math.round(el.getBoundingClientRect().height)])
+  .map((el) => [(el.textContent.trim() || el.name || el.tagName).slice(0, 30),
+                Math.round(el.getBoundingClientRect().height)])
   .filter(([, h]) => h < 44)"""
 
 
@@ -63,7 +65,8 @@ def test_the_node_pages_shutdown_is_red_and_apart(browser, site, robot, operator
     with logged_in_page(browser, site, viewport=size) as page:
         page.goto(f"{site}nodes/{key}/")
         group = page.locator("#node-state .transitions")
-        deactivate, shutdown = group.get_by_role("button", name="deactivate"), group.get_by_role("button", name="shutdown")
+        deactivate = group.get_by_role("button", name="deactivate")
+        shutdown = group.get_by_role("button", name="shutdown")
         expect(shutdown).to_have_css("background-color", DANGER, timeout=WAIT_MS)
         left, right = deactivate.bounding_box(), shutdown.bounding_box()
         gap = right["x"] - (left["x"] + left["width"])
@@ -71,7 +74,10 @@ def test_the_node_pages_shutdown_is_red_and_apart(browser, site, robot, operator
         page.screenshot(path=ARTIFACTS / f"node-shutdown-apart-{size['width']}.png")
 
 
-@pytest.mark.parametrize("path", ["", "nodes/{robot}.flaky_node/", "alerts/", "audit/", "logs/node/{robot}.flaky_node/"])
+PAGES = ["", "nodes/{robot}.flaky_node/", "alerts/", "audit/", "logs/node/{robot}.flaky_node/"]
+
+
+@pytest.mark.parametrize("path", PAGES)
 def test_touch_targets_are_at_least_44_px_on_a_phone(browser, site, robot, operator, path):
     with logged_in_page(browser, site, viewport=PHONE, device_scale_factor=1, is_mobile=True, has_touch=True) as page:
         page.goto(site + path.format(robot=ROBOT))

@@ -8,9 +8,9 @@ import pytest
 from playwright.sync_api import Page, expect
 
 from lifecycle_site.alerts.models import Alert, Rule
+from lifecycle_site.api.models import ApiToken
 from lifecycle_site.fleet.models import Robot
 from tests import stack
-from lifecycle_site.api.models import ApiToken
 from tests.browser.conftest import ARTIFACTS, ROBOT, logged_in_page
 from tests.integration.conftest import transition, wait_node
 
@@ -53,7 +53,8 @@ def records(robot, operator, api):
     step = {"unconfigured": "configure", "inactive": "cleanup", "active": "deactivate"}[state]
     assert transition(api, KEY, step).status_code == 200
     transition(api, f"{ROBOT}.flaky_node", "configure")  # fail_configure: refused, with its reason
-    assert api.patch(f"/api/v1/nodes/{KEY}/parameters", {"fps": 12.0}, content_type="application/json").status_code == 200
+    changed = api.patch(f"/api/v1/nodes/{KEY}/parameters", {"fps": 12.0}, content_type="application/json")
+    assert changed.status_code == 200
     wait_node(api, KEY, alive=True)
     # flaky_node stays unconfigured (fail_configure): the rule's alert fires and stays firing.
     rule = Rule.objects.create(name="br-phone-tables", kind=Rule.Kind.STATE, state="unconfigured",

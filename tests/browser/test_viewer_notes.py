@@ -32,7 +32,8 @@ def firing(robot):
     Alert.objects.filter(rule_name="br-viewer-notes").delete()
 
 
-@pytest.mark.parametrize("size", [{"width": 1440, "height": 900}, {"width": 390, "height": 844}], ids=["desktop", "phone"])
+@pytest.mark.parametrize("size", [{"width": 1440, "height": 900}, {"width": 390, "height": 844}],
+                         ids=["desktop", "phone"])
 def test_a_viewer_is_told_why_there_are_no_buttons(browser, site, robot, viewer, firing, size):
     with logged_in_page(browser, site, "vera-viewer", viewport=size) as page:
         section = page.locator(f"#robot-{ROBOT}")
