@@ -36,10 +36,15 @@ def states() -> dict[str, str]:
                 .values_list("name", "state_label"))
 
 
-def live_fleet(page: Page, site: str) -> None:
-    """The fleet page, once its socket's snapshot has redrawn the robots (forms included)."""
-    page.goto(site)
+def live_page(page: Page, url: str) -> None:
+    """A page, once its socket's snapshot has redrawn it (the fleet's robots, forms included;
+    the node page's state panel): a button found before may be gone after."""
+    page.goto(url)
     expect(page.locator("html[data-live]")).to_have_count(1, timeout=WAIT_MS)
+
+
+def live_fleet(page: Page, site: str) -> None:
+    live_page(page, site)
 
 
 def nothing_sent(page: Page, before: tuple[int, int], shown: dict[str, str]) -> None:
@@ -107,7 +112,7 @@ def test_a_row_shutdown_on_a_phone_asks_with_buttons_a_finger_can_hit(phone: Pag
 def test_node_page_shutdown_asks_naming_node_and_robot(desktop: Page, site):
     page = desktop
     key = f"{ROBOT}.lidar_driver"
-    page.goto(f"{site}nodes/{key}/")
+    live_page(page, f"{site}nodes/{key}/")
     button = page.locator("#node-state").get_by_role("button", name="shutdown")
     before, shown = on_record(), states()
     button.click()

@@ -16,14 +16,26 @@ PHONE = {"width": 390, "height": 844}
 DESKTOP = {"width": 1440, "height": 900}
 DANGER = "rgb(166, 27, 11)"  # --danger in site.css
 MIN_GAP_PX = 16
-# Visible controls shorter than 44 px: buttons, fields, the Logs and Timeline links and the top navigation.
+# Visible controls shorter than 44 px: buttons, fields, the Logs and Timeline links, the links in a
+# table's cards (an alert's node, logs and timeline) and the top navigation.
 TOO_SMALL = """() => Array.from(document.querySelectorAll(
     'main button, main .button, main select, main input:not([type=hidden]):not([type=checkbox]), '
-    + 'main .logs-link, header.top nav a, header.top nav button'))
+    + 'main .logs-link, main table.cards td a, header.top nav a, header.top nav button'))
   .filter((el) => el.getClientRects().length && getComputedStyle(el).visibility !== 'hidden')
   .map((el) => [(el.textContent.trim() || el.name || el.tagName).slice(0, 30),
                 Math.round(el.getBoundingClientRect().height)])
   .filter(([, h]) => h < 44)"""
+
+
+COUNT_LIVE = ("document.addEventListener('htmx:wsAfterMessage', () => "
+              "{ document.documentElement.dataset.live = Number(document.documentElement.dataset.live || 0) + 1; });")
+
+
+def live_node_page(page: Page, url: str) -> None:
+    """The node page, once its socket's snapshot has redrawn the state panel (and its buttons)."""
+    page.context.add_init_script(COUNT_LIVE)
+    page.goto(url)
+    expect(page.locator("html[data-live]")).to_have_count(1, timeout=WAIT_MS)
 
 
 def focused(page: Page) -> dict:
@@ -36,7 +48,7 @@ def test_after_a_keyboard_transition_on_the_node_page_the_keyboard_stays_in_its_
     key = f"{ROBOT}.camera_driver"
     assert ManagedNode.objects.get(key=key).state_label == "unconfigured"
     with logged_in_page(browser, site, viewport=DESKTOP) as page:
-        page.goto(f"{site}nodes/{key}/")
+        live_node_page(page, f"{site}nodes/{key}/")
         configure = page.locator("#node-state").get_by_role("button", name="configure")
         configure.focus()
         page.keyboard.press("Enter")
@@ -63,7 +75,7 @@ def test_the_node_pages_shutdown_is_red_and_apart(browser, site, robot, operator
             transition(api, key, step)
     wait_node(api, key, state="active")
     with logged_in_page(browser, site, viewport=size) as page:
-        page.goto(f"{site}nodes/{key}/")
+        live_node_page(page, f"{site}nodes/{key}/")
         group = page.locator("#node-state .transitions")
         deactivate = group.get_by_role("button", name="deactivate")
         shutdown = group.get_by_role("button", name="shutdown")

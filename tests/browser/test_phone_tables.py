@@ -137,6 +137,8 @@ def test_an_alert_row_links_to_the_node_its_logs_and_its_timeline(phone: Page, s
     assert links["/flaky_node"].get_attribute("href").endswith(f"/nodes/{FLAKY}/")
     assert links["Logs"].get_attribute("href").endswith(f"/logs/node/{FLAKY}/")
     assert links["Timeline"].get_attribute("href").endswith(f"/nodes/{FLAKY}/timeline/")
+    assert all(link.bounding_box()["height"] >= 44 for link in links.values())  # a finger's size
+    page.screenshot(path=ARTIFACTS / "phone-alert-links.png")
     links["Timeline"].tap()
     expect(page.locator("h1")).to_contain_text("State timeline")
     page.go_back()
