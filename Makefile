@@ -9,6 +9,7 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 
 $(BIN)/.installed: requirements.txt requirements-dev.txt
 	@$(PYTHON) -c 'import sys; assert sys.version_info[:2] == (3, 11), "Python 3.11 is needed (the ROS 2 Jazzy wheels are built for it); set PYTHON=/path/to/python3.11"'
+	@.ci/python-venv $(PYTHON)  # its ensurepip (Debian: python3.11-venv), installed or named
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -r requirements-dev.txt

@@ -22,6 +22,18 @@ def answers(url: str, timeout: float = 0.5) -> bool:
         return False
 
 
+def directory(url: str, timeout: float = 0.5) -> Path | None:
+    """The working directory of the Redis at ``url`` (where it would keep its files), or None
+    if it does not say (CONFIG refused, or no answer). A Redis that ``start`` started keeps
+    the ``workdir`` it was given: the demo tells its own from another data dir's by it."""
+    try:
+        client = redis.Redis.from_url(url, socket_connect_timeout=timeout, socket_timeout=timeout)
+        found = client.config_get("dir").get("dir")
+    except redis.RedisError:
+        return None
+    return Path(found).resolve() if found else None
+
+
 def server_binary() -> str:
     found = shutil.which("redis-server")
     if found:

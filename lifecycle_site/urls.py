@@ -2,13 +2,14 @@ from django.contrib import admin
 from django.contrib.auth import views as auth_views
 from django.urls import include, path
 
+from lifecycle_site.login_form import LoginForm
 from lifecycle_site.monitoring import views as monitoring
 
 admin.site.site_header = "ROS 2 lifecycle manager"
 admin.site.site_title = "Lifecycle manager admin"
 
 urlpatterns = [
-    path("login/", auth_views.LoginView.as_view(), name="login"),
+    path("login/", auth_views.LoginView.as_view(authentication_form=LoginForm), name="login"),
     path("logout/", auth_views.LogoutView.as_view(), name="logout"),
     path("admin/", admin.site.urls),
     path("healthz", monitoring.healthz, name="healthz"),

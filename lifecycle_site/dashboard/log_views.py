@@ -1,6 +1,8 @@
 """Log console pages (per node, per robot) and their text downloads."""
 from __future__ import annotations
 
+import re
+
 from django.db.models import Q, QuerySet
 from django.http import Http404, HttpRequest, HttpResponse, JsonResponse
 from django.shortcuts import render
@@ -27,6 +29,30 @@ def filters_of(request: HttpRequest) -> dict:
     for name in TEXT_FILTERS:
         found[name] = request.GET.get(name, "").strip()[:MAX_FILTER_CHARS]
     return found
+
+
+# How each filter is named in a download's first lines and its file name (what it keeps).
+FILTER_WORDS = (("q", "text", "with"), ("not", "without the text", "without"), ("node", "nodes", "nodes"),
+                ("xnode", "hiding nodes", "hiding"))
+_UNSAFE_IN_FILE_NAME = re.compile(r"[^A-Za-z0-9._-]+")
+
+
+def download_names(scope: str, name: str, found: dict) -> tuple[str, str]:
+    """The download's file name and its line naming the filters applied, so a file saved
+    from a filtered console does not pass for the whole log."""
+    said, parts = [], []
+    if found["level"] != "DEBUG":
+        said.append(f"level {found['level']} and above")
+        parts.append(f"{found['level']}-and-above")
+    for key, words, short in FILTER_WORDS:
+        if found[key]:
+            said.append(f'{words} "{found[key]}"')
+            parts.append(f"{short}-" + (_UNSAFE_IN_FILE_NAME.sub("-", found[key]).strip("-")[:40] or "x"))
+    if found["re"] and any(found[key] for key, _, _ in FILTER_WORDS):
+        said.append("as regular expressions, applied in the browser")
+        parts.append("regex")
+    line = "# filters: " + ("; ".join(said) if said else "none (every record kept)")
+    return f"{scope}-{name.replace('/', '_')}-rosout{''.join('_' + p for p in parts)}.log", line
 
 
 def _names(text: str) -> list[str]:
@@ -98,16 +124,17 @@ def log_download(request: HttpRequest, scope: str, name: str) -> HttpResponse:
     """Everything kept server-side (bounded by the retention settings), oldest first."""
     title, records, _ = _target(scope, name)
     records = _filtered(records, request).order_by("id")
+    file_name, filters_line = download_names(scope, name, filters_of(request))
     if request.GET.get("format") == "json":  # for the page, which applies regular expressions itself
-        return JsonResponse({"title": title, "records": [r.as_dict() for r in records.iterator(chunk_size=2000)]})
-    lines = [f"# /rosout of {title}, downloaded {timezone.now():%Y-%m-%d %H:%M:%S %Z}\n"]
+        return JsonResponse({"title": title, "file_name": file_name, "filters": filters_line,
+                             "records": [r.as_dict() for r in records.iterator(chunk_size=2000)]})
+    lines = [f"# /rosout of {title}, downloaded {timezone.now():%Y-%m-%d %H:%M:%S %Z}\n", filters_line + "\n"]
     lines += [
         f"{r.stamp:%Y-%m-%d %H:%M:%S.%f} UTC [{r.level_name}] [{r.logger}] {r.message}\n"
         for r in records.iterator(chunk_size=2000)
     ]
     response = HttpResponse("".join(lines), content_type="text/plain; charset=utf-8")
-    safe = name.replace("/", "_")
-    response["Content-Disposition"] = f'attachment; filename="{scope}-{safe}-rosout.log"'
+    response["Content-Disposition"] = f'attachment; filename="{file_name}"'
     return response
 
 

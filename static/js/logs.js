@@ -160,13 +160,14 @@
     fetch(downloadBase + "?" + query.toString(), { credentials: "same-origin" })
       .then(function (r) { if (!r.ok) throw new Error("the server answered " + r.status); return r.json(); })
       .then(function (body) {
-        var text = ["# /rosout of " + body.title + ", downloaded " + when(new Date().toISOString()) + ", filtered in the browser: " + params().toString()];
+        // The server names the filters (log_views.download_names), as in its own text file.
+        var text = ["# /rosout of " + body.title + ", downloaded " + when(new Date().toISOString()), body.filters];
         body.records.filter(visible).forEach(function (r) {
           text.push(when(r.stamp) + " [" + r.level + "] [" + r.logger + "] " + r.message);
         });
         var link = document.createElement("a");
         link.href = URL.createObjectURL(new Blob([text.join("\n") + "\n"], { type: "text/plain" }));
-        link.download = root.dataset.scope + "-rosout-filtered.log";
+        link.download = body.file_name;
         document.body.appendChild(link);
         link.click();
         link.remove();

@@ -39,7 +39,6 @@ def test_edit_a_parameter_and_bring_up_the_robot(browser, site, robot, operator)
     live.value.wait_for_event("framereceived")
     section = page.locator(f"#robot-{ROBOT}")
     section.locator("select[name=policy]").select_option("continue")
-    page.once("dialog", lambda dialog: dialog.accept())
     section.get_by_role("button", name="Bring up").click()
     run = section.locator(".run").first  # the newest: the page also lists recent runs
     expect(run).to_contain_text(re.compile("partial|partly"), timeout=WAIT_MS)

@@ -91,6 +91,7 @@ def test_regular_expressions_are_applied_in_the_page_and_a_bad_one_is_named(page
         page.locator('[data-log="download"]').click()
     text = open(done.value.path(), encoding="utf-8").read().splitlines()
     assert text[0].startswith(f"# /rosout of {ROBOT} (all nodes)")
-    assert text[1:] == [f"2026-11-23 14:05:{7 + 5 * i:02d}.789 UTC [WARN] [lidar_driver] scan late by 40 ms"
+    assert text[1].startswith("# filters: ") and text[1].endswith("as regular expressions, applied in the browser")
+    assert text[2:] == [f"2026-11-23 14:05:{7 + 5 * i:02d}.789 UTC [WARN] [lidar_driver] scan late by 40 ms"
                         for i in range(3)]
     assert page.console_errors == []

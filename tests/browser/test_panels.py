@@ -56,8 +56,8 @@ def test_group_run_panel_says_its_own_policy(browser, site, robot, operator):
 def test_restart_on_the_node_page_reaches_its_final_state(browser, site, robot, operator):
     page, errors = _login(browser, site)
     live(page, f"{site}nodes/{ROBOT}.lidar_driver/")
-    page.once("dialog", lambda dialog: dialog.accept())
     page.get_by_role("button", name="Restart (back to active)").click()
+    page.locator("dialog#confirm-dialog").get_by_role("button", name="Restart").click()
     run = page.locator("#node-run .run").first
     expect(run).to_contain_text("Restart", timeout=WAIT_MS)
     expect(run.locator(".run-status")).to_have_text("succeeded", timeout=WAIT_MS)

@@ -1,6 +1,6 @@
 """``manage.py run_demo`` (what ``make demo`` runs): the whole product on one machine.
 
-Starts Redis (unless one answers already), migrates, makes sure an admin exists (its
+Starts Redis (unless its own, or the one REDIS_URL names, answers already), migrates, makes sure an admin exists (its
 generated password is kept in the data dir and printed), registers two demo robots on the
 gateway "local", then supervises that gateway, the ingest process that stores what it
 reports, the demo robots' node processes and daphne until Ctrl-C.
@@ -45,6 +45,16 @@ def free_port(preferred: int) -> int:
     raise CommandError(f"No free port in {preferred}-{preferred + 49}.")
 
 
+def _running_demo(data: Path) -> int | None:
+    """The pid of the demo running from ``data`` (its demo.pid, of a live process), or None."""
+    try:
+        pid = int((data / "demo.pid").read_text().split()[0])
+        os.kill(pid, 0)
+    except (OSError, ValueError, IndexError):
+        return None
+    return pid
+
+
 class Command(BaseCommand):
     help = "Run the lifecycle manager with two demo robots on this machine (Ctrl-C stops everything)."
 
@@ -64,7 +74,7 @@ class Command(BaseCommand):
         supervisor = Supervisor()
         redis_process = None
         try:
-            redis_process = self._ensure_redis(data)
+            redis_process = self._ensure_redis(data, chosen="REDIS_URL" in os.environ)
             call_command("migrate", verbosity=0)
             user, password = self._ensure_admin(data)
             local, _ = Gateway.objects.get_or_create(name="local")
@@ -102,27 +112,48 @@ class Command(BaseCommand):
     def _claim_data_dir(self, data: Path) -> None:
         """One demo per data dir: a second one would run a second gateway on the same facts."""
         pid_file = data / "demo.pid"
-        if pid_file.exists():
-            try:
-                other = int(pid_file.read_text().split()[0])
-                os.kill(other, 0)
-            except (ValueError, IndexError, ProcessLookupError, PermissionError):
-                pass  # stale: that demo is gone
-            else:
-                raise CommandError(
-                    f"A demo is already running from {data} (pid {other}); stop it first "
-                    "(Ctrl-C in its terminal, or kill it), or set LIFECYCLE_DATA_DIR to run another."
-                )
+        other = _running_demo(data)  # a stale file (that demo is gone) is written over
+        if other is not None:
+            raise CommandError(
+                f"A demo is already running from {data} (pid {other}); stop it first "
+                "(Ctrl-C in its terminal, or kill it), or set LIFECYCLE_DATA_DIR to run another."
+            )
         pid_file.write_text(f"{os.getpid()}\n")
-    def _ensure_redis(self, data: Path):
+    def _ensure_redis(self, data: Path, chosen: bool):
+        """This data dir's Redis: started here, or found answering. One that answers must not be
+        another demo's (two sites on one Redis take each other's commands and facts), nor, at
+        the default address, anyone else's; one named in REDIS_URL (``chosen``) is taken."""
         url = settings.REDIS_URL
         if local_redis.answers(url):
+            self._refuse_if_not_ours(url, data, chosen)
             return None
         parsed = urlparse(url)
         if parsed.hostname not in ("127.0.0.1", "localhost"):
             raise CommandError(f"Redis at {url} does not answer; start it or set REDIS_URL.")
         self.stdout.write(f"Starting Redis on 127.0.0.1:{parsed.port or 6379} ...")
         return local_redis.start(parsed.port or 6379, data / "redis")
+
+    def _refuse_if_not_ours(self, url: str, data: Path, chosen: bool) -> None:
+        own = (data / "redis").resolve()
+        found = local_redis.directory(url)
+        if found == own:
+            return  # this data dir's (started by an earlier demo of it)
+        def way_out() -> str:
+            return (f"give this demo a Redis of its own: REDIS_URL=redis://127.0.0.1:"
+                    f"{free_port(urlparse(url).port or 6379)}/0 make demo (and, for robots of its own, "
+                    "DEMO_DOMAIN_AGV1 and DEMO_DOMAIN_AGV2, e.g. 31 and 32).")
+
+        other = _running_demo(found.parent) if found is not None else None
+        if other is not None:
+            raise CommandError(
+                f"The Redis at {url} is the one of the demo running from {found.parent} (pid {other}): "
+                f"this demo (data dir {data}) would share it, and two sites on one Redis take each other's "
+                f"commands and facts. Stop that demo first, or {way_out()}")
+        if not chosen:
+            where = f"it keeps its files in {found}" if found else "it does not say where it keeps its files"
+            raise CommandError(
+                f"A Redis answers at {url}, but it is not this demo's ({where}, not in {own}). "
+                f"To use it all the same, set REDIS_URL={url}; or {way_out()}")
 
     def _ensure_admin(self, data: Path) -> tuple[str, str]:
         """An admin for the demo; its generated password lives only in the data dir (0600)."""
