@@ -243,3 +243,26 @@ def test_marks_show_their_details_on_a_tap_on_a_phone(browser, site, robot, oper
         page.screenshot(path=ARTIFACTS / "timeline-range-phone.png")
     finally:
         context.close()
+
+
+def test_the_links_of_a_mark_keep_the_proxys_prefix(browser, proxied_site, robot, operator, api):
+    """Behind the nginx that serves the app under /lifecycle/ (as on an Industrial Edge device),
+    a mark's links and a bar's links stay under it."""
+    from lifecycle_site.audit.models import TransitionRecord
+
+    key = f"{ROBOT}.flaky_node"
+    if not TransitionRecord.objects.filter(node__key=key, outcome="failed").exists():  # run on its own
+        api.post(f"/api/v1/nodes/{key}/transition", {"transition": "configure"}, content_type="application/json")
+    page = _desktop(browser, proxied_site)
+    try:
+        page.goto(proxied_site + f"nodes/{key}/timeline/?window=15min")
+        page.locator(".tl-bar").last.click()
+        expect(page.locator("#tl-detail").get_by_role("link", name="the log at its start")).to_have_attribute(
+            "href", re.compile(r"^/lifecycle/logs/node/"))
+        page.locator("a.tl-mark-failed").click()
+        page.locator("#tl-detail").get_by_role("link", name="logs at that moment").click()
+        expect(page).to_have_url(re.compile(re.escape(proxied_site) + r"logs/node/.*\?at="))
+        expect(page.locator(".log-moment")).to_be_visible(timeout=WAIT_MS)
+        assert page.context.violations == [] and page.errors == []
+    finally:
+        page.context.close()
