@@ -56,13 +56,16 @@ def choices(entry: dict) -> list[str] | None:
         return None
 
 
-def _with_choices(listing: list[dict]) -> list[dict]:
+def _with_choices(listing: list[dict], typed: dict[str, str] | None = None) -> list[dict]:
+    """Each entry with its choices and the value its field shows: what the operator typed, for
+    a value that was not set (so it can be corrected, not typed again), else the current one."""
     for entry in listing:
         entry["choices"] = choices(entry)
         shown = _shown(entry["value"]) if entry["type"] != "bool" else str(bool(entry["value"])).lower()
         # A value outside the list (set by another tool) stays selectable, so saving keeps it.
         entry["off_list"] = shown if entry["choices"] and shown not in entry["choices"] else None
-        entry["shown"] = shown
+        entry["typed"] = (typed or {}).get(entry["name"])
+        entry["shown"] = entry["typed"] if entry["typed"] in (entry["choices"] or ()) else shown
     return listing
 
 
@@ -76,7 +79,7 @@ def _section(request: HttpRequest, node: ManagedNode, **extra) -> HttpResponse:
     if not node.alive and "error" not in context:
         context["error"] = "The node is not running: its parameters cannot be read."
     if context.get("parameters"):
-        context["parameters"] = _with_choices(context["parameters"])
+        context["parameters"] = _with_choices(context["parameters"], context.get("typed"))
     return render(request, "dashboard/_parameters.html", context)
 
 
@@ -116,7 +119,7 @@ def _edit(request: HttpRequest, node: ManagedNode) -> HttpResponse:
         listing = fetch(node)
     except GatewayError as exc:
         return _section(request, node, error=exc.message)
-    values, problems = {}, {}
+    values, problems, typed = {}, {}, {}
     for entry in listing:
         name = entry["name"]
         if f"seen:{name}" not in request.POST or entry["read_only"]:
@@ -128,11 +131,13 @@ def _edit(request: HttpRequest, node: ManagedNode) -> HttpResponse:
             if raw not in ("true", "false"):
                 problems[name] = {"name": name, "successful": False, "reason": f"{raw!r} is not true or false"}
                 continue
+            typed[name] = raw
             value = raw == "true"
         else:
             raw = request.POST.get(f"value:{name}", "")
             if raw == _shown(entry["value"]):
                 continue
+            typed[name] = raw
             try:
                 value = _parse(raw, entry)
             except pt.InvalidValue as exc:
@@ -147,7 +152,8 @@ def _edit(request: HttpRequest, node: ManagedNode) -> HttpResponse:
         except GatewayError as exc:
             return _section(request, node, parameters=listing, error=exc.message)
     results.update(problems)
-    return _section(request, node, results=results, nothing_changed=not results)
+    refused = {name: raw for name, raw in typed.items() if name in results and not results[name]["successful"]}
+    return _section(request, node, results=results, nothing_changed=not results, typed=refused)
 
 
 def _shown(value: Any) -> str:
