@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from datetime import datetime, timedelta, timezone
 from typing import Iterable
-from urllib.parse import urlencode
+from urllib.parse import quote
 
 from django.urls import reverse
 
@@ -25,11 +25,10 @@ OUTAGE = "gateway_outage"
 # Why a gateway could take no commands (GatewayOutage.reason), in words.
 OUTAGE_REASONS = {"offline": "no heartbeat: its process ended, froze, or lost Redis",
                   "stopped": "it said it stopped", "quarantined": "the site cut it off (quarantine)"}
-MAX_EVENTS = 100  # a node's timeline; a robot's shares MAX_EVENTS_ROBOT among its nodes
-MAX_EVENTS_ROBOT = 200
+MAX_EVENTS = 50  # a node's timeline; a robot's shares MAX_EVENTS_ROBOT among its nodes
+MAX_EVENTS_ROBOT = 100
 MAX_OUTAGES = 50
 MAX_REASON = 300  # characters of a node's reason shown in the list (the audit record has it whole)
-LOG_AROUND = timedelta(minutes=1)
 
 
 @dataclass
@@ -51,20 +50,26 @@ class Event:
         what = MARKED[self.kind]
         return f"{what} ({self.transition})" if self.transition and self.kind in ("failed", "timed_out") else what
 
+    def audit_query(self) -> str:
+        """The audit page's query narrowed to this moment (an outage: its whole stretch)."""
+        query = f"robot={quote(self.robot, safe='')}&since={_second(self.at)}"
+        query += f"&until={_second((self.until or self.at) + timedelta(seconds=1))}"
+        if self.node is not None:
+            query += f"&node={quote(self.node.name, safe='')}&outcome={self.kind}"
+        return query
+
+    def logs_target(self) -> tuple[str, str]:
+        """The log console that tells about it: the node's, or the robot's for an outage."""
+        return ("node", self.node.key) if self.node is not None else ("robot", self.robot)
+
     @property
     def audit_url(self) -> str:
-        """The audit page narrowed to this moment (an outage: its whole stretch)."""
-        query = {"robot": self.robot, "since": _second(self.at),
-                 "until": _second((self.until or self.at) + timedelta(seconds=1))}
-        if self.node is not None:
-            query |= {"node": self.node.name, "outcome": self.kind}
-        return reverse("dashboard:audit") + "?" + urlencode(query)
+        return reverse("dashboard:audit") + "?" + self.audit_query()
 
     @property
     def logs_url(self) -> str:
-        """The node's log (the robot's, for an outage) at this moment."""
-        scope, name = ("node", self.node.key) if self.node is not None else ("robot", self.robot)
-        return reverse("dashboard:logs", args=[scope, name]) + "?" + urlencode({"at": self.at.isoformat()})
+        """The log console opened at this moment (log_views: ?at=)."""
+        return reverse("dashboard:logs", args=list(self.logs_target())) + f"?at={moment_query(self.at)}"
 
     def as_dict(self) -> dict:
         return {"at": self.at.isoformat(), "kind": self.kind, "title": self.title, "reason": self.reason,
@@ -74,6 +79,11 @@ class Event:
 
 def _second(moment: datetime) -> str:
     return moment.astimezone(timezone.utc).strftime("%Y-%m-%dT%H:%M:%S")
+
+
+def moment_query(moment: datetime) -> str:
+    """A time as a query string's value needs no quoting: UTC, written with Z."""
+    return moment.astimezone(timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
 
 
 def record_events(found: Iterable[tuple[ManagedNode, datetime, str, int | None]], cap: int) -> list[Event]:

@@ -3,15 +3,18 @@ the time in each state and the events of the window (crashes, restarts, failed t
 gateway outages), each linking to its audit record and to the log lines of that moment."""
 from __future__ import annotations
 
+from datetime import datetime, timezone
+
 from django.http import Http404, HttpRequest, HttpResponse
 from django.shortcuts import render
+from django.urls import reverse
 
 from lifecycle_site.dashboard import timeline as tl
 from lifecycle_site.dashboard import timeline_windows as tw
 from lifecycle_site.dashboard.access import viewer_required
 from lifecycle_site.dashboard.robot_timeline import robot_timeline as robot_timeline_of
 from lifecycle_site.dashboard.timeline_drawing import drawing, duration, numbered, pattern, utc
-from lifecycle_site.dashboard.timeline_events import MAX_EVENTS, MAX_EVENTS_ROBOT, OUTAGE
+from lifecycle_site.dashboard.timeline_events import MAX_EVENTS, MAX_EVENTS_ROBOT, OUTAGE, moment_query
 from lifecycle_site.dashboard.views import node_or_404
 from lifecycle_site.fleet.models import Robot
 
@@ -44,21 +47,34 @@ def _summary(timeline: tl.Timeline) -> dict:
 
 
 def _events(numbered_events: list) -> list[dict]:
+    """The list's lines, every text and link made here: a week can hold a hundred of them, and
+    the URLs are reversed once per node rather than once per line."""
+    audit = reverse("dashboard:audit")
+    bases: dict[tuple[str, str], str] = {}
     rows = []
     for index, event in numbered_events:
-        until = ""
-        if event.kind == OUTAGE and event.until:
-            until = f"{utc(event.until)} UTC ({duration((event.until - event.at).total_seconds())})"
-        elif event.kind == OUTAGE:
-            until = "still now"
-        rows.append({"id": f"ev-{index}", "event": event, "at": utc(event.at), "until": until})
+        target = event.logs_target()
+        if target not in bases:
+            bases[target] = reverse("dashboard:logs", args=list(target))
+        row = {"id": f"ev-{index}", "kind": event.kind, "at": utc(event.at), "until": "", "title": event.title,
+               "reason": event.reason, "audit_url": f"{audit}?{event.audit_query()}",
+               "logs_url": f"{bases[target]}?at={moment_query(event.at)}", "node": event.node}
+        if event.kind == OUTAGE:
+            row["until"] = (f"{utc(event.until)} UTC ({duration((event.until - event.at).total_seconds())})"
+                            if event.until else "still now")
+        rows.append(row)
     return rows
+
+
+def _field(moment: datetime) -> str:
+    """As a datetime-local field takes it, in UTC."""
+    return moment.astimezone(timezone.utc).strftime("%Y-%m-%dT%H:%M")
 
 
 def _context(window: tw.Window, warning: str) -> dict:
     return {"window": window, "windows": [(name, tw.LABELS[name]) for name in tw.WINDOWS], "warning": warning,
             "custom": window.name == tw.CUSTOM, "start": utc(window.start), "end": utc(window.end),
-            "from_value": window.start.strftime("%Y-%m-%dT%H:%M"), "to_value": window.end.strftime("%Y-%m-%dT%H:%M"),
+            "from_value": _field(window.start), "to_value": _field(window.end),
             "unknown_states": tl.PSEUDO_STATES}
 
 

@@ -79,7 +79,7 @@ def test_failures_crashes_and_restarts_are_marked_with_the_nodes_reason(node):
     audit = parse_qs(urlsplit(first.audit_url).query)
     assert audit == {"robot": ["ev-agv"], "node": ["/flaky"], "outcome": ["failed"],
                      "since": ["2026-11-23T11:20:00"], "until": ["2026-11-23T11:20:01"]}
-    assert first.logs_url == f"/logs/node/{node.key}/?at=2026-11-23T11%3A20%3A00%2B00%3A00"
+    assert first.logs_url == f"/logs/node/{node.key}/?at=2026-11-23T11:20:00.000000Z"
     assert [e["kind"] for e in timeline.as_dict()["events"]] == ["failed", "process_lost", "process_restarted",
                                                                  "timed_out"]
     # Only the newest are read again for their reason, however many the window holds.
