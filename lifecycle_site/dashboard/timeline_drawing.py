@@ -157,7 +157,7 @@ def marks_svg(events: list[tuple[int, Event]], start: datetime, span: float, y: 
         text = escape(f"{event.title} at {utc(event.at)} UTC")
         parts.append(
             f'<line class="tl-mark-line" x1="{x:.3f}%" x2="{x:.3f}%" y1="{y - 2:.1f}" y2="{y + BAR_H:.1f}"/>'
-            f'<a class="tl-mark tl-mark-{event.kind}" href="#ev-{index}" aria-label="{text}"><title>{text}</title>'
+            f'<a class="tl-mark tl-mark-{event.kind}" href="#ev-{index}"><title>{text}</title>'
             f'<use href="#tl-m-{event.kind}" x="{x:.3f}%" y="{y:.1f}"/></a>'
         )
     return mark_safe("".join(parts))  # noqa: S308 - escaped above
@@ -172,7 +172,7 @@ def outages_svg(outages: list[tuple[int, Event]], start: datetime, end: datetime
         x0 = min(x0, 100 - width)
         until = f"{utc(event.until)} UTC" if event.until else "now"
         text = escape(f"{event.title} from {utc(event.at)} UTC to {until}")
-        parts.append(f'<a class="tl-outage" href="#ev-{index}" aria-label="{text}"><title>{text}</title>'
+        parts.append(f'<a class="tl-outage" href="#ev-{index}"><title>{text}</title>'
                      f'<rect x="{x0:.3f}%" y="{y:.1f}" width="{width:.3f}%" height="12" fill="url(#tl-outage)"/></a>')
     return mark_safe("".join(parts))  # noqa: S308 - escaped above
 
