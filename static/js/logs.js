@@ -82,7 +82,6 @@
     if (levelEl.value !== "DEBUG") found.set("level", levelEl.value);
     TEXT_FIELDS.forEach(function (field) { if (fieldValue(field[0])) found.set(field[0], fieldValue(field[0])); });
     if (regexEl.checked) found.set("re", "1");
-    if (root.dataset.at) found.set("at", root.dataset.at);  // opened at a moment (the timeline's link)
     return found;
   }
 
@@ -147,7 +146,9 @@
   function refilter() {
     match = compile();
     Array.prototype.forEach.call(lines.children, function (div) { if (div.record) div.hidden = !visible(div.record); });
-    var query = params().toString();
+    var address = params();
+    if (root.dataset.at) address.set("at", root.dataset.at);  // opened at a moment (a timeline's mark)
+    var query = address.toString();
     history.replaceState(history.state, "", location.pathname + (query ? "?" + query : "") + location.hash);
     var server = params();
     downloadEl.setAttribute("href", downloadBase + (server.toString() ? "?" + server.toString() : ""));
