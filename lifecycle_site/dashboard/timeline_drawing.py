@@ -22,7 +22,7 @@ from ros_gateway.shared import state_machine as sm
 
 BAR_H = 26
 NAME_H = 18  # a robot's lanes: the node's name above its marks
-MARK_H = 16  # the marks above a bar
+MARK_H = 18  # the marks above a bar
 LANE_GAP = 8
 OUTAGE_H = 30  # the gateway's strip at the top, when it had outages in the window
 AXIS_H = 40
@@ -172,8 +172,10 @@ def outages_svg(outages: list[tuple[int, Event]], start: datetime, end: datetime
         x0 = min(x0, 100 - width)
         until = f"{utc(event.until)} UTC" if event.until else "now"
         text = escape(f"{event.title} from {utc(event.at)} UTC to {until}")
+        # The band, and at its start a mark with room for a finger: a short outage is a sliver.
         parts.append(f'<a class="tl-outage" href="#ev-{index}"><title>{text}</title>'
-                     f'<rect x="{x0:.3f}%" y="{y:.1f}" width="{width:.3f}%" height="12" fill="url(#tl-outage)"/></a>')
+                     f'<rect x="{x0:.3f}%" y="{y:.1f}" width="{width:.3f}%" height="12" fill="url(#tl-outage)"/>'
+                     f'<use href="#tl-m-outage-start" x="{x0:.3f}%" y="{y + 6:.1f}"/></a>')
     return mark_safe("".join(parts))  # noqa: S308 - escaped above
 
 
