@@ -148,3 +148,16 @@ def test_the_log_console_opens_at_a_moment(viewer_client, node):
     assert len(messages) == 300 and "line 300" in messages  # the moment is 5 minutes in
     assert 'data-at="2026-11-23T11:55:00+00:00"' in page and "The lines around 2026-11-23 11:55:00 UTC" in page
     assert history == sorted(history, key=lambda r: r["id"])  # in the order they came, as the console shows
+
+
+def test_the_api_takes_a_range_and_says_what_is_wrong_with_one(viewer_client, node):
+    body = viewer_client.get(f"/api/v1/nodes/{node.key}/timeline",
+                             {"from": "2026-11-23T10:00", "to": "2026-11-23T11:30"}).json()
+    assert body["window"] == {"name": "custom", "start": "2026-11-23T10:00:00+00:00",
+                              "end": "2026-11-23T11:30:00+00:00"}
+    assert viewer_client.get(f"/api/v1/robots/{node.robot.name}/timeline", {"window": "15min"}).json()[
+        "window"]["name"] == "15min"
+    refused = viewer_client.get(f"/api/v1/nodes/{node.key}/timeline", {"from": "2026-11-23T11:00",
+                                                                      "to": "2026-11-23T10:00"})
+    assert refused.status_code == 400 and refused.json()["error"]["code"] == "invalid_field"
+    assert "at least a minute" in refused.json()["error"]["message"]
