@@ -160,7 +160,7 @@ class CommandHandler:
                     raise CommandError("bad_request", "Give the parameters to set as {name: value}.")
                 results, facts = await parts.params.set(
                     node, values, timeout, str(command.get("source") or "api"), _user(command),
-                    vouching=lambda name: protocol.vouching(command, name),
+                    vouching=lambda name: protocol.vouching(command, name), atomic=command.get("atomic") is True,
                 )
                 return {"ok": True, "results": results, "facts": facts}
         except NodeUnreachable as exc:

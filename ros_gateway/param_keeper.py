@@ -9,7 +9,14 @@ from typing import Any, Callable
 from ros_gateway.domain import RosDomain
 from ros_gateway.lifecycle import NodeUnreachable
 from ros_gateway.outbox import Outbox
-from ros_gateway.parameters import NoAnswer, from_msg, list_parameters, set_parameters, type_of
+from ros_gateway.parameters import (
+    NoAnswer,
+    from_msg,
+    list_parameters,
+    set_parameters,
+    set_parameters_atomically,
+    type_of,
+)
 from ros_gateway.registry import LiveNode, NodeRegistry, StateChange
 from ros_gateway.relay import Relay
 from ros_gateway.shared import param_types as pt
@@ -49,11 +56,12 @@ class ParameterKeeper:
                                 source=source, user_id=user_id, **(vouching(name) if vouching else {}))
 
     async def set(self, node: LiveNode, values: dict, timeout: float, source: str,
-                  user_id: int | None, vouching: Callable[[str], dict] | None = None
-                  ) -> tuple[list[dict], list[dict]]:
+                  user_id: int | None, vouching: Callable[[str], dict] | None = None,
+                  atomic: bool = False) -> tuple[list[dict], list[dict]]:
         """Check each value against the node's descriptors, send the good ones together, and
         record every outcome. Returns one result per requested name, in request order, and
-        the audit facts reporting them."""
+        the audit facts reporting them. ``atomic``: all values or none (a parameter file): none
+        is sent when one fails the checks, and the node sets them all or none."""
         known = self.cache.get(node.key) or {p["name"]: p for p in await self.listing(node, timeout)}
         # Taken now: the node's /parameter_events echo may update the cache before it answers.
         olds = {name: known.get(name, {}).get("value") for name in values}
@@ -71,12 +79,19 @@ class ParameterKeeper:
                 results[name] = {"successful": False, "reason": f"{name} {exc}"}
                 continue
             to_send[name] = (coerced, type_name)
+        if atomic and results and to_send:
+            refused = ", ".join(results)
+            for name in to_send:
+                results[name] = {"successful": False,
+                                 "reason": f"not sent: {refused} could not be set, and these values go all or none"}
+            to_send = {}
         if to_send:
             until = time.monotonic() + ECHO_WINDOW_S
             self.expected.setdefault(node.key, {}).update({n: (v, until) for n, (v, _) in to_send.items()})
             domain = self.domains[node.robot.domain_id]
             try:
-                answers = await set_parameters(domain, node.name, to_send, timeout)
+                send = set_parameters_atomically if atomic else set_parameters
+                answers = await send(domain, node.name, to_send, timeout)
             except NoAnswer as exc:
                 # Sent, but no answer: the node may have taken the values. Said so, and recorded.
                 answers = [{"name": name, "successful": False, "unknown": True,

@@ -4,7 +4,13 @@ from __future__ import annotations
 from typing import Any
 
 from rcl_interfaces.msg import Parameter, ParameterValue
-from rcl_interfaces.srv import DescribeParameters, GetParameters, ListParameters, SetParameters
+from rcl_interfaces.srv import (
+    DescribeParameters,
+    GetParameters,
+    ListParameters,
+    SetParameters,
+    SetParametersAtomically,
+)
 
 from ros_gateway.domain import RosDomain, ServiceTimeout, ServiceUnavailable
 from ros_gateway.lifecycle import NodeUnreachable
@@ -120,3 +126,15 @@ async def set_parameters(domain: RosDomain, fqn: str, values: dict[str, tuple[An
         {"name": name, "successful": bool(result.successful), "reason": result.reason}
         for name, result in zip(names, response.results, strict=False)
     ]
+
+
+async def set_parameters_atomically(domain: RosDomain, fqn: str, values: dict[str, tuple[Any, str]],
+                                    timeout: float) -> list[dict]:
+    """Set ``{name: (value, type name)}`` all together or not at all (the node's
+    set_parameters_atomically service): its one answer, given for each name."""
+    request = SetParametersAtomically.Request(
+        parameters=[Parameter(name=name, value=to_msg(*values[name])) for name in values]
+    )
+    response = await _call(domain, fqn, "set_parameters_atomically", SetParametersAtomically, request, timeout)
+    result = response.result
+    return [{"name": name, "successful": bool(result.successful), "reason": result.reason} for name in values]

@@ -25,8 +25,9 @@ def fetch(node) -> list[dict]:
     return listing
 
 
-def apply(node, values: dict, user, source: str) -> list[dict]:
-    """Set parameters through the node's gateway; every requested name is audited: by the
+def apply(node, values: dict, user, source: str, atomic: bool = False) -> list[dict]:
+    """Set parameters through the node's gateway (``atomic``: all or none, in one call of the
+    node's set_parameters_atomically); every requested name is audited: by the
     facts that come with the answer (the gateway's, or the site's for a command it withdrew),
     applied here before answering, or here when nothing reached the node. Only when the gateway
     took the command and did not answer is the record left to it (it reports what it did)."""
@@ -34,7 +35,7 @@ def apply(node, values: dict, user, source: str) -> list[dict]:
     user_id = user.pk if getattr(user, "pk", None) else None
     try:
         reply = call_gateway(gateway, protocol.SET_PARAMETERS, robot=node.robot.name, node=node.name,
-                             values=values, user_id=user_id, source=source)
+                             values=values, user_id=user_id, source=source, **({"atomic": True} if atomic else {}))
     except GatewayError as exc:
         if exc.facts:
             _store(gateway, exc.facts)

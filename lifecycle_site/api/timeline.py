@@ -1,6 +1,7 @@
 """GET /api/v1/nodes/{id}/timeline and /api/v1/robots/{name}/timeline (docs/api.md, "Timeline"):
-a node's states over the last hour, day or week, time in each, availability, failures and
-restarts, rebuilt from the audit log (lifecycle_site/dashboard/timeline.py)."""
+a node's states over the last 15 minutes, hour, day or week or a range (from, to), time in each,
+availability, failures, restarts and the events to look at, rebuilt from the audit log
+(lifecycle_site/dashboard/timeline.py)."""
 from __future__ import annotations
 
 from django.http import HttpRequest, JsonResponse
@@ -9,15 +10,19 @@ from lifecycle_site.api.auth import api_view, error
 from lifecycle_site.api.limits import shown
 from lifecycle_site.api.views import get_node
 from lifecycle_site.dashboard import timeline as tl
+from lifecycle_site.dashboard import timeline_windows as tw
 from lifecycle_site.dashboard.robot_timeline import robot_timeline as robot_timeline_of
 from lifecycle_site.fleet.models import Robot
 
 
-def _window(request: HttpRequest) -> str | JsonResponse:
-    window = request.GET.get("window", tl.DEFAULT_WINDOW)
-    if window not in tl.WINDOWS:
-        return error("invalid_field", f"window must be one of {', '.join(tl.WINDOWS)}, not {shown(window)}.", 400)
-    return window
+def _window(request: HttpRequest) -> tw.Window | JsonResponse:
+    try:
+        return tw.parse(request.GET)
+    except tw.WindowError as exc:
+        if request.GET.get("from") or request.GET.get("to"):
+            return error("invalid_field", f"from, to: {exc}", 400)
+        asked = request.GET.get("window", "")
+        return error("invalid_field", f"window must be one of {', '.join(tl.WINDOWS)}, not {shown(asked)}.", 400)
 
 
 @api_view()
@@ -25,7 +30,8 @@ def node_timeline(request: HttpRequest, key: str) -> JsonResponse:
     window = _window(request)
     if isinstance(window, JsonResponse):
         return window
-    return JsonResponse(tl.node_timeline(get_node(key), window).as_dict())
+    node = get_node(key)
+    return JsonResponse(tl.node_timeline(node, window).as_dict())
 
 
 @api_view()

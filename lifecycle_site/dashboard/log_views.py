@@ -2,17 +2,20 @@
 from __future__ import annotations
 
 import re
+from datetime import datetime
+from datetime import timezone as dt_timezone
 
 from django.db.models import Q, QuerySet
 from django.http import Http404, HttpRequest, HttpResponse, JsonResponse
 from django.shortcuts import render
-from django.utils import timezone
+from django.utils import dateparse, timezone
 
 from lifecycle_site.dashboard import snapshots
 from lifecycle_site.dashboard.access import viewer_required
 from lifecycle_site.fleet.models import LogRecord, ManagedNode, Robot
 
 HISTORY_LINES = 500
+AROUND_LINES = HISTORY_LINES // 2  # on each side of a moment the page was opened at (?at=, from the timeline)
 LEVELS = [name for _, name in LogRecord.LEVELS]
 LEVEL_VALUES = {name: value for value, name in LogRecord.LEVELS}
 # The console's filters, as the page's address carries them (static/js/logs.js keeps it up to
@@ -93,10 +96,31 @@ def _filtered(records: QuerySet, request: HttpRequest) -> QuerySet:
     return records
 
 
+def _moment(request: HttpRequest) -> datetime | None:
+    """The moment the page is asked to show (?at=, ISO 8601, UTC without an offset), if any."""
+    try:
+        found = dateparse.parse_datetime(request.GET.get("at", "")[:40].strip())
+    except ValueError:
+        return None
+    if found is None:
+        return None
+    return found.replace(tzinfo=dt_timezone.utc) if found.tzinfo is None else found
+
+
+def _around(records: QuerySet, at: datetime) -> list:
+    """Up to AROUND_LINES lines on each side of ``at`` (by their stamps), in the order they
+    came (the console's order)."""
+    before = list(records.filter(stamp__lte=at).order_by("-stamp", "-id")[:AROUND_LINES])
+    after = list(records.filter(stamp__gt=at).order_by("stamp", "id")[:AROUND_LINES])
+    return sorted(before + after, key=lambda r: r.id)
+
+
 @viewer_required
 def log_console(request: HttpRequest, scope: str, name: str) -> HttpResponse:
     title, records, context = _target(scope, name)
-    history = [r.as_dict() for r in reversed(records.order_by("-id")[:HISTORY_LINES])]
+    at = _moment(request)
+    found = _around(records, at) if at is not None else reversed(records.order_by("-id")[:HISTORY_LINES])
+    history = [r.as_dict() for r in found]
     gateway = snapshots.gateway_of(context["node"].robot if "node" in context else context["robot"])
     return render(
         request,
@@ -115,6 +139,8 @@ def log_console(request: HttpRequest, scope: str, name: str) -> HttpResponse:
             "loggers": [] if "node" in context else sorted(
                 n.lstrip("/").replace("/", ".") for n in context["robot"].nodes.values_list("name", flat=True)),
             "max_filter_chars": MAX_FILTER_CHARS,
+            "at": at.astimezone(dt_timezone.utc).strftime("%Y-%m-%d %H:%M:%S") if at else "",
+            "at_iso": at.isoformat() if at else "",
         },
     )
 

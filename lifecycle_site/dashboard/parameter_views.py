@@ -21,6 +21,7 @@ from lifecycle_site.fleet.param_files import ParameterFileError, diff, load
 from ros_gateway.shared import param_types as pt
 
 MAX_FILE_BYTES = 256 * 1024
+MAX_FILE_NAME = 200  # characters of an uploaded file's name shown back
 # ROS descriptors have no field for a list of allowed values; nodes write it into the free-text
 # additional_constraints, e.g. "one of: none, fail_configure" or "[low, high]". Bounded, so a
 # long text stays text.
@@ -55,13 +56,16 @@ def choices(entry: dict) -> list[str] | None:
         return None
 
 
-def _with_choices(listing: list[dict]) -> list[dict]:
+def _with_choices(listing: list[dict], typed: dict[str, str] | None = None) -> list[dict]:
+    """Each entry with its choices and the value its field shows: what the operator typed, for
+    a value that was not set (so it can be corrected, not typed again), else the current one."""
     for entry in listing:
         entry["choices"] = choices(entry)
         shown = _shown(entry["value"]) if entry["type"] != "bool" else str(bool(entry["value"])).lower()
         # A value outside the list (set by another tool) stays selectable, so saving keeps it.
         entry["off_list"] = shown if entry["choices"] and shown not in entry["choices"] else None
-        entry["shown"] = shown
+        entry["typed"] = (typed or {}).get(entry["name"])
+        entry["shown"] = entry["typed"] if entry["typed"] in (entry["choices"] or ()) else shown
     return listing
 
 
@@ -75,7 +79,7 @@ def _section(request: HttpRequest, node: ManagedNode, **extra) -> HttpResponse:
     if not node.alive and "error" not in context:
         context["error"] = "The node is not running: its parameters cannot be read."
     if context.get("parameters"):
-        context["parameters"] = _with_choices(context["parameters"])
+        context["parameters"] = _with_choices(context["parameters"], context.get("typed"))
     return render(request, "dashboard/_parameters.html", context)
 
 
@@ -115,7 +119,7 @@ def _edit(request: HttpRequest, node: ManagedNode) -> HttpResponse:
         listing = fetch(node)
     except GatewayError as exc:
         return _section(request, node, error=exc.message)
-    values, problems = {}, {}
+    values, problems, typed = {}, {}, {}
     for entry in listing:
         name = entry["name"]
         if f"seen:{name}" not in request.POST or entry["read_only"]:
@@ -127,11 +131,13 @@ def _edit(request: HttpRequest, node: ManagedNode) -> HttpResponse:
             if raw not in ("true", "false"):
                 problems[name] = {"name": name, "successful": False, "reason": f"{raw!r} is not true or false"}
                 continue
+            typed[name] = raw
             value = raw == "true"
         else:
             raw = request.POST.get(f"value:{name}", "")
             if raw == _shown(entry["value"]):
                 continue
+            typed[name] = raw
             try:
                 value = _parse(raw, entry)
             except pt.InvalidValue as exc:
@@ -146,17 +152,29 @@ def _edit(request: HttpRequest, node: ManagedNode) -> HttpResponse:
         except GatewayError as exc:
             return _section(request, node, parameters=listing, error=exc.message)
     results.update(problems)
-    return _section(request, node, results=results, nothing_changed=not results)
+    refused = {name: raw for name, raw in typed.items() if name in results and not results[name]["successful"]}
+    return _section(request, node, results=results, nothing_changed=not results, typed=refused)
 
 
 def _shown(value: Any) -> str:
     return json.dumps(value) if isinstance(value, list) else ("" if value is None else str(value))
 
 
+def _preview(request: HttpRequest, node: ManagedNode, current: list[dict], changes: list[dict], file_name: str,
+             **extra) -> HttpResponse:
+    """The file's changes, each with why it is left out or the node's reason for refusing it;
+    Apply sends the others, all together."""
+    applicable = {c["name"]: c["value"] for c in changes if not c["note"]}
+    return _section(request, node, parameters=current, preview=changes, file_name=file_name,
+                    preview_values=json.dumps(applicable), applicable=len(applicable),
+                    left_out=len(changes) - len(applicable), **extra)
+
+
 @operator_required
 @require_POST
 def import_file(request: HttpRequest, key: str) -> HttpResponse:
-    """Step 1: read an uploaded parameter file and show what it would change."""
+    """Step 1: read an uploaded parameter file and show what it would change, checked as the
+    gateway checks a value before it sends it."""
     node = node_or_404(key)
     upload = request.FILES.get("file")
     if upload is None:
@@ -170,17 +188,32 @@ def import_file(request: HttpRequest, key: str) -> HttpResponse:
         return _section(request, node, import_error=f"{upload.name}: {exc}")
     except GatewayError as exc:
         return _section(request, node, error=exc.message)
-    changes = diff(current, wanted)
-    applicable = {c["name"]: c["new"] for c in changes if not c["note"]}
-    return _section(request, node, parameters=current, preview=changes, file_name=upload.name,
-                    preview_values=json.dumps(applicable))
+    return _preview(request, node, current, diff(current, wanted), upload.name[:MAX_FILE_NAME])
+
+
+def _blame(changes: list[dict], results: dict[str, dict]) -> None:
+    """Put the node's refusal beside the values it names: a node refusing a set of values says
+    why once, for all of them (beside each value when it names none)."""
+    refused = [r for r in results.values() if not r["successful"]]
+    reason = refused[0]["reason"] if refused else ""
+    named = {c["name"] for c in changes if c["name"] in reason}
+    for change in changes:
+        result = results.get(change["name"])
+        if result is None or result["successful"]:
+            continue
+        if not named or change["name"] in named:
+            change["refused"] = result["reason"]
+        else:
+            change["held"] = True  # not refused itself: went with the one that was
 
 
 @operator_required
 @require_POST
 def apply_file(request: HttpRequest, key: str) -> HttpResponse:
-    """Step 2: apply what the preview showed."""
+    """Step 2: apply what the preview showed as valid, all or none. Checked again first (the
+    node's values or the page may have changed since): nothing is sent if one fails."""
     node = node_or_404(key)
+    file_name = request.POST.get("file_name", "")[:MAX_FILE_NAME] or "the file"
     try:
         values = loads_finite(request.POST.get("values", "{}"))
         assert isinstance(values, dict)
@@ -194,7 +227,33 @@ def apply_file(request: HttpRequest, key: str) -> HttpResponse:
         return _section(request, node, import_error=f"The file sets {len(values)} parameters; at most "
                         f"{limits.MAX_PARAMETERS} can be set at once. Nothing was sent.")
     try:
-        results = {r["name"]: r for r in apply(node, values, request.user, "dashboard")}
+        current = fetch(node)
+        changes = diff(current, values)
+        if any(c["note"] for c in changes):
+            return _preview(request, node, current, changes, file_name, apply_error=(
+                "Nothing was sent: the node's parameters changed since the preview, and some of these values "
+                "no longer fit (the reason is beside each)."))
+        sending = {c["name"]: c["value"] for c in changes}
+        if not sending:
+            return _section(request, node, parameters=current, nothing_changed=True)
+        results = {r["name"]: r for r in apply(node, sending, request.user, "dashboard", atomic=True)}
+        if all(r["successful"] for r in results.values()):
+            return _section(request, node, results=results)
+        # Refused: the file's values stay on the page with the node's reason beside them.
+        current = fetch(node)
+        changes = diff(current, values)
     except GatewayError as exc:
         return _section(request, node, error=exc.message)
-    return _section(request, node, results=results)
+    _blame(changes, results)
+    return _preview(request, node, current, changes, file_name, apply_error=_refusal(results))
+
+
+def _refusal(results: dict[str, dict]) -> str:
+    if any(r["successful"] for r in results.values()):  # a gateway from before atomic sets
+        return ("The node refused some of these values and took the others (its gateway sets them one at a "
+                "time); what it refused is beside each, its current values are above.")
+    if any(r["reason"].startswith("no answer from the node") for r in results.values()):
+        return ("The node did not answer in time: these values may or may not be set. Its current values are "
+                "in the table above.")
+    return ("Nothing was set: the node refused these values, and it takes them all together or none. "
+            "Its reason is beside the value it refused.")

@@ -5,7 +5,7 @@ window (newest first) and one count per node and outcome.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime
 
 from django.db.models import Count, OuterRef, Subquery
@@ -22,12 +22,14 @@ from lifecycle_site.dashboard.timeline import (
     Absence,
     Row,
     Timeline,
+    Window,
+    as_window,
     build,
     later,
     overlapping,
     read_newest,
-    window_bounds,
 )
+from lifecycle_site.dashboard.timeline_events import MAX_EVENTS_ROBOT, Event, outage_events, record_events
 from lifecycle_site.fleet.models import ManagedNode, NodeAbsence, Robot
 
 
@@ -39,14 +41,20 @@ class RobotTimeline:
     end: datetime
     nodes: list[Timeline]
     cut_before: datetime | None
+    outages: list[Event] = field(default_factory=list)  # its gateway's, in the window
 
     @property
     def availability(self) -> float | None:
-        """Time in the desired state over all nodes that have one, 0-1."""
-        wanted = [t for t in self.nodes if t.desired]
-        if not wanted:
+        """The mean of its nodes' availabilities (those with a desired state, seen in the window), 0-1."""
+        found = [t.availability for t in self.nodes if t.availability is not None]
+        if not found:
             return None
-        return sum(t.availability or 0.0 for t in wanted) / len(wanted)
+        return sum(found) / len(found)
+
+    @property
+    def events(self) -> list[Event]:
+        """Its nodes' marked records, oldest first."""
+        return sorted((e for t in self.nodes for e in t.events), key=lambda e: e.at)
 
     @property
     def failures(self) -> int:
@@ -65,13 +73,15 @@ class RobotTimeline:
             "failures": self.failures,
             "restarts": self.restarts,
             "not_read_before": self.cut_before.isoformat() if self.cut_before else None,
+            "gateway_outages": [e.as_dict() for e in self.outages],
             "nodes": [t.as_dict() for t in self.nodes],
         }
 
 
-def robot_timeline(robot: Robot, window: str = DEFAULT_WINDOW, now: datetime | None = None,
+def robot_timeline(robot: Robot, window: str | Window = DEFAULT_WINDOW, now: datetime | None = None,
                    cap: int = MAX_ROWS_ROBOT, absence_cap: int = MAX_ABSENCES_ROBOT) -> RobotTimeline:
-    start, end = window_bounds(window, now)
+    window = as_window(window, now)
+    start, end = window.start, window.end
     last_before = TransitionRecord.objects.filter(node=OuterRef("pk"), requested_at__lt=start).order_by(
         "-requested_at")
     nodes = list(ManagedNode.objects.filter(robot=robot).select_related("robot").annotate(
@@ -98,8 +108,12 @@ def robot_timeline(robot: Robot, window: str = DEFAULT_WINDOW, now: datetime | N
     for node_id, outcome, n in counted.values_list("node_id", "outcome").annotate(n=Count("id")):
         outcomes.setdefault(node_id, {})[outcome] = n
     timelines = [
-        build(node, window, start, end, before.get(node.pk), by_node.get(node.pk, []), cut_before,
+        build(node, window.name, start, end, before.get(node.pk), by_node.get(node.pk, []), cut_before,
               outcomes.get(node.pk, {}), away_by_node.get(node.pk, ()))
         for node in nodes
     ]
-    return RobotTimeline(robot, window, start, end, timelines, cut_before)
+    events = record_events(((t.node, r.requested_at, r.outcome, r.id) for t in timelines
+                            for r in by_node.get(t.node.pk, [])), MAX_EVENTS_ROBOT)
+    for timeline in timelines:
+        timeline.events = [e for e in events if e.node is timeline.node]
+    return RobotTimeline(robot, window.name, start, end, timelines, cut_before, outage_events(robot, start, end))

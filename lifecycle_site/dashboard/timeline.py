@@ -14,108 +14,51 @@ What the records tell, and what they cannot:
 
 Reads are bounded: one indexed query for the state before the window, at most MAX_ROWS
 records and MAX_ABSENCES absences of the window (newest first; what is older is drawn as "not
-read"), and one count per outcome.
+read"), one count per outcome, and for the marks (timeline_events.py) the reasons of at most
+MAX_EVENTS marked records by primary key and the gateway's outages in one indexed query.
+Availability counts from when the node was first seen ("not seen yet" is neither).
 """
 from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass, field
-from datetime import datetime, timedelta
+from datetime import datetime
 from functools import cached_property
-from typing import Iterable, NamedTuple
+from typing import Iterable
 
 from django.db.models import Count
-from django.utils import timezone
 
 from lifecycle_site.audit.models import TransitionRecord
+from lifecycle_site.dashboard.timeline_events import MAX_EVENTS, Event, outage_events, record_events
+from lifecycle_site.dashboard.timeline_facts import (  # noqa: F401 (names of this module too)
+    ABSENCE_FIELDS,
+    FAILURE_OUTCOMES,
+    GONE,
+    LOST,
+    LOST_OUTCOME,
+    NOT_READ,
+    NOT_SEEN,
+    PSEUDO_STATES,
+    RESTART_OUTCOMES,
+    ROW_FIELDS,
+    UNKNOWN,
+    UNREACHABLE,
+    Absence,
+    Row,
+    Segment,
+)
+from lifecycle_site.dashboard.timeline_windows import DEFAULT_WINDOW, WINDOWS, Window, window_of  # noqa: F401
 from lifecycle_site.fleet.models import ManagedNode, NodeAbsence
 from ros_gateway.shared import state_machine as sm
 
-WINDOWS: dict[str, timedelta] = {"hour": timedelta(hours=1), "day": timedelta(days=1), "week": timedelta(weeks=1)}
-DEFAULT_WINDOW = "day"
 # Records read per timeline at most (a node's page; a robot's page shares them among its nodes).
 MAX_ROWS = 3000
 MAX_ROWS_ROBOT = 5000
 MAX_ABSENCES = 1000
 MAX_ABSENCES_ROBOT = 2000
 
-# Outcomes that count as failures and as restarts. process_lost / process_restarted come from
-# crash detection; any other outcome the audit log may learn later is shown, not counted.
-FAILURE_OUTCOMES = ("failed", "timed_out", "process_lost")
-RESTART_OUTCOMES = ("process_restarted",)
-LOST_OUTCOME = "process_lost"
-
-# Pseudo-states: what the timeline shows where no lifecycle state is known.
-NOT_SEEN = "not seen yet"
-UNKNOWN = "unknown"
-GONE = "gone"
-UNREACHABLE = "unreachable"
-LOST = "process lost"
-NOT_READ = "not read"
-PSEUDO_STATES = (NOT_SEEN, UNKNOWN, GONE, UNREACHABLE, LOST, NOT_READ)
-
-# duration_ms rather than completed_at: one date less to parse per row (a third of the read time).
-ROW_FIELDS = ("requested_at", "duration_ms", "start_state_id", "result_state_id", "outcome")
-
-
-class Row(NamedTuple):
-    """The part of a TransitionRecord a timeline needs (a tuple: thousands are made per page)."""
-
-    requested_at: datetime
-    duration_ms: float | None  # None: not completed
-    start_state_id: int | None
-    result_state_id: int | None
-    outcome: str
-
-    @property
-    def ended_at(self) -> datetime:
-        if not self.duration_ms:
-            return self.requested_at
-        return self.requested_at + timedelta(milliseconds=self.duration_ms)
-
-    def state_after(self, before: str | None) -> str | None:
-        """The state from ``ended_at`` on; ``before`` when the record changed nothing."""
-        if self.result_state_id is not None:
-            return sm.state_label(self.result_state_id)
-        if self.outcome == LOST_OUTCOME:
-            return LOST
-        if self.outcome in ("failed", "timed_out", *RESTART_OUTCOMES):
-            return UNKNOWN  # sent, and the state not read back; or a new process not yet read
-        if self.outcome == "rejected" and self.start_state_id is not None:
-            return sm.state_label(self.start_state_id)
-        return before
-
-
-class Absence(NamedTuple):
-    """A NodeAbsence as the timeline needs it."""
-
-    gone_at: datetime
-    back_at: datetime | None  # None: still away
-    reason: str
-
-    @property
-    def state(self) -> str:
-        return {"unreachable": UNREACHABLE, LOST_OUTCOME: LOST}.get(self.reason, GONE)
-
-
-ABSENCE_FIELDS = ("gone_at", "back_at", "reason")
-
-
-@dataclass
-class Segment:
-    state: str
-    start: datetime
-    end: datetime
-
-    @property
-    def seconds(self) -> float:
-        return (self.end - self.start).total_seconds()
-
-    def as_dict(self, origin: datetime) -> dict:
-        """Its bounds in seconds after ``origin`` (the window's start): thousands of ISO dates
-        would cost a page's worth of time."""
-        return {"state": self.state, "from_s": round((self.start - origin).total_seconds(), 3),
-                "to_s": round((self.end - origin).total_seconds(), 3)}
+# The facts' shapes and the pseudo-states are in timeline_facts.py (imported above: they are
+# part of this module's names too).
 
 
 @dataclass
@@ -132,6 +75,8 @@ class Timeline:
     cut_before: datetime | None  # records older than this were not read
     notes: list[str] = field(default_factory=list)
     absences: int = 0  # times the node went away within the window
+    events: list[Event] = field(default_factory=list)  # its marked records (timeline_events.py)
+    outages: list[Event] = field(default_factory=list)  # its gateway's, in the window
 
     @property
     def seconds(self) -> float:
@@ -149,16 +94,28 @@ class Timeline:
         return self.node.desired_state
 
     @property
+    def observed_seconds(self) -> float:
+        """The window's time since the node was first seen: before, it did not exist for the site."""
+        return self.seconds - self.time_in_state.get(NOT_SEEN, 0.0)
+
+    @property
+    def counted_from(self) -> datetime | None:
+        """When the node was first seen, if that was inside the window ("not seen yet" comes first)."""
+        first = self.segments[0] if self.segments else None
+        return first.end if first is not None and first.state == NOT_SEEN else None
+
+    @property
     def availability(self) -> float | None:
-        """Share of the window spent in the desired state, 0-1; None without a desired state."""
-        if not self.desired:
+        """Share of the window since the node was first seen spent in the desired state, 0-1;
+        None without a desired state, or for a node not seen in the window."""
+        if not self.desired or self.observed_seconds <= 0:
             return None
-        return self.time_in_state.get(self.desired, 0.0) / self.seconds
+        return self.time_in_state.get(self.desired, 0.0) / self.observed_seconds
 
     @property
     def availability_of_known(self) -> float | None:
         """The same share of the time whose state is known (not "unknown" nor "not read")."""
-        known = self.seconds - self.unknown_seconds
+        known = self.observed_seconds - self.unknown_seconds
         if not self.desired or known <= 0:
             return None
         return self.time_in_state.get(self.desired, 0.0) / known
@@ -185,6 +142,7 @@ class Timeline:
             "window": {"name": self.window, "start": self.start.isoformat(), "end": self.end.isoformat()},
             "desired_state": self.desired or None,
             "availability_percent": None if availability is None else round(100 * availability, 3),
+            "counted_from": self.counted_from.isoformat() if self.counted_from else None,
             "availability_of_known_percent": _percent(self.availability_of_known),
             "unknown_percent": round(100 * self.unknown_seconds / self.seconds, 3),
             "time_in_state": [{"state": s, "seconds": round(v, 3), "percent": round(100 * v / self.seconds, 3)}
@@ -197,6 +155,7 @@ class Timeline:
             "not_read_before": self.cut_before.isoformat() if self.cut_before else None,
             "notes": self.notes,
             "segments": [s.as_dict(self.start) for s in self.segments],
+            "events": [e.as_dict() for e in (*self.outages, *self.events)],
         }
 
 
@@ -204,9 +163,8 @@ def _percent(share: float | None) -> float | None:
     return None if share is None else round(100 * share, 3)
 
 
-def window_bounds(window: str, now: datetime | None = None) -> tuple[datetime, datetime]:
-    end = now or timezone.now()
-    return end - WINDOWS[window], end
+def as_window(window: str | Window, now: datetime | None = None) -> Window:
+    return window if isinstance(window, Window) else window_of(window, now)
 
 
 class _Builder:
@@ -359,9 +317,10 @@ def later(a: datetime | None, b: datetime | None) -> datetime | None:
     return max(a, b) if a is not None and b is not None else a or b
 
 
-def node_timeline(node: ManagedNode, window: str = DEFAULT_WINDOW, now: datetime | None = None,
+def node_timeline(node: ManagedNode, window: str | Window = DEFAULT_WINDOW, now: datetime | None = None,
                   cap: int = MAX_ROWS, absence_cap: int = MAX_ABSENCES) -> Timeline:
-    start, end = window_bounds(window, now)
+    window = as_window(window, now)
+    start, end = window.start, window.end
     records = TransitionRecord.objects.filter(node=node)
     inside = records.filter(requested_at__gte=start, requested_at__lte=end)
     values, cut_before = read_newest(inside.values_list(*ROW_FIELDS), ROW_FIELDS, cap)
@@ -374,5 +333,8 @@ def node_timeline(node: ManagedNode, window: str = DEFAULT_WINDOW, now: datetime
         found = records.filter(requested_at__lt=start).order_by("-requested_at").values_list(*ROW_FIELDS).first()
         before = Row(*found) if found else None
     outcomes = dict(inside.order_by().values_list("outcome").annotate(n=Count("id")))
-    return build(node, window, start, end, before, _rows(values), cut_before, outcomes,
-                 [Absence(*a) for a in away])
+    rows = _rows(values)
+    timeline = build(node, window.name, start, end, before, rows, cut_before, outcomes, [Absence(*a) for a in away])
+    timeline.events = record_events(((node, r.requested_at, r.outcome, r.id) for r in rows), MAX_EVENTS)
+    timeline.outages = outage_events(node.robot, start, end)
+    return timeline

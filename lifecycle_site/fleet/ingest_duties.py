@@ -10,7 +10,7 @@ from typing import Any
 import redis
 from django.utils import timezone
 
-from lifecycle_site.fleet import gateway_config, quarantine, redis_users
+from lifecycle_site.fleet import gateway_config, outages, quarantine, redis_users
 from lifecycle_site.fleet import gateways as gw
 from lifecycle_site.fleet.models import Gateway
 from lifecycle_site.fleet.stream_entries import beat_fields, text
@@ -31,7 +31,8 @@ class SiteDuties:
         self.published.clear()
 
     def copy_beats(self, names: list[str]) -> None:
-        """Each gateway's heartbeat and stream backlog into its row (for pages and the API)."""
+        """Each gateway's heartbeat and stream backlog into its row (for pages and the API), and
+        its outages opened or closed (for the state timeline)."""
         if not names:
             return
         beats = self.redis.mget([protocol.beat_key(self.prefix, n) for n in names])
@@ -42,6 +43,7 @@ class SiteDuties:
             if beat is not None:
                 changes.update(beat_fields(beat))
             Gateway.objects.filter(name=name).update(**changes)
+        outages.observe(Gateway.objects.filter(name__in=names))
 
     def backlogs(self, names: list[str]) -> dict[str, int]:
         """Entries not yet stored, per gateway: the group's lag (Redis 7) or an estimate, plus

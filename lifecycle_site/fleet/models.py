@@ -226,6 +226,28 @@ class NodeAbsence(models.Model):
         return f"{self.node} away from {self.gone_at:%Y-%m-%d %H:%M:%S}"
 
 
+class GatewayOutage(models.Model):
+    """A stretch of time a gateway could take no commands: from its last heartbeat before the
+    site saw it offline, stopped or quarantined, to the first heartbeat after (fleet/outages.py,
+    kept by the ingest process). The state timeline marks them. Pruned like absences."""
+
+    gateway = models.ForeignKey(Gateway, on_delete=models.CASCADE, related_name="outages")
+    began = models.DateTimeField()
+    ended = models.DateTimeField(null=True, blank=True, help_text="Empty while it lasts.")
+    reason = models.CharField(max_length=16, blank=True, default="", help_text="offline, stopped or quarantined")
+
+    class Meta:
+        ordering = ["-began"]
+        indexes = [models.Index(fields=["gateway", "-began"], name="outage_gateway_recent")]
+        constraints = [
+            models.UniqueConstraint(fields=["gateway"], condition=models.Q(ended__isnull=True),
+                                    name="one_open_outage_per_gateway"),
+        ]
+
+    def __str__(self) -> str:
+        return f"{self.gateway} {self.reason or 'offline'} from {self.began:%Y-%m-%d %H:%M:%S}"
+
+
 class LogRecord(models.Model):
     """One /rosout message. Pruned by the ingest process to a bounded count and age."""
 

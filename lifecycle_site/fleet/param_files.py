@@ -137,17 +137,28 @@ def _not_finite_note(value: Any) -> str:
 
 
 def diff(current: list[dict], wanted: dict[str, Any]) -> list[dict]:
-    """What applying ``wanted`` would change: one entry per parameter that differs. An entry
-    with a note (no such parameter, read-only, not a finite number) is shown, not applied."""
+    """What applying ``wanted`` would change: one entry per parameter that differs, with
+    ``value``, the file's value as the parameter's type wants it (what is sent). An entry with a
+    note is shown, not applied: the note says why, from every check the gateway makes before it
+    sends a value (no such parameter, read-only, type, the descriptor's ranges:
+    ``param_types.check``), and values no JSON can carry (.nan, .inf). The node may still refuse
+    a value its own checks do not like: only it can say so."""
     by_name = {p["name"]: p for p in current}
     changes = []
     for name, value in sorted(wanted.items()):
         parameter = by_name.get(name)
+        change = {"name": name, "old": None if parameter is None else parameter["value"], "new": value,
+                  "value": value, "note": ""}
         if parameter is None:
-            changes.append({"name": name, "old": None, "new": value, "note": "the node has no such parameter"})
+            change["note"], change["missing"] = "the node has no such parameter", True
         elif note := _not_finite_note(value):
-            changes.append({"name": name, "old": parameter["value"], "new": value, "note": note})
-        elif parameter["value"] != value:
-            note = "read-only" if parameter.get("read_only") else ""
-            changes.append({"name": name, "old": parameter["value"], "new": value, "note": note})
+            change["note"] = note
+        elif parameter["value"] == value:
+            continue  # already so (a read-only one included)
+        else:
+            try:
+                change["value"] = pt.check(value, parameter)
+            except pt.InvalidValue as exc:
+                change["note"] = str(exc)
+        changes.append(change)
     return changes

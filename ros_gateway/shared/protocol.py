@@ -98,7 +98,7 @@ GET_AVAILABLE_TRANSITIONS = "get_available_transitions"
 GET_TRANSITION_GRAPH = "get_transition_graph"
 CHANGE_STATE = "change_state"
 GET_PARAMETERS = "get_parameters"
-SET_PARAMETERS = "set_parameters"
+SET_PARAMETERS = "set_parameters"  # values; atomic: true for all or none (a parameter file)
 START_RUN = "start_run"
 PING = "ping"
 

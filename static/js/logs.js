@@ -130,8 +130,12 @@
   }
 
   function status(extra) {
-    var total = lines.childElementCount, shown = 0;
-    for (var line = lines.firstElementChild; line; line = line.nextElementSibling) if (!line.hidden) shown += 1;
+    var total = 0, shown = 0;
+    for (var line = lines.firstElementChild; line; line = line.nextElementSibling) {
+      if (!line.record) continue;  // the marker of a moment (showMoment)
+      total += 1;
+      if (!line.hidden) shown += 1;
+    }
     var parts = [shown === total ? total + " lines shown" : shown + " of " + total + " lines shown"];
     parts[0] += " (the newest " + MAX_LINES + " are kept)";
     if (paused) parts.push("paused, " + held.length + " waiting" + (heldDropped ? ", " + heldDropped + " dropped" : ""));
@@ -141,8 +145,10 @@
 
   function refilter() {
     match = compile();
-    Array.prototype.forEach.call(lines.children, function (div) { div.hidden = !visible(div.record); });
-    var query = params().toString();
+    Array.prototype.forEach.call(lines.children, function (div) { if (div.record) div.hidden = !visible(div.record); });
+    var address = params();
+    if (root.dataset.at) address.set("at", root.dataset.at);  // opened at a moment (a timeline's mark)
+    var query = address.toString();
     history.replaceState(history.state, "", location.pathname + (query ? "?" + query : "") + location.hash);
     var server = params();
     downloadEl.setAttribute("href", downloadBase + (server.toString() ? "?" + server.toString() : ""));
@@ -227,7 +233,26 @@
     };
   }
 
+  // Opened at a moment (?at=, from the timeline): paused, so that live lines do not push it
+  // away, and the first line from that moment on marked and in view.
+  function showMoment() {
+    var at = Date.parse(root.dataset.at);
+    paused = true;
+    followEl.checked = false;
+    pauseEl.textContent = "Resume";
+    pauseEl.setAttribute("aria-pressed", "true");
+    var line = lines.firstElementChild;
+    while (line && Date.parse(line.record.stamp) < at) line = line.nextElementSibling;
+    var marker = document.createElement("div");
+    marker.className = "log-moment";
+    marker.textContent = "▶ " + when(new Date(at).toISOString()) + " (the moment from the timeline)";
+    lines.insertBefore(marker, line);
+    marker.scrollIntoView({ block: "center" });
+    status();
+  }
+
   append(JSON.parse(document.getElementById("log-history").textContent));
+  if (root.dataset.at && !isNaN(Date.parse(root.dataset.at))) showMoment();
   refilter();
   connect();
 })();

@@ -92,7 +92,7 @@ def test_the_dashboard_works_under_the_policy(page: Page, site, robot, operator)
 
     for timeline in (f"nodes/{key}/timeline/?window=week", f"robots/{ROBOT}/timeline/"):
         visit(page, site + timeline)
-        expect(page.locator("svg[role=img]").first).to_be_visible(timeout=WAIT_MS)
+        expect(page.locator("figure.timeline svg.tl-svg")).to_be_visible(timeout=WAIT_MS)  # not role=img: has links
         assert_clean(page)
 
     visit(page, f"{site}audit/")

@@ -149,3 +149,15 @@ def test_numbers_too_large_for_the_parameter_type_are_refused_with_why(api, joy,
     assert 400 <= response.status_code < 500, response.content
     assert says in json.dumps(response.json()), response.json()
     assert node_values(api) == before
+
+
+def test_a_value_refused_on_the_node_page_stays_in_its_field_with_the_reason(api, joy):
+    """Issue 26, item 6: the form showed the node's current value again after a refusal, so the
+    operator had to type the refused value again to correct it."""
+    before = node_values(api)["scale_linear"]
+    page = api.post(f"/nodes/{KEY}/parameters", {"seen:scale_linear": "1", "value:scale_linear": "5.0"})
+    text = page.content.decode()
+    assert "not set: scale_linear must be between 0 and 2" in text
+    field = text.split('name="value:scale_linear"', 1)[1].split(">", 1)[0]
+    assert 'value="5.0"' in field, field
+    assert node_values(api)["scale_linear"] == before

@@ -97,3 +97,35 @@ def test_an_ordinary_file_still_loads_with_either_loader(loader):
     text = HEAD + "0.5\n    gains: [1.0, 2.0]\n    limits:\n      max: 9_223_372_036_854_775_807\n      min: -0x10\n"
     assert load(text, "/joy_to_vel") == {"scale": 0.5, "gains": [1.0, 2.0], "limits.max": 2 ** 63 - 1,
                                          "limits.min": -16}
+
+
+def listed(name: str, value, kind: str, low=None, high=None, read_only: bool = False) -> dict:
+    """One parameter as the gateway lists it (ros_gateway/parameters.py)."""
+    ranges = [{"from_value": low, "to_value": high, "step": 0}] if low is not None else []
+    return {"name": name, "value": value, "type": kind, "read_only": read_only, "dynamic_typing": False,
+            "integer_range": ranges if kind == "integer" else [],
+            "floating_point_range": ranges if kind == "double" else []}
+
+
+def test_the_preview_makes_every_check_the_gateway_makes_before_it_sends():
+    """Issue 26: the preview let `publish_rate_hz: 99` through (range 1-50); Apply then set
+    `scale_linear` and the gateway refused the other: half a file applied."""
+    current = [listed("scale_linear", 0.5, "double", 0.0, 2.0), listed("publish_rate_hz", 10.0, "double", 1.0, 50.0),
+               listed("deadman_button", 4, "integer", 0, 11), listed("frame_id", "base", "string", read_only=True),
+               listed("axis_linear", 1, "integer", 0, 7)]
+    wanted = load("/joy_to_vel:\n  ros__parameters:\n    scale_linear: 0.8\n    publish_rate_hz: 99\n"
+                  "    deadman_button: 2.5\n    frame_id: odom\n    no_such: 1\n    axis_linear: 1.0\n"
+                  "    axis_angular: 3\n", "/joy_to_vel")
+    changes = {c["name"]: c for c in param_files.diff(current, wanted)}
+    assert {name: c["note"] for name, c in changes.items()} == {
+        "scale_linear": "",
+        "publish_rate_hz": "must be between 1 and 50",  # the descriptor's range
+        "deadman_button": "must be a whole number",  # its type
+        "frame_id": "is read-only",
+        "no_such": "the node has no such parameter",
+        "axis_angular": "the node has no such parameter",
+    }  # axis_linear: 1.0 is its current value, no change
+    assert changes["scale_linear"]["value"] == 0.8
+    # An integer for a double is sent as the double the node takes.
+    changes = param_files.diff(current, {"publish_rate_hz": 20})
+    assert changes[0]["note"] == "" and changes[0]["value"] == 20.0 and isinstance(changes[0]["value"], float)

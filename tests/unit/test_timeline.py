@@ -109,6 +109,33 @@ def test_node_found_inside_the_window(robot):
     assert timeline.availability == 0.0
 
 
+def test_availability_counts_from_when_the_node_was_first_seen(robot):
+    """Issue 26: a node found six minutes ago and active for five of them had 0.35 % over a day
+    (5 of 1,440 minutes): the time before it existed counted as not available."""
+    node = make_node(robot, state=A, changed=5, first_seen=6, desired="active")
+    record(node, 5, U, A)
+    timeline = tl.node_timeline(node, "day", now=NOW)
+    assert minutes(timeline) == {tl.NOT_SEEN: 24 * 60 - 6.0, "unconfigured": 1.0, "active": 5.0}
+    assert timeline.availability == pytest.approx(5 / 6)
+    assert timeline.observed_seconds == 6 * 60 and timeline.counted_from == ago(6)
+    body = timeline.as_dict()
+    assert body["availability_percent"] == pytest.approx(83.333, abs=0.001)
+    assert body["counted_from"] == ago(6).isoformat()
+    # Seen before the window: counted over all of it, as before.
+    old = make_node(robot, name="/old", state=A, changed=30, desired="active")
+    record(old, 120, U, IN)
+    record(old, 30, IN, A)
+    older = tl.node_timeline(old, "hour", now=NOW)
+    assert older.counted_from is None and older.availability == pytest.approx(0.5)
+    # Not seen at all in the window: no availability (rather than 0 %), and not in the robot's mean.
+    make_node(robot, name="/pinned", state=sm.UNKNOWN, first_seen=None, last_seen=None, alive=False,
+              desired="active")
+    timelines = robot_timeline_of(robot, "day", now=NOW)
+    by_name = {t.node.name: t for t in timelines.nodes}
+    assert by_name["/pinned"].availability is None
+    assert timelines.availability == pytest.approx((5 / 6 + by_name["/old"].availability) / 2)
+
+
 def test_node_found_inside_the_window_without_records_is_in_its_current_state(robot):
     node = make_node(robot, state=U, changed=30, first_seen=30)
     timeline = tl.node_timeline(node, "hour", now=NOW)
@@ -233,21 +260,24 @@ def test_every_query_of_a_timeline_runs_on_an_index(robot):
     node = make_node(robot, state=A, changed=30)
     for i in range(40):
         record(node, 600 - 10 * i, IN, A)
+    record(node, 5, A, A, "failed")  # a mark: its reason read by primary key
     plans = []
     with CaptureQueriesContext(connection) as captured:
         tl.node_timeline(node, "hour", now=NOW)
         robot_timeline_of(robot, "day", now=NOW)
     with connection.cursor() as cursor:
         for query in captured.captured_queries:
-            if "audit_transitionrecord" in query["sql"] or "fleet_nodeabsence" in query["sql"]:
+            if any(table in query["sql"] for table in ("audit_transitionrecord", "fleet_nodeabsence",
+                                                          "fleet_gatewayoutage")):
                 cursor.execute("EXPLAIN QUERY PLAN " + query["sql"])
                 plans.append((query["sql"], " | ".join(str(row[-1]) for row in cursor.fetchall())))
-    # node: window, absences, before, counts; robot: its nodes (with their last record before),
-    # window, absences, counts
-    assert len(plans) == 8, plans
+    # node: window, absences, before, counts, marks' reasons, gateway outages; robot: its nodes
+    # (with their last record before), window, absences, counts, marks' reasons, gateway outages
+    assert len(plans) == 12, plans
     for sql, plan in plans:
         assert "SCAN audit_transitionrecord" not in plan and "SCAN U0" not in plan, (sql, plan)
-        assert "SCAN fleet_nodeabsence" not in plan, (sql, plan)
-        assert "INDEX audit_" in plan or "INDEX absence_" in plan, (sql, plan)
+        assert "SCAN fleet_nodeabsence" not in plan and "SCAN fleet_gatewayoutage" not in plan, (sql, plan)
+        assert any(index in plan for index in ("INDEX audit_", "INDEX absence_", "INDEX outage_",
+                                               "USING INTEGER PRIMARY KEY")), (sql, plan)
     counts = [plan for sql, plan in plans if "COUNT(" in sql]
     assert len(counts) == 2 and all("COVERING INDEX audit_" in plan for plan in counts), counts

@@ -44,6 +44,7 @@ from lifecycle_site.fleet.live_relay import LiveRelay
 from lifecycle_site.fleet.live_updates import push, record_messages
 from lifecycle_site.fleet.log_store import LogTargets, prune_logs, store_batch
 from lifecycle_site.fleet.models import Gateway
+from lifecycle_site.fleet.outages import prune_outages
 from lifecycle_site.fleet.redis_guard import RedisGuard
 from lifecycle_site.fleet.runs import fail_runs_of_silent_gateways
 from lifecycle_site.fleet.stream_entries import count_gap, decode, entry_id, is_after, replied, text
@@ -154,6 +155,7 @@ class Ingest:
                 if deleted:
                     log.info("pruned %d old log records", deleted)
                 prune_absences()
+                prune_outages()
         if self.is_due("turn", TURN_S):
             self.shares.report_turn({"pid": os.getpid(), "host": socket.gethostname(),
                                      "gateways": sorted(self.held()), "leader": self.shares.leader})

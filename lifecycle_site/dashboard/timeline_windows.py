@@ -1,0 +1,90 @@
+"""The stretch of time a timeline shows: the last 15 minutes, hour, day or week
+(``?window=hour``), or a range of the operator's own (``?from=...&to=...``, UTC)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from datetime import datetime, timedelta, timezone
+from typing import Mapping
+from urllib.parse import urlencode
+
+from django.utils import dateparse
+from django.utils import timezone as django_timezone
+
+WINDOWS: dict[str, timedelta] = {"15min": timedelta(minutes=15), "hour": timedelta(hours=1),
+                                 "day": timedelta(days=1), "week": timedelta(weeks=1)}
+LABELS = {"15min": "15 minutes", "hour": "hour", "day": "day", "week": "week"}
+DEFAULT_WINDOW = "day"
+CUSTOM = "custom"
+# A range of one's own: long enough to hold a state, short enough that its records are still
+# kept (absences and gateway outages are kept 30 days).
+MIN_CUSTOM, MAX_CUSTOM = timedelta(minutes=1), timedelta(days=31)
+
+
+@dataclass(frozen=True)
+class Window:
+    name: str  # a key of WINDOWS, or CUSTOM
+    start: datetime
+    end: datetime
+
+    @property
+    def seconds(self) -> float:
+        return (self.end - self.start).total_seconds()
+
+    @property
+    def query(self) -> str:
+        """Its part of a page's address, to keep it across links."""
+        if self.name != CUSTOM:
+            return urlencode({"window": self.name})
+        return urlencode({"from": _minute(self.start), "to": _minute(self.end)})
+
+
+def _minute(moment: datetime) -> str:
+    """As a datetime-local field shows it (UTC)."""
+    return moment.astimezone(timezone.utc).strftime("%Y-%m-%dT%H:%M:%S").removesuffix(":00")
+
+
+def window_of(name: str, now: datetime | None = None) -> Window:
+    end = now or django_timezone.now()
+    return Window(name, end - WINDOWS[name], end)
+
+
+def _moment(text: str) -> datetime | None:
+    try:
+        found = dateparse.parse_datetime(text.strip())
+    except ValueError:
+        return None
+    if found is None:
+        return None
+    return found.replace(tzinfo=timezone.utc) if found.tzinfo is None else found
+
+
+class WindowError(ValueError):
+    """The query string asks for no window that can be shown; the message says why."""
+
+
+def parse(query: Mapping[str, str], now: datetime | None = None) -> Window:
+    """The window a query string asks for, or WindowError. A range may not end in the future:
+    it ends now."""
+    now = now or django_timezone.now()
+    if query.get("from") or query.get("to"):
+        start, end = _moment(query.get("from", "")), _moment(query.get("to", "") or now.isoformat())
+        if start is None or end is None:
+            raise WindowError("Not a date and time: write it like 2026-11-23 14:05 (UTC), or pick it in the calendar.")
+        end = min(end, now)
+        if end - start < MIN_CUSTOM:
+            raise WindowError("A range must start at least a minute before it ends, and before now.")
+        if end - start > MAX_CUSTOM:
+            raise WindowError(f"A range may span at most {MAX_CUSTOM.days} days.")
+        return Window(CUSTOM, start, end)
+    asked = query.get("window", DEFAULT_WINDOW)
+    if asked not in WINDOWS:
+        raise WindowError(f"There is no window {asked[:40]!r} (there are {', '.join(WINDOWS)}).")
+    return window_of(asked, now)
+
+
+def page_window(query: Mapping[str, str], now: datetime | None = None) -> tuple[Window, str]:
+    """For a page: the window asked for, or the default one with why."""
+    try:
+        return parse(query, now), ""
+    except WindowError as exc:
+        return window_of(DEFAULT_WINDOW, now), f"{exc} Showing the last {DEFAULT_WINDOW}."
