@@ -16,7 +16,7 @@ from channels.generic.websocket import AsyncWebsocketConsumer
 from django.template.loader import render_to_string
 from redis.exceptions import RedisError
 
-from lifecycle_site.dashboard import fragments, snapshots, socket_checks
+from lifecycle_site.dashboard import fragments, runs, snapshots, socket_checks
 from lifecycle_site.dashboard.collapse import CollapsedRobots
 from lifecycle_site.prefix import forwarded_prefix, script_prefix
 from ros_gateway.shared import protocol
@@ -188,7 +188,7 @@ class RunPanels:
     API, a last push that went only to other groups). Each panel goes into the page's run list
     (live.js replaces the one there unless it shows a later state)."""
 
-    run_ranks: dict[str, int]  # how far each run shown has come (snapshots.run_rank)
+    run_ranks: dict[str, int]  # how far each run shown has come (runs.run_rank)
 
     def ranks(self) -> dict[str, int]:
         if not hasattr(self, "run_ranks"):
@@ -199,15 +199,17 @@ class RunPanels:
         raise NotImplementedError
 
     def run_scope(self) -> tuple[int | None, str | None]:
-        """(robot id, node name) for snapshots.recent_runs: None for every robot / node."""
+        """(robot id, node name) for runs.recent_runs: None for every robot / node."""
         return None, None
 
     async def run_progress(self, event: dict) -> None:
         await self.send_run(event["run"])
 
     async def send_run(self, run: dict) -> None:
+        # (a push says nothing of who started the run, when, nor of its robot's order)
+        run = await database_sync_to_async(runs.completed, thread_sensitive=False)(run)
         ranks = self.ranks()
-        ranks[run["id"]] = max(ranks.get(run["id"], -1), snapshots.run_rank(run))
+        ranks[run["id"]] = max(ranks.get(run["id"], -1), runs.run_rank(run))
         await self.send_html("dashboard/_run.html", {"run": run, "runs_in": self.runs_in(run)})
 
     async def pause(self, seconds: float) -> None:
@@ -217,14 +219,17 @@ class RunPanels:
         deadline = loop.time() + seconds
         while (left := deadline - loop.time()) > 0:
             await asyncio.sleep(min(OPEN_RUN_CHECK_S, left))
-            if any(rank < snapshots.DONE_RANK for rank in self.ranks().values()):
-                await self.check_runs()
+            await self.between_checks()
+
+    async def between_checks(self) -> None:
+        if any(rank < runs.DONE_RANK for rank in self.ranks().values()):
+            await self.check_runs()
 
     async def check_runs(self) -> None:
-        runs = await database_sync_to_async(snapshots.runs_view, thread_sensitive=False)(*self.run_scope())
+        shown = await database_sync_to_async(runs.runs_view, thread_sensitive=False)(*self.run_scope())
         ranks = self.ranks()
-        for run in runs:  # oldest first: each new one goes first in its list
-            if snapshots.run_rank(run) > ranks.get(run["id"], -1):
+        for run in shown:  # oldest first: each new one goes first in its list
+            if runs.run_rank(run) > ranks.get(run["id"], -1):
                 await self.send_run(run)
 
 
@@ -258,7 +263,7 @@ class FleetConsumer(CollapsedRobots, RunPanels, LiveConsumer):
         self.heads = {g["gateway"]["name"]: _head(g["gateway"]) for g in groups}
         self.views = {g["gateway"]["name"]: g["gateway"] for g in groups}
         self.gateway_of = {robot.name: g["gateway"]["name"] for g in groups for robot, _ in g["robots"]}
-        self.run_ranks = {run["id"]: snapshots.run_rank(run) for robot in robots for run in robot.recent_runs}
+        self.run_ranks = {run["id"]: runs.run_rank(run) for robot in robots for run in robot.recent_runs}
         self.collapsible = {robot.name for robot in robots if robot.collapsible}
         self.collapsed: dict[str, dict[str, str]] = {r.name: r.statuses for r in robots if r.collapsed}
         return html, {n["id"] for group in groups for _, nodes in group["robots"] for n in nodes}

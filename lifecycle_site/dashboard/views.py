@@ -12,7 +12,7 @@ from django.views.decorators.http import require_POST
 
 from lifecycle_site.audit import denials
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.dashboard import snapshots
+from lifecycle_site.dashboard import runs, snapshots
 from lifecycle_site.dashboard.access import viewer_required
 from lifecycle_site.dashboard.templatetags.dashboard import dom_id
 from lifecycle_site.fleet.models import ManagedNode, Robot
@@ -98,7 +98,7 @@ def node_detail(request: HttpRequest, key: str) -> HttpResponse:
             **snapshots.state_panel(payload, "" if gateway["online"] else gateway["name"], gateway.get("last_beat")),
             "node_obj": node,
             "records": [r.as_dict() for r in records],
-            "runs": snapshots.recent_runs(node.robot_id, node.name).get(node.robot.name, []),
+            "runs": runs.recent_runs(node.robot_id, node.name).get(node.robot.name, []),
             "gateway": gateway,
             "offline_gateways": [] if gateway["online"] else [gateway],
             "can_operate": _can_operate(request),

@@ -301,6 +301,10 @@ class GroupRun(models.Model):
     policy = models.CharField(max_length=16, choices=Policy.choices, default=Policy.STOP)
     node_timeout = models.FloatField(default=5.0)
     only_nodes = models.JSONField(default=list, blank=True, help_text="Node names; empty for all of the robot's.")
+    steps = models.PositiveSmallIntegerField(
+        null=True, blank=True, editable=False,
+        help_text="How many steps of the robot's bring-up order the run went in (1: all side by side); "
+        "empty for a run the gateway started itself (a recovery).")
     status = models.CharField(max_length=16, choices=Status.choices, default=Status.QUEUED)
     message = models.TextField(blank=True)
     results = models.JSONField(default=list, blank=True)
@@ -330,6 +334,7 @@ class GroupRun(models.Model):
             "policy": self.policy,
             "node_timeout": self.node_timeout,
             "nodes": self.only_nodes,
+            "steps": self.steps,
             "status": self.status,
             "message": self.message,
             "results": self.results,
