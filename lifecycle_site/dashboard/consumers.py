@@ -1,4 +1,6 @@
 """Channels consumers: subscribe a browser to the gateways' groups and forward what matters.
+Here the common ground and the fleet page's; the node page's and the log console's are in
+node_consumers.py.
 
 Fleet and node pages get HTML fragments that htmx swaps in by id (hx-swap-oob), rendered
 from the same partial templates as the first page load. Log consoles get JSON, because
@@ -7,7 +9,6 @@ bounding, filtering and pausing a fast stream is the browser's job there.
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
 from urllib.parse import parse_qs
 
@@ -316,96 +317,6 @@ class FleetConsumer(CollapsedRobots, RunPanels, LiveConsumer):
         gateway = (view["name"], view["online"], view.get("last_beat")) if view is not None else None
         html = fragments.rendered((template, self.prefix, self.can_operate, gateway, node), render)
         await self.send(text_data=html)
-
-class NodeConsumer(RunPanels, LiveConsumer):
-    async def prepare(self) -> bool:
-        self.key = self.scope["url_route"]["kwargs"]["key"]
-        self.groups_to_join = [protocol.node_group(self.key)]
-        found = await database_sync_to_async(snapshots.node_robot_and_name)(self.key)
-        if found is None:
-            return False
-        self.robot_id, self.node_name = found
-        return True
-
-    def runs_in(self, run: dict) -> str:
-        return "node-run"
-
-    def run_scope(self) -> tuple[int | None, str | None]:
-        return self.robot_id, self.node_name
-
-    def gateway_views(self) -> list[dict]:
-        return snapshots.node_gateway(self.key)
-
-    async def send_snapshot(self) -> None:
-        node = await database_sync_to_async(snapshots.one_node)(self.key)
-        await self.node_state({"node": node})
-
-    gateway_offline = ""  # the node's gateway's name while it is offline
-    gateway_known_at: str | None = None  # and its last heartbeat: the states shown are as of then
-
-    async def send_gateway_status(self, offline: list[dict]) -> None:
-        """Besides the banner: while the gateway is offline the panel offers no command."""
-        await super().send_gateway_status(offline)
-        now_offline = offline[0]["name"] if offline else ""
-        known_at = offline[0].get("last_beat") if offline else None
-        if (now_offline, known_at) != (self.gateway_offline, self.gateway_known_at):
-            self.gateway_offline, self.gateway_known_at = now_offline, known_at
-            await self.send_snapshot()
-
-    async def node_state(self, event: dict) -> None:
-        def render() -> str:
-            panel = snapshots.state_panel(event["node"], self.gateway_offline, self.gateway_known_at)
-            context = {**panel, "can_operate": self.can_operate, "oob": True}
-            with script_prefix(self.prefix):
-                return render_to_string("dashboard/_node_state.html", context) + render_to_string(
-                    "dashboard/_node_restart.html", context)
-
-        key = ("node-state", self.prefix, self.can_operate, self.gateway_offline, self.gateway_known_at,
-               event["node"])
-        await self.send(text_data=fragments.rendered(key, render))
-
-    async def audit_record(self, event: dict) -> None:
-        await self.send_html("dashboard/_audit_row_oob.html", {"record": event["record"]})
-
-    async def node_parameters(self, event: dict) -> None:
-        """Values changed by anyone: the 'current value' cells follow."""
-        await self.send_html("dashboard/_parameter_values_oob.html", {"changes": event["changes"]})
-
-
-class LogConsumer(LiveConsumer):
-    """``ws/logs/node/<key>/`` or ``ws/logs/robot/<name>/``: records as JSON."""
-
-    async def prepare(self) -> bool:
-        kwargs = self.scope["url_route"]["kwargs"]
-        self.target = (kwargs["scope"], kwargs["name"])
-        group = await database_sync_to_async(snapshots.log_group)(*self.target)
-        self.groups_to_join = [group] if group else []
-        return group is not None
-
-    def gateway_views(self) -> list[dict]:
-        scope, name = self.target
-        return snapshots.node_gateway(name) if scope == "node" else snapshots.robot_gateway(name)
-
-    async def node_logs(self, event: dict) -> None:
-        await self.send(text_data=json.dumps({"records": event["records"]}))
-
-    async def node_state(self, event: dict) -> None:
-        pass
-
-    async def node_parameters(self, event: dict) -> None:
-        pass
-
-    async def run_progress(self, event: dict) -> None:
-        pass
-
-    async def check_runs(self) -> None:
-        pass
-
-    async def send_gateway_status(self, offline: list[dict]) -> None:
-        with script_prefix(self.prefix):
-            banner = render_to_string("dashboard/_gateway_banner.html", {"offline_gateways": offline})
-        await self.send(text_data=json.dumps({"gateway_online": not offline, "gateway_banner": banner}))
-
 
 def _head(view: dict) -> dict:
     """What a gateway's header shows, but what moves with the clock (each heartbeat's time,

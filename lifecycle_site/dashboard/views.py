@@ -89,7 +89,7 @@ def node_or_404(key: str) -> ManagedNode:
 def node_detail(request: HttpRequest, key: str) -> HttpResponse:
     node = node_or_404(key)
     payload = snapshots.node_with_since(node)
-    records = TransitionRecord.objects.filter(node=node).select_related("node")[:20]
+    records = [r.as_dict() for r in TransitionRecord.objects.filter(node=node).select_related("node")[:20]]
     gateway = snapshots.gateway_of(node.robot)
     return render(
         request,
@@ -97,7 +97,8 @@ def node_detail(request: HttpRequest, key: str) -> HttpResponse:
         {
             **snapshots.state_panel(payload, "" if gateway["online"] else gateway["name"], gateway.get("last_beat")),
             "node_obj": node,
-            "records": [r.as_dict() for r in records],
+            "records": records,
+            "last": records[0] if records else None,
             "runs": runs.recent_runs(node.robot_id, node.name).get(node.robot.name, []),
             "gateway": gateway,
             "offline_gateways": [] if gateway["online"] else [gateway],

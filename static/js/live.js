@@ -126,4 +126,11 @@
   // the server's classes of elements with an id (a socket's message is settled at once).
   document.addEventListener("htmx:afterSettle", tidyAll);
   document.addEventListener("htmx:wsAfterMessage", tidyAll);
+
+  // Sections that fold away on a narrow screen (<details data-fold-narrow open>): closed there
+  // when the page loads; after that as the user leaves them (live updates swap what is inside).
+  document.addEventListener("DOMContentLoaded", function () {
+    if (!window.matchMedia("(max-width: 720px)").matches) return;
+    document.querySelectorAll("details[data-fold-narrow]").forEach(function (el) { el.open = false; });
+  });
 })();
