@@ -3,6 +3,8 @@ console's (JSON)."""
 from __future__ import annotations
 
 import json
+import time
+from datetime import datetime
 
 from channels.db import database_sync_to_async
 from django.template.loader import render_to_string
@@ -10,6 +12,7 @@ from django.template.loader import render_to_string
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.dashboard import fragments, snapshots
 from lifecycle_site.dashboard.consumers import LiveConsumer, RunPanels
+from lifecycle_site.fleet import outages
 from lifecycle_site.prefix import script_prefix
 from ros_gateway.shared import protocol
 
@@ -47,6 +50,7 @@ class NodeConsumer(RunPanels, LiveConsumer):
 
     gateway_offline = ""  # the node's gateway's name while it is offline
     gateway_known_at: str | None = None  # and its last heartbeat: the states shown are as of then
+    header_shown: tuple | None = None  # what the header says of the gateway
     last_shown: tuple = ("", 0)  # (requested_at, id) of the last outcome shown
 
     async def send_gateway_status(self, offline: list[dict]) -> None:
@@ -57,6 +61,14 @@ class NodeConsumer(RunPanels, LiveConsumer):
         if (now_offline, known_at) != (self.gateway_offline, self.gateway_known_at):
             self.gateway_offline, self.gateway_known_at = now_offline, known_at
             await self.send_snapshot()
+
+    async def gateways_seen(self, views: list[dict]) -> None:
+        """The header's word on the gateway follows it (a green "online" under a red banner was untrue)."""
+        for view in views[:1]:
+            shown = (view["name"], view["online"], view["status"])
+            if shown != self.header_shown:
+                self.header_shown = shown
+                await self.send_html("dashboard/_node_gateway.html", {"gateway": view, "oob": True})
 
     async def node_state(self, event: dict) -> None:
         def render() -> str:
@@ -88,8 +100,16 @@ class NodeConsumer(RunPanels, LiveConsumer):
         await self.send_html("dashboard/_parameter_values_oob.html", {"changes": event["changes"]})
 
 
+GAP_WAIT_S = 30.0  # how long after its gateway is back a console looks for the outage's record
+
+
 class LogConsumer(LiveConsumer):
-    """``ws/logs/node/<key>/`` or ``ws/logs/robot/<name>/``: records as JSON."""
+    """``ws/logs/node/<key>/`` or ``ws/logs/robot/<name>/``: records as JSON; and the stretches
+    of /rosout not received while the gateway's process was down (fleet/outages.py), once the
+    ingest process has recorded them."""
+
+    gap_since: str | None = None  # the last heartbeat before the gateway went offline
+    gap_until = 0.0  # (monotonic) when to stop looking for its record
 
     async def prepare(self) -> bool:
         kwargs = self.scope["url_route"]["kwargs"]
@@ -121,3 +141,20 @@ class LogConsumer(LiveConsumer):
         with script_prefix(self.prefix):
             banner = render_to_string("dashboard/_gateway_banner.html", {"offline_gateways": offline})
         await self.send(text_data=json.dumps({"gateway_online": not offline, "gateway_banner": banner}))
+        if offline:
+            self.gap_since, self.gap_until = offline[0].get("last_beat"), 0.0
+        elif self.gap_since is not None:
+            self.gap_until = time.monotonic() + GAP_WAIT_S
+
+    async def gateways_seen(self, views: list[dict]) -> None:
+        """Back after an outage: the stretch not received, once it is on record."""
+        if self.gap_since is None or not self.gap_until or not views or not views[0]["online"]:
+            return
+        found = await database_sync_to_async(self.gaps, thread_sensitive=False)(views[0]["name"])
+        if found or time.monotonic() > self.gap_until:
+            self.gap_since, self.gap_until = None, 0.0
+        if found:
+            await self.send(text_data=json.dumps({"gaps": found}))
+
+    def gaps(self, gateway: str) -> list[dict]:
+        return outages.recent(gateway, datetime.fromisoformat(self.gap_since)) if self.gap_since else []

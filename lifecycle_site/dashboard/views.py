@@ -117,7 +117,7 @@ def node_transition(request: HttpRequest, key: str) -> HttpResponse:
     # naming robot and node (two robots may both have a /camera_driver).
     on_row = request.htmx.target != "transition-result"
     answer = "dashboard/_node_row_result.html" if on_row else "dashboard/_transition_result.html"
-    named = {"robot": node.robot.name, "node": node.name}
+    named = {"robot": node.robot.name, "node": node.name, "gateway_name": node.robot.gateway.name}
     if not _can_operate(request):
         denials.record(request, 403, "forbidden", "operator needed")
         outcome_context = {"ok": False, "message": "Your role may view but not operate nodes (operator needed)."}
@@ -137,7 +137,8 @@ def node_transition(request: HttpRequest, key: str) -> HttpResponse:
     if outcome.data.get("to"):  # the gateway's answer is fresher than the database write
         payload = {**payload, "state": outcome.data["to"],
                    "transitions": [t.as_dict() for t in sm.valid_transitions(outcome.data["to"]["id"])]}
-    context = {"ok": outcome.succeeded, "code": outcome.code, "message": outcome.message}
+    context = {"ok": outcome.succeeded, "code": outcome.code, "message": outcome.message,
+               "gateway_name": named["gateway_name"]}
     if request.htmx.target == "transition-result":  # the node page: refresh its state panel too
         context.update(snapshots.state_panel(payload), can_operate=True, oob=True)
     # htmx swaps only 2xx answers by default; the message is the content either way.

@@ -226,6 +226,28 @@ class NodeAbsence(models.Model):
         return f"{self.node} away from {self.gone_at:%Y-%m-%d %H:%M:%S}"
 
 
+class GatewayOutage(models.Model):
+    """A stretch in which a gateway's process was not running: from the last heartbeat of one
+    process to the start of the next (fleet/outages.py; recorded by the ingest process when the
+    new one's heartbeat comes). Nothing listened to its robots' /rosout meanwhile: the log
+    consoles mark the stretch. Pruned with node absences (ABSENCE_KEEP_DAYS)."""
+
+    gateway = models.ForeignKey(Gateway, on_delete=models.CASCADE, related_name="outages")
+    began = models.DateTimeField(help_text="The last heartbeat of the process that ended.")
+    ended = models.DateTimeField(help_text="When the next process started.")
+
+    class Meta:
+        ordering = ["-began"]
+        indexes = [models.Index(fields=["gateway", "-ended"], name="outage_gateway_recent")]
+
+    def __str__(self) -> str:
+        return f"{self.gateway} down {self.began:%Y-%m-%d %H:%M:%S} - {self.ended:%H:%M:%S}"
+
+    def as_dict(self) -> dict:
+        return {"id": self.id, "gateway": self.gateway.name, "began": self.began.isoformat(),
+                "ended": self.ended.isoformat()}
+
+
 class LogRecord(models.Model):
     """One /rosout message. Pruned by the ingest process to a bounded count and age."""
 

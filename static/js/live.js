@@ -48,8 +48,8 @@
     });
   }, 1000);
 
-  // "3 min ago" beside a last known state (fleet rows, the node page) or a run stays true while
-  // the page is open.
+  // "3 min ago" beside a last known state (fleet rows, the node page), a gateway's outage (the
+  // banner) or a run stays true while the page is open.
   setInterval(function () {
     document.querySelectorAll("[data-age]").forEach(function (el) {
       var when = Date.parse(el.dataset.age);
@@ -126,6 +126,18 @@
   // the server's classes of elements with an id (a socket's message is settled at once).
   document.addEventListener("htmx:afterSettle", tidyAll);
   document.addEventListener("htmx:wsAfterMessage", tidyAll);
+
+  // A refusal because a gateway was offline ("nothing was sent") says nothing true once it is
+  // back: the banner (templates/dashboard/_gateway_banner.html) names those still offline.
+  document.addEventListener("htmx:oobAfterSwap", function (e) {
+    var banner = e.detail.target;
+    if (!banner || banner.id !== "gateway-banner") banner = document.getElementById("gateway-banner");
+    if (!banner) return;
+    var offline = (banner.dataset.offline || "").split(" ").filter(Boolean);
+    document.querySelectorAll("[data-gateway-refusal]").forEach(function (el) {
+      if (offline.indexOf(el.dataset.gatewayRefusal) === -1) el.remove();
+    });
+  });
 
   // Sections that fold away on a narrow screen (<details data-fold-narrow open>): closed there
   // when the page loads; after that as the user leaves them (live updates swap what is inside).

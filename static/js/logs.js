@@ -130,8 +130,12 @@
   }
 
   function status(extra) {
-    var total = lines.childElementCount, shown = 0;
-    for (var line = lines.firstElementChild; line; line = line.nextElementSibling) if (!line.hidden) shown += 1;
+    var total = 0, shown = 0;
+    for (var line = lines.firstElementChild; line; line = line.nextElementSibling) {
+      if (!line.record) continue;  // a gap's marker
+      total += 1;
+      if (!line.hidden) shown += 1;
+    }
     var parts = [shown === total ? total + " lines shown" : shown + " of " + total + " lines shown"];
     parts[0] += " (the newest " + MAX_LINES + " are kept)";
     if (paused) parts.push("paused, " + held.length + " waiting" + (heldDropped ? ", " + heldDropped + " dropped" : ""));
@@ -141,7 +145,7 @@
 
   function refilter() {
     match = compile();
-    Array.prototype.forEach.call(lines.children, function (div) { div.hidden = !visible(div.record); });
+    Array.prototype.forEach.call(lines.children, function (div) { if (div.record) div.hidden = !visible(div.record); });
     var query = params().toString();
     history.replaceState(history.state, "", location.pathname + (query ? "?" + query : "") + location.hash);
     var server = params();
@@ -174,6 +178,27 @@
         status();
       })
       .catch(function (error) { status("download failed: " + error.message + "; try again"); });
+  }
+
+  // -- gaps ---------------------------------------------------------------------------
+  // A stretch in which the gateway's process was down (log_views: fleet/outages.py): nothing
+  // received /rosout then. Marked where it falls among the lines, whatever the filters.
+  function addGaps(gaps) {
+    (gaps || []).forEach(function (gap) {
+      if (lines.querySelector('[data-gap="' + gap.id + '"]')) return;
+      var div = document.createElement("div");
+      div.className = "log-gap";
+      div.dataset.gap = gap.id;
+      var seconds = Math.round((Date.parse(gap.ended) - Date.parse(gap.began)) / 1000);
+      div.textContent = "gateway " + gap.gateway + " was not running from " + when(gap.began) + " to " +
+        when(gap.ended) + (isNaN(seconds) ? "" : " (" + seconds + " s)") + ": /rosout of that time was not received";
+      var after = null;
+      for (var line = lines.firstElementChild; line; line = line.nextElementSibling) {
+        if (line.record && Date.parse(line.record.stamp) > Date.parse(gap.began)) { after = line; break; }
+      }
+      lines.insertBefore(div, after);
+    });
+    if (followEl.checked) lines.scrollTop = lines.scrollHeight;
   }
 
   levelEl.addEventListener("change", refilter);
@@ -209,6 +234,7 @@
     socket.onmessage = function (event) {
       var data = JSON.parse(event.data);
       if (data.records) receive(data.records);
+      if (data.gaps) addGaps(data.gaps);
       if ("gateway_online" in data) {
         var banner = document.getElementById("gateway-banner");
         if (banner && data.gateway_banner) banner.outerHTML = data.gateway_banner;
@@ -227,6 +253,7 @@
   }
 
   append(JSON.parse(document.getElementById("log-history").textContent));
+  addGaps(JSON.parse(document.getElementById("log-gaps").textContent));
   refilter();
   connect();
 })();

@@ -33,7 +33,7 @@ from django.db import DatabaseError, InterfaceError, OperationalError, connectio
 from lifecycle_site.alerts.conditions import observations
 from lifecycle_site.alerts.engine import Evaluator
 from lifecycle_site.fleet import gateways as gw
-from lifecycle_site.fleet import quarantine, state_chain
+from lifecycle_site.fleet import outages, quarantine, state_chain
 from lifecycle_site.fleet.absences import prune_absences
 from lifecycle_site.fleet.fact_context import FactRejected
 from lifecycle_site.fleet.facts import apply_facts
@@ -155,6 +155,7 @@ class Ingest:
                 if deleted:
                     log.info("pruned %d old log records", deleted)
                 prune_absences()
+                outages.prune()
         if self.is_due("turn", TURN_S):
             self.shares.report_turn({"pid": os.getpid(), "host": socket.gethostname(),
                                      "gateways": sorted(self.held()), "leader": self.shares.leader})
