@@ -17,7 +17,7 @@ from channels.generic.websocket import AsyncWebsocketConsumer
 from django.template.loader import render_to_string
 from redis.exceptions import RedisError
 
-from lifecycle_site.dashboard import fragments, runs, snapshots, socket_checks
+from lifecycle_site.dashboard import attention, fragments, runs, snapshots, socket_checks
 from lifecycle_site.dashboard.collapse import CollapsedRobots
 from lifecycle_site.prefix import forwarded_prefix, script_prefix
 from ros_gateway.shared import protocol
@@ -234,8 +234,40 @@ class RunPanels:
                 await self.send_run(run)
 
 
-class FleetConsumer(CollapsedRobots, RunPanels, LiveConsumer):
+class AttentionStrip:
+    """For FleetConsumer: the "needs attention" strip (attention.py) follows what it lists: read
+    at each gateway check (alerts, desired states and audit records come without a push) and,
+    for ATTENTION_AFTER_PUSH_S after a node's update, at each of the checks between (its audit
+    record is stored a moment after its state was pushed). Sent only when it changed."""
+
+    ATTENTION_AFTER_PUSH_S = 2.5
+    attention_sent: dict | None = None  # what the strip shown says (its "N s ago" move in the page)
+    attention_until = 0.0  # (loop time) read it at the checks between until then
+    prefix: str
+
+    def attention_soon(self) -> None:
+        self.attention_until = asyncio.get_running_loop().time() + self.ATTENTION_AFTER_PUSH_S
+
+    async def send_attention(self) -> None:
+        data = await database_sync_to_async(attention.current, thread_sensitive=False)()
+        if data == self.attention_sent:
+            return
+        self.attention_sent = data
+
+        def render() -> str:
+            with script_prefix(self.prefix):  # (its links carry the prefix)
+                return render_to_string("dashboard/_attention.html", {"attention": attention.view(data), "oob": True})
+
+        await self.send(text_data=fragments.rendered(("attention", self.prefix, data), render))
+
+
+class FleetConsumer(AttentionStrip, CollapsedRobots, RunPanels, LiveConsumer):
     """The fleet page; the robots it shows collapsed get their counts instead of rows (collapse.py)."""
+
+    async def between_checks(self) -> None:
+        await super().between_checks()
+        if self.attention_until and asyncio.get_running_loop().time() < self.attention_until:
+            await self.send_attention()
 
     groups_to_join = [protocol.FLEET_GROUP]
 
@@ -252,6 +284,8 @@ class FleetConsumer(CollapsedRobots, RunPanels, LiveConsumer):
         opened = [name for name in ",".join(query.get("open", [])).split(",") if name][:100]
         html, self.known = await database_sync_to_async(self.fleet_html, thread_sensitive=False)(opened)
         await self.send(text_data=html)
+        self.attention_sent = None  # (a reconnecting page may show an old one)
+        await self.send_attention()
 
     def fleet_html(self, opened: list[str]) -> tuple[str, set[str]]:
         with script_prefix(self.prefix):
@@ -273,7 +307,9 @@ class FleetConsumer(CollapsedRobots, RunPanels, LiveConsumer):
         return snapshots.gateway_views()
 
     async def gateways_seen(self, views: list[dict]) -> None:
-        """Each gateway's header follows its health and counters (a new gateway needs a reload)."""
+        """Each gateway's header follows its health and counters (a new gateway needs a reload);
+        the "needs attention" strip its contents."""
+        await self.send_attention()
         for view in views:
             head = _head(view)
             self.views[view["name"]] = view
@@ -299,6 +335,7 @@ class FleetConsumer(CollapsedRobots, RunPanels, LiveConsumer):
 
     async def node_state(self, event: dict) -> None:
         node = event["node"]
+        self.attention_soon()
         if self.counted(node):  # its robot is shown collapsed: its counts follow, not its row
             return
         new = node["id"] not in self.known
@@ -317,6 +354,7 @@ class FleetConsumer(CollapsedRobots, RunPanels, LiveConsumer):
         gateway = (view["name"], view["online"], view.get("last_beat")) if view is not None else None
         html = fragments.rendered((template, self.prefix, self.can_operate, gateway, node), render)
         await self.send(text_data=html)
+
 
 def _head(view: dict) -> dict:
     """What a gateway's header shows, but what moves with the clock (each heartbeat's time,

@@ -186,17 +186,21 @@ def robot_statuses(name: str) -> dict[str, str]:
             ManagedNode.objects.filter(robot__name=name).values_list(*NODE_FIELDS)}
 
 
-def find(query: str, state: str, robot_names: list[str]) -> tuple[list[dict], int]:
+def find(query: str, state: str, robot_names: list[str], keys: Collection[str] | None = None
+         ) -> tuple[list[dict], int]:
     """Nodes of these (collapsed) robots whose name holds ``query`` and whose row status is
-    ``state`` (either may be empty): the first FIND_MAX by robot and name, with links, and how
-    many matched in all."""
+    ``state`` (either may be empty; "attention": whose key is in ``keys``): the first FIND_MAX by
+    robot and name, with links, and how many matched in all."""
     rows = ManagedNode.objects.filter(robot__name__in=robot_names)
     if query:
         rows = rows.filter(name__icontains=query)
     found: list[dict] = []
     count = 0
     for t in rows.order_by("robot__name", "name").values_list(*NODE_FIELDS, "robot__name"):
-        if state and _tuple_status(t[:-1]) != state:
+        if state == "attention":
+            if t[1] not in (keys or ()):
+                continue
+        elif state and _tuple_status(t[:-1]) != state:
             continue
         count += 1
         if len(found) < FIND_MAX:

@@ -12,7 +12,7 @@ from django.views.decorators.http import require_POST
 
 from lifecycle_site.audit import denials
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.dashboard import runs, snapshots
+from lifecycle_site.dashboard import attention, runs, snapshots
 from lifecycle_site.dashboard.access import viewer_required
 from lifecycle_site.dashboard.templatetags.dashboard import dom_id
 from lifecycle_site.fleet.models import ManagedNode, Robot
@@ -21,7 +21,7 @@ from lifecycle_site.fleet.transitions import request_transition
 from ros_gateway.shared import state_machine as sm
 
 ROS_NAME = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
-FILTER_STATES = ["unconfigured", "inactive", "active", "finalized", "busy", "lost", "waiting"]
+FILTER_STATES = ["attention", "unconfigured", "inactive", "active", "finalized", "busy", "lost", "waiting"]
 
 
 def _can_operate(request: HttpRequest) -> bool:
@@ -48,6 +48,7 @@ def fleet(request: HttpRequest) -> HttpResponse:
             "filter_states": FILTER_STATES,
             "filters": {k: request.GET.get(k, "") for k in ("robot", "state", "q")},
             "open_param": ",".join(open_robots),
+            "attention": attention.view(attention.current([group["gateway"] for group in groups])),
         },
     )
 
@@ -73,7 +74,8 @@ def fleet_find(request: HttpRequest) -> HttpResponse:
     names = [name for name in request.GET.get("robots", "").split(",") if name][:100]
     if not names or not (query or state):
         return HttpResponse("")
-    found, count = snapshots.find(query, state if state in FILTER_STATES else "", names)
+    keys = set(attention.current()["keys"]) if state == "attention" else None
+    found, count = snapshots.find(query, state if state in FILTER_STATES else "", names, keys)
     return render(request, "dashboard/_fleet_matches.html",
                   {"found": found, "count": count, "more": count - len(found), "query": query, "state": state})
 
