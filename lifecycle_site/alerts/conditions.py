@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from datetime import datetime
 
-from django.db.models import F
+from django.db.models import F, Q
 
 from lifecycle_site.alerts.models import Rule
 from lifecycle_site.fleet import gateways
@@ -66,10 +66,13 @@ def node_conditions(rule: Rule, now: datetime) -> dict[str, Condition]:
     elif rule.kind == Rule.Kind.GONE:
         nodes = nodes.filter(alive=False, first_seen__isnull=False)  # seen once, gone now
     else:
-        nodes = nodes.filter(alive=True).exclude(desired_state="").exclude(state_label=F("desired_state"))
+        # A node that crashed (or stopped answering) is not in its desired state either: its
+        # alert keeps firing rather than resolving at the moment the node was lost.
+        nodes = nodes.exclude(desired_state="").filter(
+            Q(alive=False, first_seen__isnull=False) | Q(alive=True) & ~Q(state_label=F("desired_state")))
     found = {}
     for row in nodes.values("key", "name", "robot__name", "robot__gateway__name", "state_label", "desired_state",
-                            "state_changed", "last_seen", "gone_reason"):
+                            "state_changed", "last_seen", "gone_reason", "alive"):
         if not rule.matches_node(row["name"]):
             continue
         node, robot = row["name"], row["robot__name"]
@@ -77,6 +80,11 @@ def node_conditions(rule: Rule, now: datetime) -> dict[str, Condition]:
             since, summary = row["state_changed"], f"{_node_text(node, robot)} is {rule.state}."
         elif rule.kind == Rule.Kind.GONE:
             since, summary = row["last_seen"], _gone_text(node, robot, row["gone_reason"])
+        elif not row["alive"]:
+            since = row["last_seen"]
+            how = "is not answering" if row["gone_reason"] == "unreachable" else "is not running (lost)"
+            summary = (f"{_node_text(node, robot)} {how}, last known {row['state_label']}; its desired state is "
+                       f"{row['desired_state']}.")
         else:
             since = row["state_changed"]
             summary = (f"{_node_text(node, robot)} is {row['state_label']}; its desired state is "
@@ -97,7 +105,9 @@ def gateway_conditions(rule: Rule, now: datetime) -> dict[str, Condition]:
         if status.online or status.state == gateways.NEVER:  # one that never ran is not alerted
             continue
         what = "quarantined" if status.state == gateways.QUARANTINED else "offline"
-        summary = f"Gateway {row.name} is {what} ({status.reason()}): its robots cannot be reached or operated."
+        # (the reason without "N s ago": a stored message would say it for ever)
+        why = status.reason(ago=False)
+        summary = f"Gateway {row.name} is {what} ({why}): its robots cannot be reached or operated."
         found[row.name] = Condition(row.name, status.last_beat or now, summary, row.name)
     return found
 

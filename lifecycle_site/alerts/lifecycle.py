@@ -1,7 +1,9 @@
 """What people do to an alert: acknowledge it (the pages and the API share this)."""
 from __future__ import annotations
 
-from django.db.models import Count, QuerySet
+from datetime import timedelta
+
+from django.db.models import Count, Q, QuerySet
 from django.utils import timezone
 
 from lifecycle_site.alerts.models import Alert
@@ -44,11 +46,20 @@ def counts() -> dict[str, int]:
     return {"firing": found.get(Alert.Status.FIRING, 0), "acknowledged": found.get(Alert.Status.ACKNOWLEDGED, 0)}
 
 
+# The alerts page's default view keeps an alert this long after it resolved: one that resolves
+# while the page is open changes its status in place instead of vanishing without a word.
+RECENTLY_RESOLVED_S = 3600
+
+
 def listed(status: str) -> QuerySet[Alert]:
-    """Alerts by status: 'active' (firing or acknowledged), one status, or 'all'."""
+    """Alerts by status: 'active' (firing or acknowledged), 'recent' (active, and resolved within
+    RECENTLY_RESOLVED_S), one status, or 'all'."""
     alerts = Alert.objects.select_related("rule")
     if status == "active":
         return alerts.filter(status__in=Alert.ACTIVE)
+    if status == "recent":
+        since = timezone.now() - timedelta(seconds=RECENTLY_RESOLVED_S)
+        return alerts.filter(Q(status__in=Alert.ACTIVE) | Q(status=Alert.Status.RESOLVED, resolved_at__gte=since))
     if status in Alert.Status.values:
         return alerts.filter(status=status)
     return alerts

@@ -11,8 +11,8 @@ from lifecycle_site.alerts import lifecycle
 from lifecycle_site.audit import denials
 
 PAGE_LIMIT = 200
-STATUSES = [("active", "active"), ("firing", "firing"), ("acknowledged", "acknowledged"),
-            ("resolved", "resolved"), ("all", "all")]
+STATUSES = [("recent", "active, and resolved in the last hour"), ("active", "active"), ("firing", "firing"),
+            ("acknowledged", "acknowledged"), ("resolved", "resolved"), ("all", "all")]
 # htmx stops polling on this status: a signed-out page no longer asks (and is not sent the login page).
 STOP_POLLING = 286
 
@@ -25,9 +25,9 @@ def _viewer(request: HttpRequest) -> bool:
 def alert_list(request: HttpRequest) -> HttpResponse:
     if not _viewer(request):
         return render(request, "dashboard/no_role.html", status=403)
-    status = request.GET.get("status", "active")
+    status = request.GET.get("status", "recent")
     if status not in dict(STATUSES):
-        status = "active"
+        status = "recent"
     alerts = list(lifecycle.listed(status)[:PAGE_LIMIT])
     context = {"alerts": alerts, "status": status, "statuses": STATUSES, "limit": PAGE_LIMIT,
                "can_acknowledge": request.user.has_perm(lifecycle.ACKNOWLEDGE_PERMISSION)}

@@ -1,4 +1,6 @@
 """Channels consumers: subscribe a browser to the gateways' groups and forward what matters.
+Here the common ground and the fleet page's; the node page's and the log console's are in
+node_consumers.py.
 
 Fleet and node pages get HTML fragments that htmx swaps in by id (hx-swap-oob), rendered
 from the same partial templates as the first page load. Log consoles get JSON, because
@@ -15,7 +17,7 @@ from channels.generic.websocket import AsyncWebsocketConsumer
 from django.template.loader import render_to_string
 from redis.exceptions import RedisError
 
-from lifecycle_site.dashboard import fragments, snapshots, socket_checks
+from lifecycle_site.dashboard import attention, fragments, runs, snapshots, socket_checks
 from lifecycle_site.dashboard.collapse import CollapsedRobots
 from lifecycle_site.prefix import forwarded_prefix, script_prefix
 from ros_gateway.shared import protocol
@@ -187,7 +189,7 @@ class RunPanels:
     API, a last push that went only to other groups). Each panel goes into the page's run list
     (live.js replaces the one there unless it shows a later state)."""
 
-    run_ranks: dict[str, int]  # how far each run shown has come (snapshots.run_rank)
+    run_ranks: dict[str, int]  # how far each run shown has come (runs.run_rank)
 
     def ranks(self) -> dict[str, int]:
         if not hasattr(self, "run_ranks"):
@@ -198,15 +200,17 @@ class RunPanels:
         raise NotImplementedError
 
     def run_scope(self) -> tuple[int | None, str | None]:
-        """(robot id, node name) for snapshots.recent_runs: None for every robot / node."""
+        """(robot id, node name) for runs.recent_runs: None for every robot / node."""
         return None, None
 
     async def run_progress(self, event: dict) -> None:
         await self.send_run(event["run"])
 
     async def send_run(self, run: dict) -> None:
+        # (a push says nothing of who started the run, when, nor of its robot's order)
+        run = await database_sync_to_async(runs.completed, thread_sensitive=False)(run)
         ranks = self.ranks()
-        ranks[run["id"]] = max(ranks.get(run["id"], -1), snapshots.run_rank(run))
+        ranks[run["id"]] = max(ranks.get(run["id"], -1), runs.run_rank(run))
         await self.send_html("dashboard/_run.html", {"run": run, "runs_in": self.runs_in(run)})
 
     async def pause(self, seconds: float) -> None:
@@ -216,19 +220,54 @@ class RunPanels:
         deadline = loop.time() + seconds
         while (left := deadline - loop.time()) > 0:
             await asyncio.sleep(min(OPEN_RUN_CHECK_S, left))
-            if any(rank < snapshots.DONE_RANK for rank in self.ranks().values()):
-                await self.check_runs()
+            await self.between_checks()
+
+    async def between_checks(self) -> None:
+        if any(rank < runs.DONE_RANK for rank in self.ranks().values()):
+            await self.check_runs()
 
     async def check_runs(self) -> None:
-        runs = await database_sync_to_async(snapshots.runs_view, thread_sensitive=False)(*self.run_scope())
+        shown = await database_sync_to_async(runs.runs_view, thread_sensitive=False)(*self.run_scope())
         ranks = self.ranks()
-        for run in runs:  # oldest first: each new one goes first in its list
-            if snapshots.run_rank(run) > ranks.get(run["id"], -1):
+        for run in shown:  # oldest first: each new one goes first in its list
+            if runs.run_rank(run) > ranks.get(run["id"], -1):
                 await self.send_run(run)
 
 
-class FleetConsumer(CollapsedRobots, RunPanels, LiveConsumer):
+class AttentionStrip:
+    """For FleetConsumer: the "needs attention" strip (attention.py) follows what it lists: read
+    at each gateway check (alerts, desired states and audit records come without a push) and,
+    for ATTENTION_AFTER_PUSH_S after a node's update, at each of the checks between (its audit
+    record is stored a moment after its state was pushed). Sent only when it changed."""
+
+    ATTENTION_AFTER_PUSH_S = 2.5
+    attention_sent: dict | None = None  # what the strip shown says (its "N s ago" move in the page)
+    attention_until = 0.0  # (loop time) read it at the checks between until then
+    prefix: str
+
+    def attention_soon(self) -> None:
+        self.attention_until = asyncio.get_running_loop().time() + self.ATTENTION_AFTER_PUSH_S
+
+    async def send_attention(self) -> None:
+        data = await database_sync_to_async(attention.current, thread_sensitive=False)()
+        if data == self.attention_sent:
+            return
+        self.attention_sent = data
+
+        def render() -> str:
+            with script_prefix(self.prefix):  # (its links carry the prefix)
+                return render_to_string("dashboard/_attention.html", {"attention": attention.view(data), "oob": True})
+
+        await self.send(text_data=fragments.rendered(("attention", self.prefix, data), render))
+
+
+class FleetConsumer(AttentionStrip, CollapsedRobots, RunPanels, LiveConsumer):
     """The fleet page; the robots it shows collapsed get their counts instead of rows (collapse.py)."""
+
+    async def between_checks(self) -> None:
+        await super().between_checks()
+        if self.attention_until and asyncio.get_running_loop().time() < self.attention_until:
+            await self.send_attention()
 
     groups_to_join = [protocol.FLEET_GROUP]
 
@@ -245,6 +284,8 @@ class FleetConsumer(CollapsedRobots, RunPanels, LiveConsumer):
         opened = [name for name in ",".join(query.get("open", [])).split(",") if name][:100]
         html, self.known = await database_sync_to_async(self.fleet_html, thread_sensitive=False)(opened)
         await self.send(text_data=html)
+        self.attention_sent = None  # (a reconnecting page may show an old one)
+        await self.send_attention()
 
     def fleet_html(self, opened: list[str]) -> tuple[str, set[str]]:
         with script_prefix(self.prefix):
@@ -257,7 +298,7 @@ class FleetConsumer(CollapsedRobots, RunPanels, LiveConsumer):
         self.heads = {g["gateway"]["name"]: _head(g["gateway"]) for g in groups}
         self.views = {g["gateway"]["name"]: g["gateway"] for g in groups}
         self.gateway_of = {robot.name: g["gateway"]["name"] for g in groups for robot, _ in g["robots"]}
-        self.run_ranks = {run["id"]: snapshots.run_rank(run) for robot in robots for run in robot.recent_runs}
+        self.run_ranks = {run["id"]: runs.run_rank(run) for robot in robots for run in robot.recent_runs}
         self.collapsible = {robot.name for robot in robots if robot.collapsible}
         self.collapsed: dict[str, dict[str, str]] = {r.name: r.statuses for r in robots if r.collapsed}
         return html, {n["id"] for group in groups for _, nodes in group["robots"] for n in nodes}
@@ -266,7 +307,9 @@ class FleetConsumer(CollapsedRobots, RunPanels, LiveConsumer):
         return snapshots.gateway_views()
 
     async def gateways_seen(self, views: list[dict]) -> None:
-        """Each gateway's header follows its health and counters (a new gateway needs a reload)."""
+        """Each gateway's header follows its health and counters (a new gateway needs a reload);
+        the "needs attention" strip its contents."""
+        await self.send_attention()
         for view in views:
             head = _head(view)
             self.views[view["name"]] = view
@@ -292,6 +335,7 @@ class FleetConsumer(CollapsedRobots, RunPanels, LiveConsumer):
 
     async def node_state(self, event: dict) -> None:
         node = event["node"]
+        self.attention_soon()
         if self.counted(node):  # its robot is shown collapsed: its counts follow, not its row
             return
         new = node["id"] not in self.known
@@ -310,60 +354,6 @@ class FleetConsumer(CollapsedRobots, RunPanels, LiveConsumer):
         gateway = (view["name"], view["online"], view.get("last_beat")) if view is not None else None
         html = fragments.rendered((template, self.prefix, self.can_operate, gateway, node), render)
         await self.send(text_data=html)
-
-class NodeConsumer(RunPanels, LiveConsumer):
-    async def prepare(self) -> bool:
-        self.key = self.scope["url_route"]["kwargs"]["key"]
-        self.groups_to_join = [protocol.node_group(self.key)]
-        found = await database_sync_to_async(snapshots.node_robot_and_name)(self.key)
-        if found is None:
-            return False
-        self.robot_id, self.node_name = found
-        return True
-
-    def runs_in(self, run: dict) -> str:
-        return "node-run"
-
-    def run_scope(self) -> tuple[int | None, str | None]:
-        return self.robot_id, self.node_name
-
-    def gateway_views(self) -> list[dict]:
-        return snapshots.node_gateway(self.key)
-
-    async def send_snapshot(self) -> None:
-        node = await database_sync_to_async(snapshots.one_node)(self.key)
-        await self.node_state({"node": node})
-
-    gateway_offline = ""  # the node's gateway's name while it is offline
-    gateway_known_at: str | None = None  # and its last heartbeat: the states shown are as of then
-
-    async def send_gateway_status(self, offline: list[dict]) -> None:
-        """Besides the banner: while the gateway is offline the panel offers no command."""
-        await super().send_gateway_status(offline)
-        now_offline = offline[0]["name"] if offline else ""
-        known_at = offline[0].get("last_beat") if offline else None
-        if (now_offline, known_at) != (self.gateway_offline, self.gateway_known_at):
-            self.gateway_offline, self.gateway_known_at = now_offline, known_at
-            await self.send_snapshot()
-
-    async def node_state(self, event: dict) -> None:
-        def render() -> str:
-            panel = snapshots.state_panel(event["node"], self.gateway_offline, self.gateway_known_at)
-            context = {**panel, "can_operate": self.can_operate, "oob": True}
-            with script_prefix(self.prefix):
-                return render_to_string("dashboard/_node_state.html", context) + render_to_string(
-                    "dashboard/_node_restart.html", context)
-
-        key = ("node-state", self.prefix, self.can_operate, self.gateway_offline, self.gateway_known_at,
-               event["node"])
-        await self.send(text_data=fragments.rendered(key, render))
-
-    async def audit_record(self, event: dict) -> None:
-        await self.send_html("dashboard/_audit_row_oob.html", {"record": event["record"]})
-
-    async def node_parameters(self, event: dict) -> None:
-        """Values changed by anyone: the 'current value' cells follow."""
-        await self.send_html("dashboard/_parameter_values_oob.html", {"changes": event["changes"]})
 
 
 def _head(view: dict) -> dict:

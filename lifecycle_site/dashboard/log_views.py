@@ -2,9 +2,10 @@
 from __future__ import annotations
 
 import re
-from datetime import datetime
+from datetime import datetime, timedelta
 from datetime import timezone as dt_timezone
 
+from django.conf import settings
 from django.db.models import Q, QuerySet
 from django.http import Http404, HttpRequest, HttpResponse, JsonResponse
 from django.shortcuts import render
@@ -12,6 +13,7 @@ from django.utils import dateparse, timezone
 
 from lifecycle_site.dashboard import snapshots
 from lifecycle_site.dashboard.access import viewer_required
+from lifecycle_site.fleet import outages
 from lifecycle_site.fleet.models import LogRecord, ManagedNode, Robot
 
 HISTORY_LINES = 500
@@ -122,6 +124,10 @@ def log_console(request: HttpRequest, scope: str, name: str) -> HttpResponse:
     found = _around(records, at) if at is not None else reversed(records.order_by("-id")[:HISTORY_LINES])
     history = [r.as_dict() for r in found]
     gateway = snapshots.gateway_of(context["node"].robot if "node" in context else context["robot"])
+    # The stretches of /rosout not received while the gateway's process was down, from the
+    # oldest line shown on (without lines: as far back as log records are kept).
+    since = datetime.fromisoformat(history[0]["stamp"]) if history else \
+        timezone.now() - timedelta(hours=settings.LIFECYCLE["LOG_KEEP_HOURS"])
     return render(
         request,
         "dashboard/logs.html",
@@ -131,6 +137,7 @@ def log_console(request: HttpRequest, scope: str, name: str) -> HttpResponse:
             "scope": scope,
             "name": name,
             "history": history,
+            "gaps": outages.recent(gateway["name"], since),
             "levels": LEVELS,
             "gateway": gateway,
             "offline_gateways": [] if gateway["online"] else [gateway],

@@ -14,11 +14,14 @@ from lifecycle_site.fleet.serializers import node_dict
 
 
 def _run_panel(request: HttpRequest, run: GroupRun | None, runs_in: str, error: str = "",
-               status: int = 200) -> HttpResponse:
+               status: int = 200, refused: RunRefused | None = None, robot: Robot | None = None) -> HttpResponse:
     """The answer to a run's button: an error in place, or the run's panel put into the page's
-    run list (out of band: a live update of the same run may have put it there already)."""
-    return render(request, "dashboard/_run.html",
-                  {"run": run.as_dict() if run else None, "error": error, "runs_in": runs_in}, status=status)
+    run list (out of band: a live update of the same run may have put it there already). A
+    refusal because the gateway is offline names it: the page drops it once the gateway is back."""
+    context = {"run": run.as_dict() if run else None, "error": error, "runs_in": runs_in}
+    if refused is not None and refused.code == "gateway_offline" and robot is not None:
+        context["offline_gateway"] = robot.gateway.name
+    return render(request, "dashboard/_run.html", context, status=status)
 
 
 @operator_required
@@ -35,7 +38,7 @@ def robot_operation(request: HttpRequest, robot: str) -> HttpResponse:
     except ValueError:
         return _run_panel(request, None, runs_in, "The timeout must be a number of seconds.")
     except RunRefused as exc:
-        return _run_panel(request, None, runs_in, exc.message)
+        return _run_panel(request, None, runs_in, exc.message, refused=exc, robot=robot_obj)
     return _run_panel(request, run, runs_in)
 
 
@@ -49,7 +52,7 @@ def node_restart(request: HttpRequest, key: str) -> HttpResponse:
     try:
         run = start_run(node.robot, "restart", user=request.user, source="dashboard", nodes=[node.name])
     except RunRefused as exc:
-        return _run_panel(request, None, "node-run", exc.message)
+        return _run_panel(request, None, "node-run", exc.message, refused=exc, robot=node.robot)
     return _run_panel(request, run, "node-run")
 
 

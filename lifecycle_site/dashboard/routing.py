@@ -1,13 +1,12 @@
 """WebSocket routes: live fragments for the fleet and node pages, JSON for log consoles."""
 from django.urls import path
 
-from lifecycle_site.dashboard import consumers
+from lifecycle_site.dashboard import consumers, node_consumers
 from lifecycle_site.dashboard.audit_consumer import AuditConsumer
-from lifecycle_site.dashboard.log_consumer import LogConsumer
 
 websocket_urlpatterns = [
     path("ws/fleet/", consumers.FleetConsumer.as_asgi()),
-    path("ws/nodes/<str:key>/", consumers.NodeConsumer.as_asgi()),
-    path("ws/logs/<str:scope>/<str:name>/", LogConsumer.as_asgi()),
+    path("ws/nodes/<str:key>/", node_consumers.NodeConsumer.as_asgi()),
+    path("ws/logs/<str:scope>/<str:name>/", node_consumers.LogConsumer.as_asgi()),
     path("ws/audit/", AuditConsumer.as_asgi()),
 ]

@@ -2,21 +2,21 @@
 from __future__ import annotations
 
 import os
-from datetime import datetime, timedelta, timezone
+from datetime import datetime, timezone
 from functools import lru_cache
 from typing import Collection, Iterable
 from urllib.parse import quote
 
 from django.core.cache import cache
-from django.db.models import Q
 from django.template.loader import render_to_string
 from django.urls import reverse
 from django.utils.http import RFC3986_SUBDELIMS
 from django.utils.safestring import mark_safe
 
 from lifecycle_site.dashboard.graph import layout
+from lifecycle_site.dashboard.runs import recent_runs
 from lifecycle_site.fleet import gateways
-from lifecycle_site.fleet.models import Gateway, GroupRun, ManagedNode, Robot
+from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
 from lifecycle_site.fleet.serializers import node_dict
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
@@ -186,17 +186,21 @@ def robot_statuses(name: str) -> dict[str, str]:
             ManagedNode.objects.filter(robot__name=name).values_list(*NODE_FIELDS)}
 
 
-def find(query: str, state: str, robot_names: list[str]) -> tuple[list[dict], int]:
+def find(query: str, state: str, robot_names: list[str], keys: Collection[str] | None = None
+         ) -> tuple[list[dict], int]:
     """Nodes of these (collapsed) robots whose name holds ``query`` and whose row status is
-    ``state`` (either may be empty): the first FIND_MAX by robot and name, with links, and how
-    many matched in all."""
+    ``state`` (either may be empty; "attention": whose key is in ``keys``): the first FIND_MAX by
+    robot and name, with links, and how many matched in all."""
     rows = ManagedNode.objects.filter(robot__name__in=robot_names)
     if query:
         rows = rows.filter(name__icontains=query)
     found: list[dict] = []
     count = 0
     for t in rows.order_by("robot__name", "name").values_list(*NODE_FIELDS, "robot__name"):
-        if state and _tuple_status(t[:-1]) != state:
+        if state == "attention":
+            if t[1] not in (keys or ()):
+                continue
+        elif state and _tuple_status(t[:-1]) != state:
             continue
         count += 1
         if len(found) < FIND_MAX:
@@ -212,52 +216,6 @@ def mark_gateway(rows: Iterable[dict], view: dict) -> None:
         row["gateway"] = view["name"]
         row["gateway_offline"] = not view["online"]
         row["known_at"] = view.get("last_beat")
-
-
-# A page shows every open run of what it shows and the latest few that ended this recently.
-RECENT_RUNS_S = 15 * 60
-RUNS_PER_ROBOT = 3
-RUNS_READ = 200  # at most this many rows read for one page
-
-
-def recent_runs(robot_id: int | None = None, node_name: str | None = None) -> dict[str, list[dict]]:
-    """Runs to show, newest first, per robot name: the open ones and the RUNS_PER_ROBOT latest
-    that ended within RECENT_RUNS_S. With ``node_name``, only runs that drive that node (its
-    restarts and recoveries, and its robot's whole-robot runs)."""
-    since = datetime.now(timezone.utc) - timedelta(seconds=RECENT_RUNS_S)
-    open_states = (GroupRun.Status.QUEUED, GroupRun.Status.RUNNING)
-    rows = GroupRun.objects.select_related("robot", "requested_by").filter(
-        Q(created__gte=since) | Q(status__in=open_states)).order_by("-created")
-    if robot_id is not None:
-        rows = rows.filter(robot_id=robot_id)
-    by_robot: dict[str, list[dict]] = {}
-    for run in rows[:RUNS_READ]:
-        if node_name and run.only_nodes and node_name not in run.only_nodes:
-            continue
-        shown = by_robot.setdefault(run.robot.name, [])
-        if not run.done or sum(1 for r in shown if r["status"] not in open_states) < RUNS_PER_ROBOT:
-            shown.append(run.as_dict())
-    return by_robot
-
-
-def runs_view(robot_id: int | None = None, node_name: str | None = None) -> list[dict]:
-    """recent_runs() as one list, oldest first, for a page's socket (kept GATEWAY_VIEWS_TTL_S:
-    every open page asks every few seconds)."""
-    def read() -> list[dict]:
-        runs = [run for shown in recent_runs(robot_id, node_name).values() for run in shown]
-        return sorted(runs, key=lambda run: run["created"])
-
-    return cache.get_or_set(f"socket-runs:{robot_id}:{node_name}", read, GATEWAY_VIEWS_TTL_S)
-
-
-DONE_STATUSES = ("succeeded", "failed", "partial")
-DONE_RANK = 1_000_000  # run_rank of a run that is over, with no results
-
-
-def run_rank(run: dict) -> int:
-    """How far a run has come: a page never replaces a panel with an older state of it
-    (a push, the database and a request's answer can arrive in any order)."""
-    return (DONE_RANK if run.get("status") in DONE_STATUSES else 0) + len(run.get("results") or [])
 
 
 # Every open page's socket asks for its gateways every few seconds (consumers.watch_gateway):

@@ -12,7 +12,7 @@ from django.views.decorators.http import require_POST
 
 from lifecycle_site.audit import denials
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.dashboard import snapshots
+from lifecycle_site.dashboard import attention, runs, snapshots
 from lifecycle_site.dashboard.access import viewer_required
 from lifecycle_site.dashboard.templatetags.dashboard import dom_id
 from lifecycle_site.fleet.models import ManagedNode, Robot
@@ -21,7 +21,7 @@ from lifecycle_site.fleet.transitions import request_transition
 from ros_gateway.shared import state_machine as sm
 
 ROS_NAME = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
-FILTER_STATES = ["unconfigured", "inactive", "active", "finalized", "busy", "lost", "waiting"]
+FILTER_STATES = ["attention", "unconfigured", "inactive", "active", "finalized", "busy", "lost", "waiting"]
 
 
 def _can_operate(request: HttpRequest) -> bool:
@@ -48,6 +48,7 @@ def fleet(request: HttpRequest) -> HttpResponse:
             "filter_states": FILTER_STATES,
             "filters": {k: request.GET.get(k, "") for k in ("robot", "state", "q")},
             "open_param": ",".join(open_robots),
+            "attention": attention.view(attention.current([group["gateway"] for group in groups])),
         },
     )
 
@@ -73,7 +74,8 @@ def fleet_find(request: HttpRequest) -> HttpResponse:
     names = [name for name in request.GET.get("robots", "").split(",") if name][:100]
     if not names or not (query or state):
         return HttpResponse("")
-    found, count = snapshots.find(query, state if state in FILTER_STATES else "", names)
+    keys = set(attention.current()["keys"]) if state == "attention" else None
+    found, count = snapshots.find(query, state if state in FILTER_STATES else "", names, keys)
     return render(request, "dashboard/_fleet_matches.html",
                   {"found": found, "count": count, "more": count - len(found), "query": query, "state": state})
 
@@ -89,7 +91,7 @@ def node_or_404(key: str) -> ManagedNode:
 def node_detail(request: HttpRequest, key: str) -> HttpResponse:
     node = node_or_404(key)
     payload = snapshots.node_with_since(node)
-    records = TransitionRecord.objects.filter(node=node).select_related("node")[:20]
+    records = [r.as_dict() for r in TransitionRecord.objects.filter(node=node).select_related("node")[:20]]
     gateway = snapshots.gateway_of(node.robot)
     return render(
         request,
@@ -97,8 +99,9 @@ def node_detail(request: HttpRequest, key: str) -> HttpResponse:
         {
             **snapshots.state_panel(payload, "" if gateway["online"] else gateway["name"], gateway.get("last_beat")),
             "node_obj": node,
-            "records": [r.as_dict() for r in records],
-            "runs": snapshots.recent_runs(node.robot_id, node.name).get(node.robot.name, []),
+            "records": records,
+            "last": records[0] if records else None,
+            "runs": runs.recent_runs(node.robot_id, node.name).get(node.robot.name, []),
             "gateway": gateway,
             "offline_gateways": [] if gateway["online"] else [gateway],
             "can_operate": _can_operate(request),
@@ -116,7 +119,7 @@ def node_transition(request: HttpRequest, key: str) -> HttpResponse:
     # naming robot and node (two robots may both have a /camera_driver).
     on_row = request.htmx.target != "transition-result"
     answer = "dashboard/_node_row_result.html" if on_row else "dashboard/_transition_result.html"
-    named = {"robot": node.robot.name, "node": node.name}
+    named = {"robot": node.robot.name, "node": node.name, "gateway_name": node.robot.gateway.name}
     if not _can_operate(request):
         denials.record(request, 403, "forbidden", "operator needed")
         outcome_context = {"ok": False, "message": "Your role may view but not operate nodes (operator needed)."}
@@ -136,7 +139,8 @@ def node_transition(request: HttpRequest, key: str) -> HttpResponse:
     if outcome.data.get("to"):  # the gateway's answer is fresher than the database write
         payload = {**payload, "state": outcome.data["to"],
                    "transitions": [t.as_dict() for t in sm.valid_transitions(outcome.data["to"]["id"])]}
-    context = {"ok": outcome.succeeded, "code": outcome.code, "message": outcome.message}
+    context = {"ok": outcome.succeeded, "code": outcome.code, "message": outcome.message,
+               "gateway_name": named["gateway_name"]}
     if request.htmx.target == "transition-result":  # the node page: refresh its state panel too
         context.update(snapshots.state_panel(payload), can_operate=True, oob=True)
     # htmx swaps only 2xx answers by default; the message is the content either way.

@@ -159,11 +159,14 @@ def read_beats(names: Iterable[str]) -> dict[str, tuple[dict | None, str, dict |
     return {n: kept[n][1:] for n in names}
 
 
-def _when(moment: datetime) -> str:
-    """'10:32:05 UTC, 2 min ago' (the date too when it is not today)."""
+def _when(moment: datetime, ago: bool = True) -> str:
+    """'10:32:05 UTC, 2 min ago' (the date too when it is not today); without ``ago`` only the
+    clock, for what is kept (an alert's message) or shown with an age the page keeps current."""
     moment = moment.astimezone(timezone.utc)
     now = datetime.now(timezone.utc)
     clock = moment.strftime("%H:%M:%S UTC") if moment.date() == now.date() else moment.strftime("%Y-%m-%d %H:%M UTC")
+    if not ago:
+        return clock
     seconds = max(0, int((now - moment).total_seconds()))
     if seconds < 120:
         ago = f"{seconds} s ago"
@@ -199,20 +202,30 @@ class GatewayStatus:
     def online(self) -> bool:
         return self.state == ONLINE
 
-    def reason(self) -> str:
-        """Why it takes no commands, for a person: 'no heartbeat since 10:32:05 UTC, 2 min ago'."""
+    def reason(self, ago: bool = True) -> str:
+        """Why it takes no commands, for a person: 'no heartbeat since 10:32:05 UTC, 2 min ago'
+        (without ``ago``: 'no heartbeat since 10:32:05 UTC')."""
         if self.state == UNREACHABLE:
             return f"Redis, which links the site and its gateways, is unreachable: {self.redis_error.rstrip('.')}"
         if self.state == QUARANTINED:
-            when = f" at {_when(self.quarantined)}" if self.quarantined else ""
+            when = f" at {_when(self.quarantined, ago)}" if self.quarantined else ""
             return f"the site cut it off{when}: {self.quarantine_reason.rstrip('.')}"
         if self.state == NEVER or self.last_beat is None:
             return "it has never reported"
         if self.state == STOPPED:
-            return f"it stopped at {_when(self.last_beat)}"
+            return f"it stopped at {_when(self.last_beat, ago)}"
         if self.ended:
-            return f"its process has ended: its connection to Redis closed (last heartbeat {_when(self.last_beat)})"
-        return f"no heartbeat since {_when(self.last_beat)}"
+            last = _when(self.last_beat, ago)
+            return f"its process has ended: its connection to Redis closed (last heartbeat {last})"
+        return f"no heartbeat since {_when(self.last_beat, ago)}"
+
+    def reason_since(self) -> datetime | None:
+        """The moment reason() counts its age from (None: it names none)."""
+        if self.state == QUARANTINED:
+            return self.quarantined
+        if self.state in (UNREACHABLE, NEVER) or self.online:
+            return None
+        return self.last_beat
 
     def refusal(self, robot: str | None = None) -> str:
         """The error of a command that was not sent because of this status."""
@@ -231,6 +244,10 @@ class GatewayStatus:
             "status": self.state,
             "last_beat": self.last_beat.isoformat() if self.last_beat else None,
             "reason": "" if self.online else self.reason(),
+            # For pages: the reason without its age, and the moment to count the age from (the
+            # page keeps "N s ago" current; a stored "12 s ago" would never move on).
+            "reason_plain": "" if self.online else self.reason(ago=False),
+            "reason_since": since.isoformat() if (since := self.reason_since()) else None,
             "quarantined": self.quarantined.isoformat() if self.quarantined else None,
         }
 

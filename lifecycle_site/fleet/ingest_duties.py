@@ -37,10 +37,13 @@ class SiteDuties:
             return
         beats = self.redis.mget([protocol.beat_key(self.prefix, n) for n in names])
         backlogs = self.backlogs(names)
+        rows = {row.name: row for row in Gateway.objects.filter(name__in=names).only("name", "instance", "last_beat")}
         for name, raw in zip(names, beats, strict=True):
             changes: dict[str, Any] = {"backlog": backlogs.get(name, 0)}
             beat = gw._parse_beat(raw)
             if beat is not None:
+                if name in rows:  # a new process: the stretch since the last one's last beat
+                    outages.note_restart(rows[name], beat)
                 changes.update(beat_fields(beat))
             Gateway.objects.filter(name=name).update(**changes)
         outages.observe(Gateway.objects.filter(name__in=names))

@@ -227,9 +227,10 @@ class NodeAbsence(models.Model):
 
 
 class GatewayOutage(models.Model):
-    """A stretch of time a gateway could take no commands: from its last heartbeat before the
-    site saw it offline, stopped or quarantined, to the first heartbeat after (fleet/outages.py,
-    kept by the ingest process). The state timeline marks them. Pruned like absences."""
+    """A stretch of time a gateway could take no commands, and nothing received its robots'
+    /rosout: from its last heartbeat before the site saw it offline, stopped or quarantined (or
+    before its process was restarted), to the first heartbeat after (fleet/outages.py, kept by the
+    ingest process). The state timeline and the log consoles mark them. Pruned like absences."""
 
     gateway = models.ForeignKey(Gateway, on_delete=models.CASCADE, related_name="outages")
     began = models.DateTimeField()
@@ -246,6 +247,10 @@ class GatewayOutage(models.Model):
 
     def __str__(self) -> str:
         return f"{self.gateway} {self.reason or 'offline'} from {self.began:%Y-%m-%d %H:%M:%S}"
+
+    def as_dict(self) -> dict:
+        return {"id": self.id, "gateway": self.gateway.name, "began": self.began.isoformat(),
+                "ended": self.ended.isoformat() if self.ended else None, "reason": self.reason}
 
 
 class LogRecord(models.Model):
@@ -323,6 +328,10 @@ class GroupRun(models.Model):
     policy = models.CharField(max_length=16, choices=Policy.choices, default=Policy.STOP)
     node_timeout = models.FloatField(default=5.0)
     only_nodes = models.JSONField(default=list, blank=True, help_text="Node names; empty for all of the robot's.")
+    steps = models.PositiveSmallIntegerField(
+        null=True, blank=True, editable=False,
+        help_text="How many steps of the robot's bring-up order the run went in (1: all side by side); "
+        "empty for a run the gateway started itself (a recovery).")
     status = models.CharField(max_length=16, choices=Status.choices, default=Status.QUEUED)
     message = models.TextField(blank=True)
     results = models.JSONField(default=list, blank=True)
@@ -352,6 +361,7 @@ class GroupRun(models.Model):
             "policy": self.policy,
             "node_timeout": self.node_timeout,
             "nodes": self.only_nodes,
+            "steps": self.steps,
             "status": self.status,
             "message": self.message,
             "results": self.results,

@@ -56,6 +56,7 @@ def start_run(
         raise RunRefused("not_found", f"{robot.name} has no node {', '.join(unknown)}.", 404)
     if operation == "restart" and len(nodes) != 1:
         raise RunRefused("invalid_field", "restart works on exactly one node.")
+    order = tiers(robot, nodes)
     run = GroupRun.objects.create(
         id=uuid.uuid4().hex,
         robot=robot,
@@ -63,12 +64,13 @@ def start_run(
         policy=policy,
         node_timeout=node_timeout,
         only_nodes=nodes,
+        steps=len(order),
         requested_by=user if getattr(user, "pk", None) else None,
         source=source,
     )
     spec = {
         "id": run.id, "robot": robot.name, "operation": operation, "policy": policy, "node_timeout": node_timeout,
-        "tiers": tiers(robot, nodes), "source": source, "user_id": run.requested_by_id,
+        "tiers": order, "source": source, "user_id": run.requested_by_id,
     }
     try:
         call_gateway(robot.gateway.name, protocol.START_RUN, timeout=2.0, run=spec)

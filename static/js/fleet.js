@@ -12,9 +12,46 @@
     return values;
   }
 
+  // What needs attention (templates/dashboard/_attention.html): its nodes and offline gateways.
+  function attention() {
+    var strip = document.getElementById("attention");
+    var words = function (name) { return strip ? (strip.dataset[name] || "").split(" ").filter(Boolean) : []; };
+    var rows = {};
+    words("keys").forEach(function (key) { rows["node-" + key.split(".").join("__")] = true; });
+    return {
+      rows: rows,
+      gateways: words("gateways"),
+      count: strip ? Number(strip.dataset.count || 0) : 0,
+    };
+  }
+  // Each affected row carries a marker (rows are redrawn by live updates: put back each time).
+  function mark(row, on) {
+    var cell = row.querySelector("td.name"), marker = cell && cell.querySelector(".attention-mark");
+    if (on) row.dataset.attention = "true"; else delete row.dataset.attention;
+    if (on && cell && !marker) {
+      marker = document.createElement("span");
+      marker.className = "attention-mark";
+      marker.title = "Needs attention: see the list at the top of the page";
+      marker.setAttribute("role", "img");
+      marker.setAttribute("aria-label", "needs attention");
+      marker.textContent = "!";
+      cell.insertBefore(marker, cell.firstChild);
+    } else if (!on && marker) {
+      marker.remove();
+    }
+  }
+  var baseTitle = null;
+  function title(count) {
+    if (baseTitle === null) baseTitle = document.title.replace(/^\d+ needs? attention · /, "");
+    var text = count ? count + (count === 1 ? " needs" : " need") + " attention · " + baseTitle : baseTitle;
+    if (document.title !== text) document.title = text;
+  }
+
   function apply() {
     var f = filters();
     var shown = 0, total = 0, collapsed = [];
+    var needs = attention();
+    title(needs.count);
     document.querySelectorAll("section.robot").forEach(function (section) {
       var robot = section.dataset.robot;
       section.hidden = !!f.robot && f.robot !== robot;
@@ -26,12 +63,16 @@
         total += Number(summary.dataset.total || 0);
         if (!section.hidden) collapsed.push(robot);
       }
+      var owner = section.closest("section.gateway");
+      var ownerAway = !!owner && needs.gateways.indexOf(owner.dataset.gateway) !== -1;
       section.querySelectorAll("tr.node-row").forEach(function (row) {
         var status = row.dataset.status;
+        var attends = ownerAway || needs.rows[row.id] === true;
+        mark(row, attends);
         counts[status] = (counts[status] || 0) + 1;
         if (status !== "lost" && status !== "waiting") alive += 1;
         var visible = !section.hidden &&
-          (!f.state || f.state === status) &&
+          (!f.state || (f.state === "attention" ? attends : f.state === status)) &&
           (!f.q || row.dataset.name.toLowerCase().indexOf(f.q) !== -1);
         row.hidden = !visible;
         total += 1;
@@ -129,6 +170,7 @@
   document.addEventListener("htmx:oobAfterSwap", apply);
   document.addEventListener("htmx:afterSwap", apply);
   document.addEventListener("htmx:wsAfterMessage", apply);
+  document.addEventListener("htmx:afterSettle", apply);  // settling puts back a redrawn row's attributes
 
   // Keyboard focus stays in a node's row when a live update redraws it, or its button is
   // disabled while its request runs (the browser then drops the focus to the page): the same

@@ -48,7 +48,8 @@
     });
   }, 1000);
 
-  // "3 min ago" beside a last known state (fleet rows, the node page) stays true while the page is open.
+  // "3 min ago" beside a last known state (fleet rows, the node page), a gateway's outage (the
+  // banner) or a run stays true while the page is open.
   setInterval(function () {
     document.querySelectorAll("[data-age]").forEach(function (el) {
       var when = Date.parse(el.dataset.age);
@@ -57,25 +58,91 @@
       el.textContent = seconds < 60 ? seconds + " s ago" : seconds < 3600 ? Math.floor(seconds / 60) + " min ago"
         : Math.floor(seconds / 3600) + " h ago";
     });
-  }, 10000);
+  }, 1000);
 
-  // Run panels (templates/dashboard/_run.html) come wrapped to go first into their page's run
-  // list. A run already shown is replaced in place instead, unless the panel shown is further
-  // along (data-rank): a push, the database and a request's answer arrive in any order.
+  // Run panels (templates/dashboard/_run.html) come wrapped to go into their page's run list. A
+  // run already shown is replaced in place, unless the panel shown is further along (data-rank):
+  // a push, the database and a request's answer arrive in any order. A new one goes where its
+  // start puts it (data-created, newest first), a list keeps at most data-keep (the node page:
+  // the latest run), and a run dismissed in this browser is not shown again.
   var MAX_RUNS = 6;
+  var DISMISSED_KEY = "lifecycle.dismissedRuns", DISMISSED_MAX = 300;
+  function dismissed() {
+    try { return JSON.parse(window.localStorage.getItem(DISMISSED_KEY) || "[]"); } catch (e) { return []; }
+  }
+  function dismiss(id) {
+    var ids = dismissed().filter(function (x) { return x !== id; });
+    ids.push(id);
+    try { window.localStorage.setItem(DISMISSED_KEY, JSON.stringify(ids.slice(-DISMISSED_MAX))); } catch (e) { /* private mode: for this page only */ }
+  }
+  function isDismissed(panelId) { return dismissed().indexOf(panelId.replace(/^run-/, "")) !== -1; }
+  // Finished runs older than the newest finished one are shown muted: a stale red failure does
+  // not shout above (or below) a later success.
+  function tidy(list) {
+    var runs = list.querySelectorAll(":scope > .run");
+    var keep = Number(list.dataset.keep || MAX_RUNS), shown = 0, newestDone = false;
+    for (var i = 0; i < runs.length; i++) {
+      if (isDismissed(runs[i].id)) { runs[i].remove(); continue; }
+      if (++shown > keep) { runs[i].remove(); continue; }
+      runs[i].classList.toggle("run-earlier", newestDone && !!runs[i].dataset.done);
+      if (runs[i].dataset.done) newestDone = true;
+    }
+  }
   document.addEventListener("htmx:oobBeforeSwap", function (e) {
     var list = e.detail.target;
     if (!list || !list.classList || !list.classList.contains("runs")) return;
     var panel = e.detail.fragment && e.detail.fragment.querySelector(".run[id^='run-']");
     if (!panel) return;
     e.detail.shouldSwap = false;
+    if (isDismissed(panel.id)) return;
     var shown = document.getElementById(panel.id);
     if (shown) {
       if (Number(panel.dataset.rank) >= Number(shown.dataset.rank)) shown.replaceWith(panel);
+      tidy(list);
       return;
     }
-    list.insertBefore(panel, list.firstChild);
-    var runs = list.querySelectorAll(":scope > .run");
-    for (var i = MAX_RUNS; i < runs.length; i++) runs[i].remove();
+    var created = panel.dataset.created || "9999";  // no start known: the newest
+    var before = null;
+    list.querySelectorAll(":scope > .run").forEach(function (run) {
+      if (!before && (run.dataset.created || "9999") < created) before = run;
+    });
+    list.insertBefore(panel, before);
+    // A refusal shown above the list is about an earlier attempt: a run that came since replaces it.
+    var result = document.getElementById(list.id + "-result");
+    if (result) result.textContent = "";
+    tidy(list);
+  });
+  document.addEventListener("click", function (e) {
+    var button = e.target.closest && e.target.closest("[data-dismiss-run]");
+    if (!button) return;
+    var panel = button.closest(".run"), list = panel && panel.parentElement;
+    dismiss(button.dataset.dismissRun);
+    if (panel) panel.remove();
+    if (list && list.classList.contains("runs")) tidy(list);
+  });
+  function tidyAll() { document.querySelectorAll(".runs").forEach(tidy); }
+  document.addEventListener("DOMContentLoaded", tidyAll);
+  // After a swap (a reconnect's whole fleet list): once htmx has settled, as settling puts back
+  // the server's classes of elements with an id (a socket's message is settled at once).
+  document.addEventListener("htmx:afterSettle", tidyAll);
+  document.addEventListener("htmx:wsAfterMessage", tidyAll);
+
+  // A refusal because a gateway was offline ("nothing was sent") says nothing true once it is
+  // back: the banner (templates/dashboard/_gateway_banner.html) names those still offline.
+  document.addEventListener("htmx:oobAfterSwap", function (e) {
+    var banner = e.detail.target;
+    if (!banner || banner.id !== "gateway-banner") banner = document.getElementById("gateway-banner");
+    if (!banner) return;
+    var offline = (banner.dataset.offline || "").split(" ").filter(Boolean);
+    document.querySelectorAll("[data-gateway-refusal]").forEach(function (el) {
+      if (offline.indexOf(el.dataset.gatewayRefusal) === -1) el.remove();
+    });
+  });
+
+  // Sections that fold away on a narrow screen (<details data-fold-narrow open>): closed there
+  // when the page loads; after that as the user leaves them (live updates swap what is inside).
+  document.addEventListener("DOMContentLoaded", function () {
+    if (!window.matchMedia("(max-width: 720px)").matches) return;
+    document.querySelectorAll("details[data-fold-narrow]").forEach(function (el) { el.open = false; });
   });
 })();

@@ -132,7 +132,7 @@
   function status(extra) {
     var total = 0, shown = 0;
     for (var line = lines.firstElementChild; line; line = line.nextElementSibling) {
-      if (!line.record) continue;  // the marker of a moment (showMoment)
+      if (!line.record) continue;  // a marker (of a moment, or of a gap)
       total += 1;
       if (!line.hidden) shown += 1;
     }
@@ -183,6 +183,29 @@
       .catch(function (error) { status("download failed: " + error.message + "; try again"); });
   }
 
+  // -- gaps ---------------------------------------------------------------------------
+  // A stretch in which the gateway's process was down (log_views: fleet/outages.py): nothing
+  // received /rosout then. Marked where it falls among the lines, whatever the filters.
+  function addGaps(gaps) {
+    (gaps || []).forEach(function (gap) {
+      if (lines.querySelector('[data-gap="' + gap.id + '"]')) return;
+      var div = document.createElement("div");
+      div.className = "log-gap";
+      div.dataset.gap = gap.id;
+      // An outage still going on has no end yet (the gateway offline, stopped or quarantined).
+      var seconds = Math.round((Date.parse(gap.ended) - Date.parse(gap.began)) / 1000);
+      var stretch = gap.ended ? "from " + when(gap.began) + " to " + when(gap.ended) : "since " + when(gap.began);
+      div.textContent = "gateway " + gap.gateway + " could not be reached " + stretch +
+        (isNaN(seconds) ? "" : " (" + seconds + " s)") + ": /rosout of that time was not received";
+      var after = null;
+      for (var line = lines.firstElementChild; line; line = line.nextElementSibling) {
+        if (line.record && Date.parse(line.record.stamp) > Date.parse(gap.began)) { after = line; break; }
+      }
+      lines.insertBefore(div, after);
+    });
+    if (followEl.checked) lines.scrollTop = lines.scrollHeight;
+  }
+
   levelEl.addEventListener("change", refilter);
   regexEl.addEventListener("change", refilter);
   TEXT_FIELDS.forEach(function (field) { var el = q(field[1]); if (el) el.addEventListener("input", refilter); });
@@ -216,6 +239,7 @@
     socket.onmessage = function (event) {
       var data = JSON.parse(event.data);
       if (data.records) receive(data.records);
+      if (data.gaps) addGaps(data.gaps);
       if ("gateway_online" in data) {
         var banner = document.getElementById("gateway-banner");
         if (banner && data.gateway_banner) banner.outerHTML = data.gateway_banner;
@@ -253,6 +277,7 @@
 
   append(JSON.parse(document.getElementById("log-history").textContent));
   if (root.dataset.at && !isNaN(Date.parse(root.dataset.at))) showMoment();
+  addGaps(JSON.parse(document.getElementById("log-gaps").textContent));
   refilter();
   connect();
 })();

@@ -66,6 +66,7 @@ def test_parameters_are_cards_that_fit_a_phone_with_selects_for_fixed_lists(phon
 def test_state_graph_labels_are_at_least_10_px_on_a_phone(phone, site):
     page = phone
     page.goto(f"{site}nodes/{ROBOT}.lidar_driver/")
+    page.locator("details#node-machine > summary").click()  # folded away on a phone
     graph = page.locator("figure.graph svg:visible")
     expect(graph).to_have_count(1, timeout=WAIT_MS)
     sizes = page.evaluate(

@@ -107,9 +107,51 @@ def operation_label(operation: str) -> str:
 
 @register.filter
 def run_rank(run: dict) -> int:
-    from lifecycle_site.dashboard.snapshots import run_rank as rank
+    from lifecycle_site.dashboard.runs import run_rank as rank
 
     return rank(run)
+
+
+@register.filter
+def run_done(status: str) -> bool:
+    from lifecycle_site.dashboard.runs import DONE_STATUSES
+
+    return status in DONE_STATUSES
+
+
+RUN_SOURCES = {"api": "through the API", "cli": "from the command line", "dashboard": "", "external": ""}
+
+
+@register.filter
+def run_by(run: dict) -> str:
+    """Who started a run: 'by ivan', 'by ivan through the API', 'automatic recovery'."""
+    source = run.get("source") or ""
+    if source == "recovery" or run.get("operation") == "recover":
+        return "automatic recovery"
+    how = RUN_SOURCES.get(source, "")
+    if run.get("requested_by"):
+        return f"by {run['requested_by']}" + (f" {how}" if how else "")
+    return f"started {how}" if how else "started"
+
+
+# The gateway drives a run's nodes in steps (fleet/runs.py tiers(), ros_gateway/groups.py): one per
+# position of the robot's bring-up order, the nodes without one last, side by side (up to 8 at a
+# time). With the "stop" policy a failure starts no further node; those already under way finish.
+SIDE_BY_SIDE = "no bring-up order among its nodes: they run side by side, up to 8 at a time"
+
+
+@register.filter
+def run_policy_words(run: dict) -> str:
+    """What a run's failure policy does, as its steps make it work ('' for one node)."""
+    if run.get("operation") in ("restart", "recover") or len(run.get("nodes") or []) == 1:
+        return ""
+    stop = run.get("policy") != "continue"
+    steps = run.get("steps")
+    if steps is not None and steps > 1:
+        return "in the bring-up order; " + ("stops at the first failure" if stop else "continues past failures")
+    if steps is not None:
+        return SIDE_BY_SIDE + ("; after a failure it starts no further node" if stop else "; continues past failures")
+    return "after a failure it starts no further node" if stop else "continues past failures"
 
 
 @register.filter

@@ -1,0 +1,121 @@
+"""What needs attention on the fleet page: the strip at its top (templates/dashboard/_attention.html),
+the marker on each affected row and the "needs attention" state filter (fleet.js), the count in
+the page's title. A node whose activation just failed must not look like a healthy one.
+
+Worst first: a failed last transition, a node not in its desired state, a node lost or not
+answering, a process lost, an alert firing, a gateway offline or quarantined; each with the
+node's own reason (the failure text of its last audit record) and a link.
+
+Cheap at size: three queries whatever the fleet's size (the nodes with their last record's
+outcome, the firing alerts, the last records of the nodes listed), kept KEEP_S for every page
+of the process; the fleet socket asks after node updates and every few seconds
+(consumers.FleetConsumer), and sends the strip only when it changed."""
+from __future__ import annotations
+
+from django.core.cache import cache
+from django.db.models import OuterRef, Subquery
+
+from lifecycle_site.alerts.models import Alert
+from lifecycle_site.audit.models import TransitionRecord
+from lifecycle_site.dashboard import snapshots
+from lifecycle_site.fleet.models import ManagedNode
+
+FAILED, NOT_DESIRED, LOST, PROCESS_LOST, ALERT, GATEWAY = (
+    "failed", "not_desired", "lost", "process_lost", "alert", "gateway")
+RANK = {kind: i for i, kind in enumerate((FAILED, NOT_DESIRED, LOST, PROCESS_LOST, ALERT, GATEWAY))}
+FAILED_OUTCOMES = (TransitionRecord.Outcome.FAILED, TransitionRecord.Outcome.TIMED_OUT)
+OUTCOME_LABELS = dict(TransitionRecord.Outcome.choices)
+SHOWN = 12  # items the strip lists; the filter shows every affected row
+KEEP_S = 0.5
+REASON_CHARS = 400
+
+
+def current(gateway_views: list[dict] | None = None) -> dict:
+    """``{"items": [...], "count": n, "keys": [node keys], "gateways": [names]}``, kept KEEP_S.
+    Each item: kind, label, key (a node's, or "" for a gateway), robot, node, gateway, reason,
+    at (ISO 8601, or None), also (the other labels of the same node). ``gateway_views``: the
+    gateways as snapshots.gateway_views() gives them, if the caller has them at hand."""
+    return cache.get_or_set("fleet-attention", lambda: _read(gateway_views), KEEP_S)
+
+
+def _read(gateway_views: list[dict] | None) -> dict:
+    last = TransitionRecord.objects.filter(node=OuterRef("pk")).order_by("-requested_at", "-id")
+    rows = (ManagedNode.objects.filter(robot__enabled=True, last_seen__isnull=False)
+            .annotate(last_id=Subquery(last.values("id")[:1]), last_outcome=Subquery(last.values("outcome")[:1]))
+            .values_list("key", "name", "robot__name", "robot__gateway__name", "state_label", "alive",
+                         "gone_reason", "last_seen", "desired_state", "last_id", "last_outcome"))
+    found: dict[str, list[tuple[str, str]]] = {}  # node key -> [(kind, label)]
+    nodes: dict[str, tuple] = {}
+    for row in rows:
+        key, _, _, _, state, alive, gone_reason, _, desired, _, outcome = row
+        kinds = []
+        if outcome in FAILED_OUTCOMES:
+            kinds.append((FAILED, ""))  # labelled from its record below
+        if alive and desired and state != desired:
+            kinds.append((NOT_DESIRED, f"not in its desired state: {state}, desired state {desired}"))
+        if not alive:
+            if gone_reason == "process_lost":
+                kinds.append((PROCESS_LOST, "process lost"))
+            else:
+                kinds.append((LOST, "not answering" if gone_reason == "unreachable" else "lost"))
+        if kinds:
+            found[key], nodes[key] = kinds, row
+    alerts: dict[str, list[dict]] = {}
+    for alert in Alert.objects.filter(status=Alert.Status.FIRING).order_by("-fired_at").values(
+            "subject", "rule_name", "summary", "fired_at", "node_name", "robot_name", "gateway_name")[:500]:
+        alerts.setdefault(alert["subject"], []).append(alert)
+    records = {r["id"]: r for r in TransitionRecord.objects.filter(
+        id__in=[nodes[k][9] for k in found if nodes[k][9] is not None]).values(
+        "id", "transition_label", "outcome", "error", "requested_at")}
+    items = [_node_item(key, nodes[key], found[key], records.get(nodes[key][9]), alerts.pop(key, []))
+             for key in found]
+    for key, fired in alerts.items():  # alerts about nodes that show nothing else
+        first = fired[0]
+        if first["node_name"]:
+            items.append({"kind": ALERT, "label": f"alert firing: {first['rule_name']}", "key": key,
+                          "robot": first["robot_name"], "node": first["node_name"], "gateway": first["gateway_name"],
+                          "reason": first["summary"][:REASON_CHARS], "at": first["fired_at"].isoformat(), "also": []})
+    gateways = []
+    for view in snapshots.gateway_views() if gateway_views is None else gateway_views:
+        if view["robots"] and not view["online"]:
+            gateways.append(view["name"])
+            what = {"quarantined": "gateway quarantined", "never": "gateway never reported"}.get(
+                view["status"], "gateway offline")
+            fired = alerts.get(view["name"], [])
+            items.append({"kind": GATEWAY, "label": what, "key": "", "robot": ", ".join(view["robots"]), "node": "",
+                          "gateway": view["name"], "reason": view["reason_plain"], "at": view["reason_since"],
+                          "also": [f"alert firing: {a['rule_name']}" for a in fired]})
+    items.sort(key=lambda item: item["at"] or "", reverse=True)  # within a kind, the latest first
+    items.sort(key=lambda item: RANK[item["kind"]])
+    keys = [item["key"] for item in items if item["key"]]
+    return {"items": items, "count": len(items), "keys": keys, "gateways": gateways}
+
+
+def _node_item(key: str, row: tuple, kinds: list[tuple[str, str]], record: dict | None, fired: list[dict]) -> dict:
+    _, name, robot, gateway, _, _, _, last_seen, _, _, _ = row
+    labels = []
+    for kind, label in kinds:
+        if kind == FAILED and record is not None:
+            label = f"{record['transition_label'] or 'transition'} {OUTCOME_LABELS.get(record['outcome'], '')}".strip()
+        labels.append(label)
+    labels += [f"alert firing: {a['rule_name']}" for a in fired]
+    reason = (record or {}).get("error") or (fired[0]["summary"] if fired else "")
+    if record is not None:
+        at = record["requested_at"].isoformat()
+    else:
+        at = last_seen.isoformat() if last_seen else None
+    return {"kind": kinds[0][0], "label": labels[0], "key": key, "robot": robot, "node": name, "gateway": gateway,
+            "reason": reason[:REASON_CHARS], "at": at, "also": labels[1:]}
+
+
+def view(data: dict) -> dict:
+    """What the strip's template takes: the items shown (with their links) and how many more."""
+    from django.urls import reverse
+
+    fleet = reverse("dashboard:fleet")
+    shown = []
+    for item in data["items"][:SHOWN]:
+        url = reverse("dashboard:node", args=[item["key"]]) if item["key"] else f"{fleet}#gateway-{item['gateway']}"
+        shown.append({**item, "url": url})
+    return {"count": data["count"], "shown": shown, "more": max(0, data["count"] - SHOWN),
+            "keys": " ".join(data["keys"]), "gateways": " ".join(data["gateways"])}
