@@ -28,7 +28,8 @@ GATEWAY_SOURCES = ("external", "recovery")  # what a gateway may say on its own
 
 
 def _message(request_id: Any, user_id: Any, source: Any, robot: Any, node: Any, what: Any) -> str:
-    return "\0".join(str(part) for part in (request_id, user_id, source, robot, node, what))
+    text = "\0".join(str(part) for part in (request_id, user_id, source, robot, node, what))
+    return text.encode("utf-8", "surrogatepass").decode("utf-8", "replace")  # (a name with a lone surrogate)
 
 
 def grant(request_id: str, user_id: int | None, source: str, robot: str, node: str, what: str,

@@ -136,11 +136,14 @@ def test_robot_wide_reset_and_shutdown_ask_with_the_robot_and_its_node_count(des
     section = page.locator(f"#robot-{ROBOT}")
     dialog = page.locator("dialog#confirm-dialog")
     before, shown = on_record(), states()
+    # Its nodes as its rows show them (earlier modules may have left one of their own behind).
+    count = ManagedNode.objects.filter(robot__name=ROBOT).exclude(first_seen__isnull=True).count()
+    assert count >= len(NODES)
 
     # Reset with the mouse, cancelled with the dialog's button.
     section.get_by_role("button", name="Reset", exact=True).click()
     expect(dialog).to_be_visible(timeout=5_000)
-    expect(dialog).to_contain_text(f"Reset all 3 nodes of {ROBOT} to unconfigured?")
+    expect(dialog).to_contain_text(f"Reset all {count} nodes of {ROBOT} to unconfigured?")
     page.screenshot(path=ARTIFACTS / "desktop-confirm-robot-reset.png")
     dialog.get_by_role("button", name="Cancel").click()
     expect(dialog).to_be_hidden()
@@ -152,7 +155,7 @@ def test_robot_wide_reset_and_shutdown_ask_with_the_robot_and_its_node_count(des
     shutdown.focus()
     page.keyboard.press("Enter")
     expect(dialog).to_be_visible()
-    expect(dialog).to_contain_text(f"Shut down all 3 nodes of {ROBOT}?")
+    expect(dialog).to_contain_text(f"Shut down all {count} nodes of {ROBOT}?")
     expect(dialog).to_contain_text("only a restart of their processes brings them back")
     expect(dialog.get_by_role("button", name="Cancel")).to_be_focused()
     page.screenshot(path=ARTIFACTS / "desktop-confirm-robot-shutdown.png")

@@ -104,5 +104,10 @@ def test_state_change_by_another_client_arrives_without_reload(page: Page, base_
     response = api.post(f"/api/v1/nodes/{key}/transition", {"transition": "configure"},
                         content_type="application/json")
     assert response.status_code == 422  # fail_configure: the attempt is made, the node refuses
-    expect(page.locator(".fleet-total")).to_contain_text("1 of")
+    # Its failure reaches the open page: the node heads "needs attention", with its own words,
+    # and its row (still shown under the filter) is marked.
+    failed = page.locator(f'#attention li.attention-item[data-key="{key}"]')
+    expect(failed).to_contain_text("simulated hardware not found", timeout=WAIT_MS)
+    expect(page.locator(dom_id(key))).to_have_attribute("data-attention", re.compile(".+"), timeout=WAIT_MS)
+    expect(page.locator(dom_id(key))).to_be_visible()
     assert page.console_errors == []

@@ -9,6 +9,7 @@ import pytest
 from playwright.sync_api import Page, expect
 
 from lifecycle_site.audit.models import ParameterRecord
+from tests import stack
 from tests.browser.conftest import ARTIFACTS, ROBOT, logged_in_page, submit_login
 
 WAIT_MS = 30_000
@@ -96,6 +97,10 @@ def test_the_audit_page_shows_new_records_without_a_reload(browser, site, robot,
     submit_login(page, "bruno-operator")
     from lifecycle_site.fleet.models import ManagedNode
 
+    # A state this module's gateway found that no record explains (the robot's processes and the
+    # gateway are new with each module) becomes a record of its own within seconds: let it come first.
+    stack.wait_for(lambda: ManagedNode.objects.get(key=f"{ROBOT}.camera_driver").unexplained_since is None, 20,
+                   "the audit chain settled")
     with page.expect_websocket(lambda ws: "/ws/audit/" in ws.url):
         page.goto(f"{site}audit/?robot={ROBOT}&node=camera_driver")
     # What earlier modules recorded is on the page already: one more is expected.
