@@ -2,9 +2,10 @@
 the marker on each affected row and the "needs attention" state filter (fleet.js), the count in
 the page's title. A node whose activation just failed must not look like a healthy one.
 
-Worst first: a failed last transition, a node not in its desired state, a node lost or not
-answering, a process lost, an alert firing, a gateway offline or quarantined; each with the
-node's own reason (the failure text of its last audit record) and a link.
+Worst first: a gateway offline or quarantined (it takes all its robots with it: it leads, or a
+fleet with many failing nodes would push it out of the strip), a failed last transition, a node
+not in its desired state, a node lost or not answering, a process lost, an alert firing; each
+with the node's own reason (the failure text of its last audit record) and a link.
 
 Cheap at size: three queries whatever the fleet's size (the nodes with their last record's
 outcome, the firing alerts, the last records of the nodes listed), kept KEEP_S for every page
@@ -22,7 +23,7 @@ from lifecycle_site.fleet.models import ManagedNode
 
 FAILED, NOT_DESIRED, LOST, PROCESS_LOST, ALERT, GATEWAY = (
     "failed", "not_desired", "lost", "process_lost", "alert", "gateway")
-RANK = {kind: i for i, kind in enumerate((FAILED, NOT_DESIRED, LOST, PROCESS_LOST, ALERT, GATEWAY))}
+RANK = {kind: i for i, kind in enumerate((GATEWAY, FAILED, NOT_DESIRED, LOST, PROCESS_LOST, ALERT))}
 FAILED_OUTCOMES = (TransitionRecord.Outcome.FAILED, TransitionRecord.Outcome.TIMED_OUT)
 OUTCOME_LABELS = dict(TransitionRecord.Outcome.choices)
 SHOWN = 12  # items the strip lists; the filter shows every affected row

@@ -157,4 +157,7 @@ class LogConsumer(LiveConsumer):
             await self.send(text_data=json.dumps({"gaps": found}))
 
     def gaps(self, gateway: str) -> list[dict]:
-        return outages.recent(gateway, datetime.fromisoformat(self.gap_since)) if self.gap_since else []
+        """Its outages since then that have ended (the ingest process closes one within seconds of
+        the gateway's return: until then it is looked for again)."""
+        found = outages.recent(gateway, datetime.fromisoformat(self.gap_since)) if self.gap_since else []
+        return [gap for gap in found if gap["ended"]]

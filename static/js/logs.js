@@ -188,8 +188,9 @@
   // received /rosout then. Marked where it falls among the lines, whatever the filters.
   function addGaps(gaps) {
     (gaps || []).forEach(function (gap) {
-      if (lines.querySelector('[data-gap="' + gap.id + '"]')) return;
-      var div = document.createElement("div");
+      var div = lines.querySelector('[data-gap="' + gap.id + '"]');
+      var known = Boolean(div);  // told again when it has ended: its words follow
+      if (!div) div = document.createElement("div");
       div.className = "log-gap";
       div.dataset.gap = gap.id;
       // An outage still going on has no end yet (the gateway offline, stopped or quarantined).
@@ -197,6 +198,7 @@
       var stretch = gap.ended ? "from " + when(gap.began) + " to " + when(gap.ended) : "since " + when(gap.began);
       div.textContent = "gateway " + gap.gateway + " could not be reached " + stretch +
         (isNaN(seconds) ? "" : " (" + seconds + " s)") + ": /rosout of that time was not received";
+      if (known) return;
       var after = null;
       for (var line = lines.firstElementChild; line; line = line.nextElementSibling) {
         if (line.record && Date.parse(line.record.stamp) > Date.parse(gap.began)) { after = line; break; }

@@ -131,8 +131,11 @@ def test_a_refusal_does_not_stay_above_a_later_run(browser, site, robot, operato
     for node in ("lidar_driver", "camera_driver"):
         wait_node(None, f"{ROBOT}.{node}", alive=True)
     # A later run, started on another screen (here: the API), shows above: the refusal is gone.
-    answer = api.post(f"/api/v1/robots/{ROBOT}/operations", {"operation": "pause", "policy": "continue"},
-                      content_type="application/json")
+    # (While it was disabled the gateway may have let the robot go: it takes it back within seconds.)
+    answer = stack.wait_for(
+        lambda: (found := api.post(f"/api/v1/robots/{ROBOT}/operations", {"operation": "pause", "policy": "continue"},
+                                   content_type="application/json")).status_code != 502 and found, 20,
+        "the gateway watching the robot again")
     assert answer.status_code in (200, 201, 202), answer.content
     later = GroupRun.objects.filter(robot__name=ROBOT).order_by("-created").first()
     expect(page.locator(f"#run-{later.id}")).to_be_visible(timeout=WAIT_MS)

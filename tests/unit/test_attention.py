@@ -59,18 +59,19 @@ def test_problems_worst_first_with_the_nodes_own_reason(db):
 
     found = attention.current([offline_view("cell-q", ["at-q"])])
     kinds = [(item["kind"], item["node"] or item["gateway"]) for item in found["items"]]
-    assert kinds == [("failed", "/flaky"), ("not_desired", "/drifting"), ("lost", "/silent"),
-                     ("process_lost", "/crashed"), ("alert", "/alerted"), ("gateway", "cell-q")], kinds
-    first = found["items"][0]
+    # A gateway cut off takes all its robots with it: it leads.
+    assert kinds == [("gateway", "cell-q"), ("failed", "/flaky"), ("not_desired", "/drifting"), ("lost", "/silent"),
+                     ("process_lost", "/crashed"), ("alert", "/alerted")], kinds
+    assert "quarantined" in found["items"][0]["label"] and "70 MB" in found["items"][0]["reason"]
+    first = found["items"][1]
     assert first["label"] == "activate failed"
     assert first["reason"] == "on_activate raised RuntimeError: simulated driver fault"
-    drifting = found["items"][1]
+    drifting = found["items"][2]
     assert drifting["label"] == "not in its desired state: inactive, desired state active"
     assert drifting["also"] == ["alert firing: drift"]
-    assert found["items"][2]["label"] == "not answering"
-    assert found["items"][3]["reason"] == "The node's process ended during activate"
-    assert found["items"][4]["reason"] == "Node /alerted on robot at-agv is hot."
-    assert "quarantined" in found["items"][5]["label"] and "70 MB" in found["items"][5]["reason"]
+    assert found["items"][3]["label"] == "not answering"
+    assert found["items"][4]["reason"] == "The node's process ended during activate"
+    assert found["items"][5]["reason"] == "Node /alerted on robot at-agv is hot."
     assert found["count"] == 6 and found["gateways"] == ["cell-q"]
     assert sorted(found["keys"]) == sorted(f"at-agv.{n}" for n in ("flaky", "drifting", "silent", "crashed",
                                                                     "alerted"))
