@@ -168,11 +168,11 @@ class GroupRunner:
         stopped_by: list[str] = []  # the node whose failure stopped the run
         verdict = RunVerdict(self.relay, run.id)
 
-        async def drive(name: str) -> None:
+        async def drive(name: str, stopped: bool) -> None:
             async with limit:
                 if verdict.ended:
                     result = {"node": name, "outcome": "not_run", "steps": [], "message": f"not run: {verdict.ended}"}
-                elif stopped_by:
+                elif stopped:
                     result = {"node": name, "outcome": "not_run", "steps": [],
                               "message": f"not run: the run stopped after {stopped_by[0]} failed"}
                 else:
@@ -188,7 +188,10 @@ class GroupRunner:
             progress.finished(result)
 
         for tier in tiers:
-            await asyncio.gather(*(drive(name) for name in tier))
+            # A failure stops the tiers after its own: the nodes of a tier have no order between
+            # them, so which of them fails first must not decide which of the others are driven.
+            stopped = bool(stopped_by)
+            await asyncio.gather(*(drive(name, stopped) for name in tier))
         results = progress.results()
         failed = sum(r["outcome"] == "failed" for r in results)
         if verdict.ended:

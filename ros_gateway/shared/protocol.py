@@ -301,7 +301,7 @@ def not_carried_out(gateway: str, command: dict, reason: str, instance: str, out
 
 def parameter_fact_id(request_id: str, name: str) -> str:
     """The id of the audit fact of one parameter of a set_parameters command (once per name)."""
-    return hashlib.sha256(f"{request_id}\0{name}".encode()).hexdigest()[:32]
+    return hashlib.sha256(f"{request_id}\0{name}".encode("utf-8", "surrogatepass")).hexdigest()[:32]
 
 
 def unanswered_id(request_id: str) -> str:

@@ -13,6 +13,7 @@ import pytest
 from django.conf import settings
 from playwright.sync_api import expect
 
+from lifecycle_site.fleet.models import ManagedNode
 from tests import stack
 from tests.conftest import make_user
 from tests.integration.conftest import api, gateway, register, wait_node  # noqa: F401 (fixtures)
@@ -28,6 +29,9 @@ CHROMIUM_ARGS = [
     "--disable-component-update", "--no-first-run", "--disable-sync", "--disable-quic",
 ]
 PASSWORD = "a-test-password-123"
+# Counts the live messages a page has swapped in (an init script: it runs before the page's own).
+COUNT_LIVE = ("document.addEventListener('htmx:wsAfterMessage', () => "
+              "{ document.documentElement.dataset.live = Number(document.documentElement.dataset.live || 0) + 1; });")
 ROBOT = "br-agv"
 
 
@@ -56,11 +60,14 @@ def watched_page(browser, page_errors: bool = False, **context_options):
 
 @contextmanager
 def logged_in_page(browser, site: str, username: str = "bruno-operator", **context_options):
-    """A watched page logged in as ``username`` and showing the fleet page."""
+    """A watched page logged in as ``username`` and showing the fleet page, once its socket's
+    first message (the snapshot) has redrawn it: an element found before may be gone after."""
     with watched_page(browser, **context_options) as page:
+        page.context.add_init_script(COUNT_LIVE)
         page.goto(site + "login/")
         submit_login(page, username)
         expect(page.locator("h2", has_text=ROBOT)).to_be_visible(timeout=20_000)
+        expect(page.locator("html[data-live]")).to_have_count(1, timeout=30_000)
         yield page
 
 
@@ -82,6 +89,9 @@ def robot(gateway):  # noqa: F811
     ]
     for node in ("lidar_driver", "camera_driver", "flaky_node"):  # found by this gateway, state read
         wait_node(None, f"{ROBOT}.{node}", alive=True, state="unconfigured", seen_since=started)
+    # Nodes an earlier module started on this robot and stopped (a planner) are gone for good:
+    # left listed, they would fail this module's robot-wide runs and fill its needs-attention list.
+    ManagedNode.objects.filter(robot__name=ROBOT, alive=False).delete()
     yield processes
     for process in processes:
         process.stop()

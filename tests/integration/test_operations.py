@@ -7,6 +7,7 @@ import sys
 
 import pytest
 import yaml
+from django.utils import timezone
 
 from lifecycle_site.audit.models import ParameterRecord, TransitionRecord
 from lifecycle_site.fleet.models import ManagedNode, Robot
@@ -185,6 +186,28 @@ def test_nodes_without_a_position_come_last_and_go_side_by_side(api, ops):
     # ...then the unordered ones together: the camera is up while the slow node still configures (2.5 s).
     assert records["/camera_driver", "activate"].completed_at < records["/slow/flaky_node", "configure"].completed_at
     assert records["/camera_driver", "configure"].requested_at < records["/slow/flaky_node", "configure"].completed_at
+
+
+def test_a_failure_stops_the_groups_after_its_own_not_its_side_by_side_siblings(api, ops):
+    """The nodes of a group have no order between them: a node that fails at once (its process is
+    gone) must not decide that its siblings are left out; the group after it is."""
+    robot = Robot.objects.get(name=ROBOT)
+    now = timezone.now()
+    gone = ManagedNode.objects.create(robot=robot, name="/gone_driver", alive=False, first_seen=now, last_seen=now)
+    try:
+        ManagedNode.objects.filter(robot=robot).update(order=None)
+        nodes = ["/gone_driver", "/lidar_driver", "/camera_driver"]
+        assert operation(api, {"operation": "reset", "nodes": nodes[1:]}).json()["run"]["status"] == "succeeded"
+        _order("/gone_driver", "/camera_driver")
+        ManagedNode.objects.filter(robot=robot, name="/lidar_driver").update(order=1)  # beside the gone one
+        run = operation(api, {"operation": "bringup", "policy": "stop", "nodes": nodes}).json()["run"]
+        assert [(r["node"], r["outcome"]) for r in run["results"]] == [
+            ("/gone_driver", "failed"), ("/lidar_driver", "succeeded"), ("/camera_driver", "not_run")], run
+        assert run["results"][2]["message"] == "not run: the run stopped after /gone_driver failed"
+        assert ManagedNode.objects.get(robot=robot, name="/lidar_driver").state_label == "active"
+    finally:
+        gone.delete()
+        ManagedNode.objects.filter(robot=robot).update(order=None)
 
 
 @pytest.mark.parametrize("start", [[], ["configure"], ["configure", "activate"]])
