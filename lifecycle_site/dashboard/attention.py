@@ -100,7 +100,10 @@ def _node_item(key: str, row: tuple, kinds: list[tuple[str, str]], record: dict 
             label = f"{record['transition_label'] or 'transition'} {OUTCOME_LABELS.get(record['outcome'], '')}".strip()
         labels.append(label)
     labels += [f"alert firing: {a['rule_name']}" for a in fired]
-    reason = (record or {}).get("error") or (fired[0]["summary"] if fired else "")
+    # The last record's words explain a failed transition or a loss; for a node that is up but not
+    # in its desired state they may tell of an earlier, ended episode ("its process ended").
+    explains = any(kind in (FAILED, LOST, PROCESS_LOST) for kind, _ in kinds)
+    reason = ((record or {}).get("error") if explains else "") or (fired[0]["summary"] if fired else "")
     if record is not None:
         at = record["requested_at"].isoformat()
     else:

@@ -336,5 +336,6 @@ def node_timeline(node: ManagedNode, window: str | Window = DEFAULT_WINDOW, now:
     rows = _rows(values)
     timeline = build(node, window.name, start, end, before, rows, cut_before, outcomes, [Absence(*a) for a in away])
     timeline.events = record_events(((node, r.requested_at, r.outcome, r.id) for r in rows), MAX_EVENTS)
-    timeline.outages = outage_events(node.robot, start, end)
+    # Its gateway's outages while the node was there to be hidden by them, as availability counts.
+    timeline.outages = outage_events(node.robot, max(start, node.first_seen or start), end)
     return timeline

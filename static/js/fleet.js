@@ -82,11 +82,18 @@
         .map(function (s) { return counts[s] + " " + s; }).join(" · ");
       var countsEl = section.querySelector("[data-counts-for]");
       if (countsEl) countsEl.textContent = summary ? "" : (text || "no nodes");
+      var group = section.closest("section.gateway");
+      var head = group && group.querySelector("[data-gateway-online]");
+      var gatewayDown = !!head && head.dataset.gatewayOnline !== "true";
+      // While the robot's gateway is offline or cut off, its group operations cannot be sent
+      // (as its rows' transitions): the buttons say so instead of answering with a refusal.
+      section.querySelectorAll("form.operations button").forEach(function (button) {
+        button.disabled = gatewayDown;
+        if (gatewayDown) button.title = "The gateway is offline: no command can be sent.";
+        else button.removeAttribute("title");
+      });
       var onlineEl = section.querySelector("[data-online-for]");
       if (onlineEl && onlineEl.textContent !== "disabled") {
-        var group = section.closest("section.gateway");
-        var head = group && group.querySelector("[data-gateway-online]");
-        var gatewayDown = !!head && head.dataset.gatewayOnline !== "true";
         var online = alive > 0 && !gatewayDown;
         onlineEl.textContent = online ? "online" : "offline";
         onlineEl.className = "robot-online badge " + (online ? "online" : "offline");

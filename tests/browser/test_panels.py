@@ -172,12 +172,15 @@ def test_rows_say_last_known_and_take_no_command_while_the_gateway_is_offline(br
         assert buttons.count() > 0
         for i in range(buttons.count()):
             expect(buttons.nth(i)).to_be_disabled()
+        group = page.locator(f"#robot-{ROBOT} form.operations").get_by_role("button", name="Bring up")
+        expect(group).to_be_disabled()  # the robot's group operations as well
         page.screenshot(path=ARTIFACTS / "fleet-gateway-offline-rows.png", full_page=True)
 
         replacement = stack.start_gateway()
         expect(page.locator("#gateway-banner")).to_be_hidden(timeout=30_000)
         expect(row.locator(".seen")).to_contain_text("running", timeout=20_000)
         expect(row.get_by_role("button").first).to_be_enabled()
+        expect(group).to_be_enabled()
         expect(restart).to_be_enabled(timeout=20_000)
     finally:
         if replacement is not None:

@@ -77,6 +77,17 @@ def test_problems_worst_first_with_the_nodes_own_reason(db):
                                                                     "alerted"))
 
 
+def test_a_node_back_up_but_not_in_its_desired_state_is_not_said_to_be_lost(db):
+    """Its last record tells of an ended episode (its process ended, it came back): that is not
+    why it is not in its desired state now, and the strip must not say so beside a running row."""
+    robot = Robot.objects.create(name="at-back", domain_id=42)
+    back = node(robot, "/lidar", desired_state="active")
+    record(back, "process_lost", 30, "", "The process of /lidar on at-back ended: its node left the ROS graph")
+    item, = attention.current([])["items"]
+    assert item["label"] == "not in its desired state: unconfigured, desired state active"
+    assert item["reason"] == ""
+
+
 def test_the_same_few_queries_at_200_and_1000_nodes(db):
     def queries() -> int:
         from django.core.cache import cache

@@ -100,6 +100,10 @@ def test_gateway_outages_overlapping_the_window_are_marked(node):
     assert parse_qs(urlsplit(timeline.outages[0].audit_url).query)["until"] == ["2026-11-23T11:10:01"]
     assert timeline.outages[0].logs_url.startswith("/logs/robot/ev-agv/?at=")
     assert [e.at for e in robot_timeline(node.robot, "hour", now=NOW).outages] == [ago(70), ago(5)]
+    # A node first seen after an outage ended was not hidden by it: its page leaves it out.
+    ManagedNode.objects.filter(pk=node.pk).update(first_seen=ago(40))
+    node.refresh_from_db()
+    assert [e.at for e in tl.node_timeline(node, "hour", now=NOW).outages] == [ago(5)]
 
 
 def test_the_ingest_opens_an_outage_when_it_sees_a_gateway_down_and_closes_it_when_back(db, monkeypatch):
