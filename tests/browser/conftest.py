@@ -42,6 +42,24 @@ def submit_login(page, username: str, password: str = PASSWORD) -> None:
     page.click("button[type=submit]")
 
 
+DESKTOP = {"width": 1440, "height": 900}
+PHONE = {"width": 390, "height": 844}
+
+
+def sized_page(browser, site: str, viewport: dict, path: str = "", username: str = "bruno-operator"):
+    """A page at ``viewport`` (PHONE: a touch-screen phone), logged in as ``username`` on the way
+    to ``path``; errors on its console are kept in ``page.console_errors``. Close its context."""
+    context = browser.new_context(viewport=viewport, device_scale_factor=1,
+                                  **({"is_mobile": True, "has_touch": True} if viewport == PHONE else {}))
+    context.add_init_script(COUNT_LIVE)
+    page = context.new_page()
+    page.console_errors = []
+    page.on("console", lambda m: page.console_errors.append(m.text) if m.type == "error" else None)
+    page.goto(site + path)
+    submit_login(page, username)
+    return page
+
+
 @contextmanager
 def watched_page(browser, page_errors: bool = False, **context_options):
     """A page in a browser context of its own; errors on its console (and, with

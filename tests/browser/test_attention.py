@@ -13,13 +13,11 @@ from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.fleet import gateways, quarantine
 from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
 from tests import stack
-from tests.browser.conftest import ARTIFACTS, ROBOT, submit_login
+from tests.browser.conftest import ARTIFACTS, DESKTOP, PHONE, ROBOT, sized_page
 from tests.integration.conftest import transition, wait_node
 
 WAIT_MS = 30_000
 FLAKY, LIDAR, CAMERA = f"{ROBOT}.flaky_node", f"{ROBOT}.lidar_driver", f"{ROBOT}.camera_driver"
-DESKTOP = {"width": 1440, "height": 900}
-PHONE = {"width": 390, "height": 844}
 CUT_OFF = "br-cell-q"  # a gateway that never runs here, quarantined by the site
 CUT_OFF_REASON = "its Redis keys held 70 MB, over their quota of 64 MB"
 
@@ -29,13 +27,7 @@ def dom(key: str) -> str:
 
 
 def open_fleet(browser, site: str, viewport: dict) -> Page:
-    context = browser.new_context(viewport=viewport, device_scale_factor=1,
-                                  **({"is_mobile": True, "has_touch": True} if viewport == PHONE else {}))
-    page = context.new_page()
-    page.console_errors = []
-    page.on("console", lambda m: page.console_errors.append(m.text) if m.type == "error" else None)
-    page.goto(site + "login/")
-    submit_login(page, "bruno-operator")
+    page = sized_page(browser, site, viewport)
     expect(page.locator("#fleet-live")).to_have_attribute("data-socket", "open", timeout=WAIT_MS)
     return page
 

@@ -9,25 +9,16 @@ from playwright.sync_api import Page, expect
 
 from lifecycle_site.audit.models import TransitionRecord
 from tests import stack
-from tests.browser.conftest import ARTIFACTS, COUNT_LIVE, ROBOT, submit_login
+from tests.browser.conftest import ARTIFACTS, DESKTOP, PHONE, ROBOT, sized_page
 from tests.integration.conftest import transition, wait_node
 
 WAIT_MS = 30_000
 KEY = f"{ROBOT}.flaky_node"
-DESKTOP = {"width": 1440, "height": 900}
-PHONE = {"width": 390, "height": 844}
 REASON = re.compile("simulated hardware not found on /dev/ttyFLAKY")
 
 
 def open_node(browser, site: str, viewport: dict) -> Page:
-    context = browser.new_context(viewport=viewport, device_scale_factor=1,
-                                  **({"is_mobile": True, "has_touch": True} if viewport == PHONE else {}))
-    page = context.new_page()
-    page.console_errors = []
-    page.on("console", lambda m: page.console_errors.append(m.text) if m.type == "error" else None)
-    context.add_init_script(COUNT_LIVE)
-    page.goto(f"{site}nodes/{KEY}/")
-    submit_login(page, "bruno-operator")
+    page = sized_page(browser, site, viewport, f"nodes/{KEY}/")
     # Measured once the socket's snapshot has redrawn the state panel (a badge found before is gone after).
     expect(page.locator("html[data-live]")).to_have_count(1, timeout=WAIT_MS)
     expect(page.locator("#node-state .badge.big")).to_have_text("unconfigured", timeout=WAIT_MS)

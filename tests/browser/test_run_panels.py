@@ -10,23 +10,15 @@ from playwright.sync_api import Page, expect
 
 from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
 from tests import stack
-from tests.browser.conftest import ARTIFACTS, ROBOT, submit_login
+from tests.browser.conftest import ARTIFACTS, DESKTOP, PHONE, ROBOT, sized_page
 from tests.integration.conftest import wait_node
 
 WAIT_MS = 30_000
-DESKTOP = {"width": 1440, "height": 900}
-PHONE = {"width": 390, "height": 844}
 WAITING = "/br_not_started"  # watched by name, never seen: whole-robot runs leave it out
 
 
 def login(browser, site: str, viewport: dict) -> Page:
-    context = browser.new_context(viewport=viewport, device_scale_factor=1,
-                                  **({"is_mobile": True, "has_touch": True} if viewport == PHONE else {}))
-    page = context.new_page()
-    page.console_errors = []
-    page.on("console", lambda m: page.console_errors.append(m.text) if m.type == "error" else None)
-    page.goto(site + "login/")
-    submit_login(page, "bruno-operator")
+    page = sized_page(browser, site, viewport)
     expect(page.locator("#fleet-live")).to_have_attribute("data-socket", "open", timeout=WAIT_MS)
     return page
 

@@ -66,7 +66,7 @@ def _describe(processes: list[psutil.Process]) -> str:
 def test_sigkill_of_the_demo_ends_all_its_processes(tmp_path: Path):
     data_dir = str(tmp_path / "demo-data")
     env = dict(os.environ)
-    for name in ("DATABASE_URL", "DJANGO_ALLOW_ASYNC_UNSAFE"):  # the demo keeps its own SQLite
+    for name in ("DATABASE_URL", "DJANGO_ALLOW_ASYNC_UNSAFE", "PYTHONUNBUFFERED"):  # own SQLite; output to a file
         env.pop(name, None)
     env.update(
         DJANGO_SETTINGS_MODULE="lifecycle_site.settings",
@@ -75,8 +75,7 @@ def test_sigkill_of_the_demo_ends_all_its_processes(tmp_path: Path):
         DEMO_DOMAIN_AGV1=str(stack.domain(27)),
         DEMO_DOMAIN_AGV2=str(stack.domain(28)),
         ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-        PYTHONUNBUFFERED="1",
-    )
+    )  # output to a file, as `make demo > demo.log`: the URL and login must be there all the same
     output = tmp_path / "run_demo.out"
     with open(output, "wb") as out:
         demo = subprocess.Popen(

@@ -95,10 +95,11 @@ class Command(BaseCommand):
                 f"Demo robots: {', '.join(f'{n} (ROS domain {d})' for n, d, _ in DEMO_ROBOTS)}. "
                 f"Process logs: {data / 'logs'}. Ctrl-C stops everything.\n"
             )
+            self.stdout.flush()  # also when the output goes to a file or a pipe (block-buffered)
             if check:
                 return
             while True:
-                supervisor.watch_once(lambda text: self.stdout.write(f"[demo] {text}"))
+                supervisor.watch_once(lambda text: (self.stdout.write(f"[demo] {text}"), self.stdout.flush()))
                 time.sleep(0.5)
         except KeyboardInterrupt:
             self.stdout.write("\nStopping the demo ...")
