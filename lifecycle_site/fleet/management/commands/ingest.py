@@ -281,10 +281,10 @@ class Ingest:
     def apply(self, stream: str, entries: list) -> int:
         """Apply one stream's entries in short transactions, then acknowledge them."""
         name, kind = self.streams[stream]
-        pushes: list[tuple[str, dict]] = []
         applied = 0
         for chunk in transactions(kind, entries):
             began = time.monotonic()
+            pushes: list[tuple[str, dict]] = []
             with transaction.atomic():
                 row = Gateway.objects.select_for_update().filter(name=name).first()
                 if row is None:
@@ -302,6 +302,7 @@ class Ingest:
             took = time.monotonic() - began
             if took > 1.0:
                 log.warning("gateway %s: a %s transaction took %.1f s", name, kind, took)
+            push(pushes)  # stored: the pages get it now, not after the pause below
             if connection.vendor == "sqlite":
                 # SQLite serves waiting writers by polling (up to every 100 ms), not in turn: one
                 # that begins again at once keeps the site's writes waiting for seconds while it
@@ -311,7 +312,6 @@ class Ingest:
         # Stored and acknowledged: Redis keeps only what is not (MAXLEN then bounds a backlog,
         # not a history), so a small Redis (Edge: 40 MB, noeviction) never fills up with it.
         self.redis.xtrim(stream, minid=text(entries[-1][0]))
-        push(pushes)
         return applied
 
     def apply_facts(self, row: Gateway, entries: list) -> list[tuple[str, dict]]:
