@@ -64,8 +64,12 @@ def test_header_banner_refusal_and_log_gap_follow_the_outage(browser, site, robo
         expect(phone.locator(".node-head .gateway-of .badge")).to_have_text("offline", timeout=10_000)
         phone.screenshot(path=ARTIFACTS / "outage-node-phone.png", full_page=False)
 
-        # A group operation asked for now is refused in red: nothing was sent.
-        fleet.locator(f"#robot-{ROBOT}").get_by_role("button", name="Bring up", exact=True).click()
+        # The robot's group operations are disabled, saying why (as its rows' transitions).
+        bring_up = fleet.locator(f"#robot-{ROBOT}").get_by_role("button", name="Bring up", exact=True)
+        expect(bring_up).to_be_disabled(timeout=10_000)
+        expect(bring_up).to_have_attribute("title", re.compile("gateway is offline"))
+        # One clicked in the moment before the page learned of it is refused in red: nothing was sent.
+        bring_up.evaluate("(button) => { button.disabled = false; button.click(); }")
         refusal = fleet.locator(f"#robot-{ROBOT}-run-result")
         expect(refusal).to_contain_text("nothing was sent", timeout=WAIT_MS)
 
