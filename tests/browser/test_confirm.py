@@ -12,13 +12,11 @@ from playwright.sync_api import Page, expect
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.fleet.models import GroupRun, ManagedNode
 from tests import stack
-from tests.browser.conftest import ARTIFACTS, ROBOT, logged_in_page
+from tests.browser.conftest import ARTIFACTS, COUNT_LIVE, ROBOT, logged_in_page
 
 WAIT_MS = 30_000
 PHONE = {"width": 390, "height": 844}
 NODES = ("lidar_driver", "camera_driver", "flaky_node")  # the lifecycle nodes of the robot fixture
-COUNT_LIVE = ("document.addEventListener('htmx:wsAfterMessage', () => "
-              "{ document.documentElement.dataset.live = Number(document.documentElement.dataset.live || 0) + 1; });")
 
 
 def dom(key: str) -> str:

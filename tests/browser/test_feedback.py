@@ -12,14 +12,12 @@ from playwright.sync_api import expect
 
 from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
 from tests import stack
-from tests.browser.conftest import ARTIFACTS, submit_login
+from tests.browser.conftest import ARTIFACTS, COUNT_LIVE, submit_login
 from tests.integration.conftest import register, transition, wait_node
 
 WAIT_MS = 30_000
 OTHER = "br-agv2"  # a second robot that also has a /camera_driver
 KEY = f"{OTHER}.camera_driver"
-COUNT_LIVE = ("document.addEventListener('htmx:wsAfterMessage', () => "
-              "{ document.documentElement.dataset.live = Number(document.documentElement.dataset.live || 0) + 1; });")
 
 
 def dom(key: str) -> str:

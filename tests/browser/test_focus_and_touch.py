@@ -8,7 +8,7 @@ import pytest
 from playwright.sync_api import Page, expect
 
 from lifecycle_site.fleet.models import ManagedNode
-from tests.browser.conftest import ARTIFACTS, ROBOT, logged_in_page
+from tests.browser.conftest import ARTIFACTS, COUNT_LIVE, ROBOT, logged_in_page
 from tests.integration.conftest import transition, wait_node
 
 WAIT_MS = 30_000
@@ -27,8 +27,6 @@ TOO_SMALL = """() => Array.from(document.querySelectorAll(
   .filter(([, h]) => h < 44)"""
 
 
-COUNT_LIVE = ("document.addEventListener('htmx:wsAfterMessage', () => "
-              "{ document.documentElement.dataset.live = Number(document.documentElement.dataset.live || 0) + 1; });")
 
 
 def live_node_page(page: Page, url: str) -> None:

@@ -10,16 +10,13 @@ from playwright.sync_api import expect
 
 from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
 from tests import stack
-from tests.browser.conftest import ARTIFACTS, ROBOT, submit_login
+from tests.browser.conftest import ARTIFACTS, COUNT_LIVE, ROBOT, submit_login
 from tests.conftest import make_user
 from tests.integration.conftest import wait_node
 
 WAIT_MS = 30_000
 
 
-# Counts the live messages a page has swapped in (run before the page's own scripts).
-COUNT_LIVE = ("document.addEventListener('htmx:wsAfterMessage', () => "
-              "{ document.documentElement.dataset.live = Number(document.documentElement.dataset.live || 0) + 1; });")
 
 
 def _login(browser, site, user="bruno-operator", **viewport):
