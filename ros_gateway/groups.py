@@ -19,22 +19,14 @@ from ros_gateway.lifecycle import NodeDriver, NodeUnreachable, read_state
 from ros_gateway.outbox import Outbox
 from ros_gateway.registry import LiveNode, NodeRegistry, RobotInfo
 from ros_gateway.relay import Relay
-from ros_gateway.shared import protocol
+from ros_gateway.shared import operations, protocol
 from ros_gateway.shared import state_machine as sm
+from ros_gateway.shared.operations import Phase
 from ros_gateway.tasks import spawn
 from ros_gateway.verdicts import RunVerdict
 
 log = logging.getLogger(__name__)
 
-# Operation -> (target state, nodes in reverse order?, states the operation leaves alone)
-PLANS: dict[str, tuple[int, bool, tuple[int, ...]]] = {
-    "bringup": (sm.ACTIVE, False, ()),
-    "pause": (sm.INACTIVE, True, (sm.UNCONFIGURED,)),
-    "resume": (sm.ACTIVE, False, (sm.UNCONFIGURED,)),
-    "reset": (sm.UNCONFIGURED, True, ()),
-    "shutdown": (sm.FINALIZED, True, ()),
-    "restart": (sm.ACTIVE, False, ()),
-}
 DESIRED = {"unconfigured": sm.UNCONFIGURED, "inactive": sm.INACTIVE, "active": sm.ACTIVE}
 # After a step timed out with the node still inside the transition, how many more timeouts
 # to give it to finish before calling it failed.
@@ -73,7 +65,8 @@ class Run:
         if robot is None:
             raise BadRun(f"Robot {spec.get('robot')!r} is not watched (disabled or just added); try again in a moment.")
         operation = spec.get("operation")
-        if operation not in PLANS:
+        known = operations.get(operation)
+        if known is None or not known.startable:
             raise BadRun(f"{operation!r} is not an operation this gateway knows.")
         tiers = spec.get("tiers")
         if not isinstance(tiers, list) or not all(isinstance(t, list) and all(isinstance(n, str) for n in t)
@@ -140,7 +133,7 @@ class GroupRunner:
         try:
             log.info("recovering %s:%s to %s", node.robot.name, node.name, desired)
             self._report(run, "queued", f"back to {desired}", [], **spec)
-            await self._execute(run, target_override=DESIRED[desired])
+            await self._execute(run, (Phase(DESIRED[desired]),))
         finally:
             self.recovering.discard(node.key)
 
@@ -152,23 +145,25 @@ class GroupRunner:
             started=started, finished=datetime.now(timezone.utc).isoformat() if finished else None, **spec,
         )
 
-    async def _execute(self, run: Run, target_override: int | None = None) -> None:
+    async def _execute(self, run: Run, phases: tuple[Phase, ...] | None = None) -> None:
+        """Drive the run's nodes through its operation's phases (``phases`` for a recovery, whose
+        target is the node's desired state): each phase goes through every tier, in the robot's
+        order or in reverse, before the next phase begins."""
         started = datetime.now(timezone.utc).isoformat()
         self._report(run, "running", "", [], started=started)
-        plan = PLANS.get(run.operation)
-        target, reverse, leave_alone = plan if plan else (target_override, False, ())
-        if target_override is not None:
-            target = target_override
-        tiers = [list(tier) for tier in run.tiers]
-        if reverse:
-            tiers = [list(reversed(tier)) for tier in reversed(tiers)]
-        names = [name for tier in tiers for name in tier]
-        progress = _Progress(self, run, names, started)
+        if phases is None:
+            phases = operations.BY_NAME[run.operation].phases
+        # Results in the order of the last phase (the one that leaves the nodes where they end).
+        last_reversed = bool(phases) and phases[-1].reverse
+        names = [name for tier in run.tiers for name in tier]
+        progress = _Progress(self, run, names[::-1] if last_reversed else names, started)
         limit = asyncio.Semaphore(TIER_CONCURRENCY)
         stopped_by: list[str] = []  # the node whose failure stopped the run
         verdict = RunVerdict(self.relay, run.id)
 
-        async def drive(name: str, stopped: bool) -> None:
+        async def drive(name: str, phase: Phase, stopped: bool) -> None:
+            if progress.failed(name):
+                return  # failed in an earlier phase: its result stands
             async with limit:
                 if verdict.ended:
                     result = {"node": name, "outcome": "not_run", "steps": [], "message": f"not run: {verdict.ended}"}
@@ -178,7 +173,7 @@ class GroupRunner:
                 else:
                     node = self.registry.find(run.robot.name, name)
                     try:
-                        result = await self._drive_node(run, node, name, target, leave_alone, verdict)
+                        result = await self._drive_node(run, node, name, phase, verdict)
                     except Exception as exc:  # a bug: this node fails, the run ends cleanly
                         log.exception("run %s: driving %s failed", run.id, name)
                         result = {"node": name, "node_id": node.key if node else None, "outcome": "failed",
@@ -187,11 +182,13 @@ class GroupRunner:
                         stopped_by.append(name)
             progress.finished(result)
 
-        for tier in tiers:
-            # A failure stops the tiers after its own: the nodes of a tier have no order between
-            # them, so which of them fails first must not decide which of the others are driven.
-            stopped = bool(stopped_by)
-            await asyncio.gather(*(drive(name, stopped) for name in tier))
+        for phase in phases:
+            tiers = [list(reversed(t)) for t in reversed(run.tiers)] if phase.reverse else run.tiers
+            for tier in tiers:
+                # A failure stops the tiers after its own: the nodes of a tier have no order between
+                # them, so which of them fails first must not decide which of the others are driven.
+                stopped = bool(stopped_by)
+                await asyncio.gather(*(drive(name, phase, stopped) for name in tier))
         results = progress.results()
         failed = sum(r["outcome"] == "failed" for r in results)
         if verdict.ended:
@@ -213,8 +210,8 @@ class GroupRunner:
         await progress.push(status=status, message=summary)
         log.info("run %s (%s of %s): %s", run.id, run.operation, run.robot.name, summary)
 
-    async def _drive_node(self, run: Run, node: LiveNode | None, name: str, target: int,
-                          leave_alone: tuple[int, ...], verdict: RunVerdict) -> dict:
+    async def _drive_node(self, run: Run, node: LiveNode | None, name: str, phase: Phase,
+                          verdict: RunVerdict) -> dict:
         result = {"node": name, "node_id": node.key if node else None, "steps": [], "outcome": "succeeded",
                   "message": ""}
         if node is None or not node.alive:
@@ -225,13 +222,11 @@ class GroupRunner:
             async with asyncio.timeout(run.node_timeout * (4 + SETTLE_TIMEOUTS) * 4 + 5):
                 async with node.lock:
                     state = await self._settled_state(node, run.node_timeout)
-                    if run.operation == "restart" and state in (sm.INACTIVE, sm.ACTIVE):
-                        steps = sm.path(state, sm.UNCONFIGURED) + ["configure", "activate"]
-                    elif state in leave_alone:
+                    target = phase.target
+                    if state in phase.leave_alone:
                         return {**result, "outcome": "skipped", "state": sm.state_dict(state),
                                 "message": f"left alone ({sm.state_label(state)})"}
-                    else:
-                        steps = sm.path(state, target)
+                    steps = sm.path(state, target)
                     if steps is None:
                         return {**result, "outcome": "failed", "state": sm.state_dict(state),
                                 "message": f"cannot go from {sm.state_label(state)} to {sm.state_label(target)}"
@@ -293,6 +288,20 @@ class GroupRunner:
             await asyncio.sleep(0.1)
 
 
+def merged(earlier: dict, later: dict) -> dict:
+    """A node's result over two phases of a run: its steps in turn, the later state. Skipped in
+    both is skipped; a later phase not run after an earlier one drove the node says so."""
+    steps = [*earlier["steps"], *later["steps"]]
+    outcome, message = later["outcome"], later["message"]
+    if outcome == "skipped" and earlier["outcome"] == "succeeded":
+        outcome, message = "succeeded", earlier["message"]
+    elif outcome == "not_run" and earlier["steps"]:
+        message = f"{message}; left {earlier.get('state', {}).get('label', 'where the first phase took it')}"
+    return {**earlier, **later, "steps": steps, "outcome": outcome, "message": message,
+            "node_id": later.get("node_id") or earlier.get("node_id"),
+            "duration_ms": round(earlier.get("duration_ms", 0.0) + later.get("duration_ms", 0.0), 1)}
+
+
 class _Progress:
     """A run's results as its nodes finish, saved and pushed at most every PROGRESS_INTERVAL_S
     (a 100-node run sends a handful of updates, not a hundred)."""
@@ -310,8 +319,12 @@ class _Progress:
         """Finished nodes' results, in the run's order."""
         return [self.done[name] for name in self.names if name in self.done]
 
+    def failed(self, name: str) -> bool:
+        return self.done.get(name, {}).get("outcome") == "failed"
+
     def finished(self, result: dict) -> None:
-        self.done[result["node"]] = result
+        earlier = self.done.get(result["node"])
+        self.done[result["node"]] = merged(earlier, result) if earlier else result
         if result.get("node_id"):
             self.fresh_nodes.append(result["node_id"])
         self.changed = True

@@ -10,8 +10,8 @@ from lifecycle_site.api.limits import MAX_NODES, shown
 from lifecycle_site.api.views import get_node
 from lifecycle_site.fleet.gateway_client import MAX_SERVICE_TIMEOUT
 from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
-from lifecycle_site.fleet.runs import OPERATIONS, RunRefused, start_run, wait_for
-from ros_gateway.shared import param_types
+from lifecycle_site.fleet.runs import RunRefused, start_run, wait_for
+from ros_gateway.shared import operations, param_types
 
 OPERATE = "fleet.operate_node"
 NODE_NAME_LENGTH = ManagedNode._meta.get_field("name").max_length
@@ -54,12 +54,13 @@ def robot_operation(request: HttpRequest, name: str) -> JsonResponse:
     body = _body(request)
     if isinstance(body, JsonResponse):
         return body
+    robot_operations = operations.names(operations.ROBOT)
     if "operation" not in body:
-        return error("missing_field", 'Send {"operation": "bringup"} (bringup, pause, resume, reset, shutdown).', 400)
+        return error("missing_field", f'Send {{"operation": "bringup"}} ({", ".join(robot_operations)}).', 400)
     operation = body["operation"]
-    if not isinstance(operation, str) or operation not in OPERATIONS:
-        return error("unknown_operation", f"{shown(operation)} is not an operation; use one of "
-                     f"{', '.join(OPERATIONS)}.", 400)
+    if not isinstance(operation, str) or operation not in robot_operations:
+        return error("unknown_operation", f"{shown(operation)} is not an operation of a robot; use one of "
+                     f"{', '.join(robot_operations)}.", 400)
     nodes = body.get("nodes") or []
     if not isinstance(nodes, list) or not all(isinstance(n, str) for n in nodes):
         return error("invalid_field", "'nodes' must be a list of ROS node names.", 400)

@@ -16,18 +16,13 @@ from django.db import models
 from lifecycle_site.fleet.gateway_client import MAX_SERVICE_TIMEOUT
 from lifecycle_site.fleet.models import GroupRun, ManagedNode
 from lifecycle_site.fleet.runs import MAX_WAIT_S
-from ros_gateway.shared import protocol
+from ros_gateway.shared import operations, protocol
 from ros_gateway.shared import state_machine as sm
 
 RUN_DETAILS = "One line per node as it is done, then a summary; exit 0 only if the run succeeded."
-ROBOT_RUNS = {
-    "bringup": "bring the robot's nodes up: configure, then activate, in order",
-    "shutdown": "shut the robot's nodes down, in reverse order",
-    "pause": "deactivate the robot's nodes, in reverse order",
-    "resume": "activate the robot's nodes, in order",
-    "reset": "deactivate and clean up the robot's nodes, in reverse order",
-}
-RUN_VERBS = (*ROBOT_RUNS, "restart")
+ROBOT_RUNS = operations.names(operations.ROBOT)
+NODE_RUNS = operations.names(operations.NODE)
+RUN_VERBS = (*ROBOT_RUNS, *NODE_RUNS)
 # Verb -> (one-line summary, details) for --help.
 VERBS: dict[str, tuple[str, str]] = {
     "nodes": ("list the lifecycle nodes", "One line per node: '/joy_to_vel' with --robot, else 'agv-1 /joy_to_vel'."),
@@ -38,9 +33,7 @@ VERBS: dict[str, tuple[str, str]] = {
             "Prints 'Transitioning successful' (exit 0) or 'Transitioning failed' (exit 1, reason on stderr)."),
     "list": ("list the transitions available from the node's current state",
              "'- configure [1]', then its start and goal states; -a: the node's whole transition graph."),
-    **{name: (summary, RUN_DETAILS) for name, summary in ROBOT_RUNS.items()},
-    "restart": ("bring a node back to active from whatever state it is in",
-                "Deactivate, clean up, configure, activate, as its state needs.\n" + RUN_DETAILS),
+    **{op.name: (op.help, RUN_DETAILS) for op in operations.OPERATIONS if op.startable},
 }
 DESCRIPTION = """\
 Like 'ros2 lifecycle', but against the site: every call goes through the ROS gateway (no DDS
@@ -51,9 +44,9 @@ with --robot R, the node's ROS name (/joy_to_vel or joy_to_vel). Several robots 
 of the same name, so lines about nodes of all robots start with the robot ("agv-1 /joy_to_vel");
 with --robot they show the ROS name only ("/joy_to_vel"), as ros2 does.
 
-Changing verbs (set, bringup, shutdown, pause, resume, reset, restart) act as --user USERNAME,
+Changing verbs (set and the operations: {verbs}) act as --user USERNAME,
 else $LIFECYCLE_USER, else the site user named like your login; that user must be active and
-allowed to operate nodes. Read-only verbs (nodes, get, list) need no user."""
+allowed to operate nodes. Read-only verbs (nodes, get, list) need no user.""".format(verbs=", ".join(RUN_VERBS))
 EPILOG = """\
 exit status: 0 success; 1 the transition or run failed (or was still running after --wait);
 2 usage error, unknown node, robot or transition, no usable user; 3 gateway offline or Redis
@@ -125,7 +118,7 @@ def add_verbs(parser: argparse.ArgumentParser) -> None:
     sub["nodes"].add_argument("-c", "--count-nodes", action="store_true", help="only print the number of nodes")
     sub["get"].add_argument("node", nargs="?", metavar="NODE", help=NODE_HELP)
     sub["get"].add_argument("-a", "--all", action="store_true", help="without NODE: also nodes not running, (lost)")
-    for name in ("set", "list", "restart"):
+    for name in ("set", "list", *NODE_RUNS):
         sub[name].add_argument("node", metavar="NODE", help=NODE_HELP)
     sub["set"].add_argument("transition", metavar="TRANSITION", help="label (configure) or numeric id (1)")
     sub["list"].add_argument("-a", "--all", action="store_true", help="the node's whole transition graph")

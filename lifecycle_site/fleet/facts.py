@@ -331,7 +331,7 @@ def _run(known: KnownRecords, fact: dict, at: datetime, applied: Applied) -> Non
     run = GroupRun.objects.select_for_update(of=("self",)).select_related("robot").filter(pk=run_id).first()
     if run is None:
         # The one run a gateway starts on its own: the automatic recovery of one node.
-        if fact.get("operation") != GroupRun.Operation.RECOVER or fact.get("source", "recovery") != "recovery":
+        if fact.get("operation") != "recover" or fact.get("source", "recovery") != "recovery":
             raise FactRejected(f"there is no run {run_id}, and a gateway may start only recoveries")
         robot = known.robot(fact)
         only = fact.get("only_nodes") or []
@@ -339,7 +339,7 @@ def _run(known: KnownRecords, fact: dict, at: datetime, applied: Applied) -> Non
             raise FactRejected("a recovery is of one node")
         timeout = fact.get("node_timeout")
         GroupRun.objects.create(
-            id=run_id, robot=robot, operation=GroupRun.Operation.RECOVER, only_nodes=[checks.node_name(only[0])],
+            id=run_id, robot=robot, operation="recover", only_nodes=[checks.node_name(only[0])],
             source="recovery", policy=checks.choice(fact.get("policy") or "stop", GroupRun.Policy.values, "policy"),
             node_timeout=min(max(float(timeout), 0.1), 60.0) if isinstance(timeout, (int, float))
             and not isinstance(timeout, bool) and timeout == timeout else 5.0, **changes,

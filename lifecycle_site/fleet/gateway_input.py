@@ -14,7 +14,7 @@ from datetime import datetime, timedelta, timezone
 from typing import Any, Iterable
 
 from lifecycle_site.fleet.fact_context import FactRejected
-from ros_gateway.shared import protocol
+from ros_gateway.shared import operations, protocol
 from ros_gateway.shared import state_machine as sm
 
 # A fully qualified ROS node name: /name or /namespace/name (rcl's rules: letters, digits and
@@ -197,7 +197,7 @@ def run_progress(message: dict, robots: dict[str, Any], gateway: str) -> tuple[d
 
     checked = {
         "id": run_id, "robot": robot.name,
-        "operation": choice(run.get("operation"), GroupRun.Operation.values, "operation"),
+        "operation": choice(run.get("operation"), list(operations.BY_NAME), "operation"),
         "policy": choice(run.get("policy"), GroupRun.Policy.values, "policy"),
         "status": choice(run.get("status"), GroupRun.Status.values, "run status"),
         "message": text(run.get("message")),

@@ -5,7 +5,7 @@ from django.conf import settings
 from django.core.validators import MaxValueValidator, MinValueValidator, RegexValidator
 from django.db import models
 
-from ros_gateway.shared import protocol
+from ros_gateway.shared import operations, protocol
 from ros_gateway.shared import state_machine as sm
 
 ROBOT_NAME_VALIDATOR = RegexValidator(
@@ -302,15 +302,6 @@ class LogRecord(models.Model):
 class GroupRun(models.Model):
     """One ordered group operation on a robot's nodes (bring up, pause, ..., restart)."""
 
-    class Operation(models.TextChoices):
-        BRINGUP = "bringup", "bring up"
-        PAUSE = "pause", "pause"
-        RESUME = "resume", "resume"
-        RESET = "reset", "reset"
-        SHUTDOWN = "shutdown", "shut down"
-        RESTART = "restart", "restart"
-        RECOVER = "recover", "recover"
-
     class Policy(models.TextChoices):
         STOP = "stop", "stop at the first failure"
         CONTINUE = "continue", "continue and report"
@@ -324,7 +315,8 @@ class GroupRun(models.Model):
 
     id = models.CharField(primary_key=True, max_length=32, editable=False)
     robot = models.ForeignKey(Robot, on_delete=models.CASCADE, related_name="runs")
-    operation = models.CharField(max_length=16, choices=Operation.choices)
+    # Read from the shared table when asked: a new operation needs no migration.
+    operation = models.CharField(max_length=16, choices=operations.choices)
     policy = models.CharField(max_length=16, choices=Policy.choices, default=Policy.STOP)
     node_timeout = models.FloatField(default=5.0)
     only_nodes = models.JSONField(default=list, blank=True, help_text="Node names; empty for all of the robot's.")

@@ -17,11 +17,10 @@ from django.db.models import F
 from lifecycle_site.fleet import gateways, verdicts
 from lifecycle_site.fleet.gateway_client import GatewayError, call_gateway
 from lifecycle_site.fleet.models import Gateway, GroupRun, ManagedNode, Robot
-from ros_gateway.shared import protocol
+from ros_gateway.shared import operations, protocol
 
 log = logging.getLogger(__name__)
 
-OPERATIONS = [choice for choice, _ in GroupRun.Operation.choices if choice != "recover"]
 MAX_WAIT_S = 600.0
 
 
@@ -44,8 +43,10 @@ def start_run(
     nodes: list[str] | None = None,
 ) -> GroupRun:
     """Record a run and hand it to the gateway; returns at once (the run goes on there)."""
-    if operation not in OPERATIONS:
-        raise RunRefused("unknown_operation", f"{operation!r} is not an operation; use one of {', '.join(OPERATIONS)}.")
+    known = operations.get(operation)
+    if known is None or not known.startable:
+        raise RunRefused("unknown_operation", f"{operation!r} is not an operation; use one of "
+                         f"{', '.join(operations.names())}.")
     if policy not in GroupRun.Policy.values:
         raise RunRefused("invalid_field", "policy must be 'stop' (at the first failure) or 'continue'.")
     if not robot.enabled:
@@ -54,8 +55,8 @@ def start_run(
     unknown = [n for n in nodes if not ManagedNode.objects.filter(robot=robot, name=n).exists()]
     if unknown:
         raise RunRefused("not_found", f"{robot.name} has no node {', '.join(unknown)}.", 404)
-    if operation == "restart" and len(nodes) != 1:
-        raise RunRefused("invalid_field", "restart works on exactly one node.")
+    if known.scope == operations.NODE and len(nodes) != 1:
+        raise RunRefused("invalid_field", f"{operation} works on exactly one node.")
     order = tiers(robot, nodes)
     run = GroupRun.objects.create(
         id=uuid.uuid4().hex,

@@ -176,6 +176,19 @@ def test_robot_wide_reset_and_shutdown_ask_with_the_robot_and_its_node_count(des
     expect(section.locator(".run").first).to_contain_text(f"Reset of {ROBOT}", timeout=WAIT_MS)
     assert GroupRun.objects.filter(robot__name=ROBOT).first().operation == "reset"
 
+    # Restart all, the operation added by an entry of the shared table alone, asks as well.
+    before = on_record()
+    section.get_by_role("button", name="Restart all", exact=True).click()
+    expect(dialog).to_contain_text(f"Restart all {count} nodes of {ROBOT}?")
+    expect(dialog).to_contain_text("then configured and activated again in order")
+    dialog.get_by_role("button", name="Cancel").click()
+    assert on_record() == before
+    section.get_by_role("button", name="Restart all", exact=True).click()
+    dialog.get_by_role("button", name="Restart all").click()
+    expect(section.locator(".run").first).to_contain_text(f"Full restart of {ROBOT}", timeout=WAIT_MS)
+    expect(section.locator(".run").first).to_have_attribute("data-done", "true", timeout=WAIT_MS)
+    assert GroupRun.objects.filter(robot__name=ROBOT).first().operation == "restart_all"
+
     shutdown.focus()
     page.keyboard.press("Enter")
     expect(dialog).to_be_visible()

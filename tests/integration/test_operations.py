@@ -23,13 +23,14 @@ def ops(gateway):
     register(ROBOT, stack.domain(8))
     processes = {
         "main": stack.start_robot("ops-main", stack.domain(8), "lidar_driver,camera_driver,planner",
-                                  extra=("--generic", "3", "--generic-prefix", "spare")),
+                                  extra=("--generic", "5", "--generic-prefix", "spare")),
         "bad": stack.start_robot("ops-bad", stack.domain(8), "flaky_node", "flaky_node.failure_mode:=fail_configure",
                                  namespace="/bad"),
         "slow": stack.start_robot("ops-slow", stack.domain(8), "flaky_node", "flaky_node.failure_mode:=slow_configure",
                                   "flaky_node.slow_seconds:=2.5", namespace="/slow"),
     }
-    for name in ("lidar_driver", "camera_driver", "planner", "bad.flaky_node", "slow.flaky_node", "spare_002"):
+    for name in ("lidar_driver", "camera_driver", "planner", "bad.flaky_node", "slow.flaky_node", "spare_002",
+                 "spare_004"):
         wait_node(None, f"{ROBOT}.{name}", alive=True, state="unconfigured")
     yield processes
     for process in processes.values():
@@ -208,6 +209,59 @@ def test_a_failure_stops_the_groups_after_its_own_not_its_side_by_side_siblings(
     finally:
         gone.delete()
         ManagedNode.objects.filter(robot=robot).update(order=None)
+
+
+def test_restart_all_takes_every_node_down_in_reverse_then_up_in_order(api, ops):
+    """The one operation added by an entry in the shared table alone (restart_all): all of the
+    run's nodes go down to unconfigured, last first, before the first of them comes up again."""
+    ManagedNode.objects.filter(robot__name=ROBOT).update(order=None)
+    _order("/lidar_driver", "/camera_driver", "/planner")
+    nodes = ["/lidar_driver", "/camera_driver", "/planner"]
+    try:
+        assert operation(api, {"operation": "reset", "nodes": nodes}).json()["run"]["status"] == "succeeded"
+        api.post(f"/api/v1/nodes/{ROBOT}.planner/transition", {"transition": "configure"},
+                 content_type="application/json")  # one inactive, two unconfigured
+        assert operation(api, {"operation": "bringup", "nodes": nodes[:2]}).json()["run"]["status"] == "succeeded"
+        run = operation(api, {"operation": "restart_all", "nodes": nodes}).json()["run"]
+        assert run["status"] == "succeeded", run
+        assert [r["node"] for r in run["results"]] == nodes  # in the order they came up
+        steps = {r["node"]: [s["transition"] for s in r["steps"]] for r in run["results"]}
+        assert steps == {"/lidar_driver": ["deactivate", "cleanup", "configure", "activate"],
+                         "/camera_driver": ["deactivate", "cleanup", "configure", "activate"],
+                         "/planner": ["cleanup", "configure", "activate"]}
+        records = list(TransitionRecord.objects.filter(run_id=run["id"]).order_by("requested_at"))
+        assert len(records) == 11 and all(r.outcome == "succeeded" for r in records)
+        down = [r for r in records if r.transition_label in ("deactivate", "cleanup")]
+        up = [r for r in records if r.transition_label in ("configure", "activate")]
+        assert max(r.completed_at for r in down) <= min(r.requested_at for r in up)
+        assert [r.node_name for r in down if r.transition_label == "cleanup"] == nodes[::-1]
+        assert [r.node_name for r in up if r.transition_label == "configure"] == nodes
+        assert {n.state_label for n in ManagedNode.objects.filter(robot__name=ROBOT, name__in=nodes)} == {"active"}
+    finally:
+        ManagedNode.objects.filter(robot__name=ROBOT).update(order=None)
+
+
+def test_restart_all_stops_before_bringing_up_when_a_node_fails_going_down(api, ops):
+    """A node that cannot go down (finalized) stops a "stop" run before the second phase: the
+    others are left unconfigured and say so."""
+    nodes = ["/spare_003", "/spare_004"]
+    ManagedNode.objects.filter(robot__name=ROBOT).update(order=None)
+    _order(*nodes)
+    try:
+        assert operation(api, {"operation": "bringup", "nodes": nodes}).json()["run"]["status"] == "succeeded"
+        assert operation(api, {"operation": "shutdown", "nodes": nodes[:1]}).json()["run"]["status"] == "succeeded"
+        run = operation(api, {"operation": "restart_all", "policy": "stop", "nodes": nodes}).json()["run"]
+        assert run["status"] == "failed", run
+        results = {r["node"]: r for r in run["results"]}
+        assert list(results) == nodes
+        assert results["/spare_003"]["outcome"] == "failed"  # finalized: last to go down, first in order
+        assert "restart its process" in results["/spare_003"]["message"]
+        second = results["/spare_004"]
+        assert second["outcome"] == "not_run" and [s["transition"] for s in second["steps"]] == [
+            "deactivate", "cleanup"]
+        assert second["message"] == "not run: the run stopped after /spare_003 failed; left unconfigured"
+    finally:
+        ManagedNode.objects.filter(robot__name=ROBOT).update(order=None)
 
 
 @pytest.mark.parametrize("start", [[], ["configure"], ["configure", "activate"]])

@@ -52,3 +52,21 @@ def test_the_final_update_comes_last_whenever_the_last_node_finishes():
         messages = _run_progress([0.0, gap])
         assert messages[-1]["status"] == "succeeded", (gap, messages)
         assert len(messages[-1]["results"]) == 2
+
+
+def test_a_node_over_two_phases_has_one_result_with_all_its_steps():
+    down = {"node": "/a", "node_id": "agv.a", "outcome": "succeeded", "message": "", "duration_ms": 10.0,
+            "steps": [{"transition": "deactivate"}, {"transition": "cleanup"}],
+            "state": {"id": 1, "label": "unconfigured"}}
+    up = {"node": "/a", "node_id": "agv.a", "outcome": "succeeded", "message": "", "duration_ms": 12.5,
+          "steps": [{"transition": "configure"}, {"transition": "activate"}], "state": {"id": 3, "label": "active"}}
+    both = groups.merged(down, up)
+    assert [s["transition"] for s in both["steps"]] == ["deactivate", "cleanup", "configure", "activate"]
+    assert (both["outcome"], both["state"]["label"], both["duration_ms"]) == ("succeeded", "active", 22.5)
+    already = {**down, "outcome": "skipped", "message": "already unconfigured", "steps": []}
+    assert groups.merged(already, up)["outcome"] == "succeeded"
+    assert groups.merged(already, {**up, "outcome": "skipped", "steps": []})["outcome"] == "skipped"
+    stopped = {"node": "/a", "outcome": "not_run", "steps": [], "message": "not run: the run stopped after /b failed"}
+    left = groups.merged(down, stopped)
+    assert left["outcome"] == "not_run" and left["state"]["label"] == "unconfigured" and left["node_id"] == "agv.a"
+    assert left["message"] == "not run: the run stopped after /b failed; left unconfigured"

@@ -6,6 +6,7 @@ import json
 from django import template
 
 from lifecycle_site.audit.models import TransitionRecord
+from ros_gateway.shared import operations
 
 register = template.Library()
 
@@ -96,13 +97,18 @@ def all_successful(results: dict) -> bool:
     return all(r.get("successful") for r in results.values())
 
 
-OPERATION_LABELS = {"bringup": "Bring-up", "pause": "Pause", "resume": "Resume", "reset": "Reset",
-                    "shutdown": "Shut-down", "restart": "Restart", "recover": "Recovery"}
-
-
 @register.filter
 def operation_label(operation: str) -> str:
-    return OPERATION_LABELS.get(operation, operation)
+    known = operations.get(operation)
+    return known.title if known else operation
+
+
+@register.simple_tag
+def robot_operations(robot: str) -> list[dict]:
+    """The fleet page's buttons for a robot, from the shared table (confirmation with its name)."""
+    return [{"name": op.name, "button": op.button, "help": op.help, "danger": op.danger,
+             "confirm": op.confirm_text(robot), "confirm_detail": op.confirm_detail}
+            for op in operations.OPERATIONS if op.scope == operations.ROBOT]
 
 
 @register.filter
@@ -143,7 +149,8 @@ SIDE_BY_SIDE = "no bring-up order among its nodes: they run side by side, up to 
 @register.filter
 def run_policy_words(run: dict) -> str:
     """What a run's failure policy does, as its steps make it work ('' for one node)."""
-    if run.get("operation") in ("restart", "recover") or len(run.get("nodes") or []) == 1:
+    known = operations.get(run.get("operation"))
+    if (known is not None and known.scope != operations.ROBOT) or len(run.get("nodes") or []) == 1:
         return ""
     stop = run.get("policy") != "continue"
     steps = run.get("steps")

@@ -20,7 +20,7 @@ from lifecycle_site.fleet.gateway_client import GatewayError, GatewayOffline, ca
 from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
 from lifecycle_site.fleet.runs import RunRefused, start_run, wait_for
 from lifecycle_site.fleet.transitions import ago, request_transition
-from ros_gateway.shared import protocol
+from ros_gateway.shared import operations, protocol
 from ros_gateway.shared import state_machine as sm
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_OFFLINE, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
@@ -160,8 +160,9 @@ class Command(BaseCommand):
         return EXIT_FAILED
 
     def do_group(self, opts: SimpleNamespace) -> int:
-        """bringup, shutdown, pause, resume, reset (a robot) and restart (a node): one GroupRun."""
-        if opts.verb == "restart":
+        """An operation of the shared table, of a robot or of a node: one GroupRun."""
+        operation = operations.BY_NAME[opts.verb]
+        if operation.scope == operations.NODE:
             node = self.node(opts.node, self.robot(opts.robot))
             robot, only = node.robot, [node.name]
         else:
@@ -177,7 +178,10 @@ class Command(BaseCommand):
 
         def progress(current: GroupRun) -> None:
             """Print each node's line as its result arrives (the gateway adds a node once done;
-            nodes driven side by side may finish in any order)."""
+            nodes driven side by side may finish in any order). A node of an operation in
+            phases is done only when the run is (its line would be of its first phase)."""
+            if len(operation.phases) > 1 and not current.done:
+                return
             for result in current.results:
                 if result["node"] not in shown:
                     shown.add(result["node"])
