@@ -42,6 +42,8 @@ ADMINISTER = OPERATE + [
 ]
 ROLES: dict[str, list[str]] = {"viewer": VIEW, "operator": OPERATE, "admin": ADMINISTER}
 ADMIN_ROLE = "admin"
+#: The permission that tells a role from the one below it (operations.py names a role per operation).
+ROLE_PERMISSION = {"viewer": "fleet.view_robot", "operator": "fleet.operate_node", "admin": "fleet.change_robot"}
 #: The roles a member of the admin role may give or take away; the admin role itself, the
 #: staff and superuser flags and single permissions are a superuser's (see accounts_admin).
 ASSIGNABLE_BY_ADMINS = ("viewer", "operator")
@@ -79,3 +81,9 @@ def admins_are_staff(sender, instance, action: str, **_: Any) -> None:
     if instance.is_staff != is_admin and not instance.is_superuser:
         instance.is_staff = is_admin
         instance.save(update_fields=["is_staff"])
+
+
+def may_act_as(user: Any, role: str) -> bool:
+    """Whether ``user`` holds ``role``'s rights (an unknown role: nobody does)."""
+    permission = ROLE_PERMISSION.get(role)
+    return permission is not None and user.has_perm(permission)

@@ -14,7 +14,7 @@ from datetime import datetime, timedelta, timezone
 from django.conf import settings
 from django.db.models import F
 
-from lifecycle_site.fleet import gateways, verdicts
+from lifecycle_site.fleet import gateways, roles, verdicts
 from lifecycle_site.fleet.gateway_client import GatewayError, call_gateway
 from lifecycle_site.fleet.models import Gateway, GroupRun, ManagedNode, Robot
 from ros_gateway.shared import operations, protocol
@@ -47,6 +47,8 @@ def start_run(
     if known is None or not known.startable:
         raise RunRefused("unknown_operation", f"{operation!r} is not an operation; use one of "
                          f"{', '.join(operations.names())}.")
+    if getattr(user, "pk", None) and not roles.may_act_as(user, known.role):
+        raise RunRefused("forbidden", f"{known.button} needs the {known.role} role.", 403)
     if policy not in GroupRun.Policy.values:
         raise RunRefused("invalid_field", "policy must be 'stop' (at the first failure) or 'continue'.")
     if not robot.enabled:

@@ -9,8 +9,10 @@ from django.test import Client
 
 from lifecycle_site.fleet import cli_output
 from lifecycle_site.fleet.models import GroupRun, Robot
+from lifecycle_site.fleet.runs import RunRefused, start_run
 from ros_gateway.shared import operations
 from ros_gateway.shared import state_machine as sm
+from tests.conftest import make_user
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -67,3 +69,16 @@ def test_the_api_names_every_robot_operation_when_one_is_unknown(operator_client
     message = response.json()["error"]["message"]
     assert all(name in message for name in operations.names(operations.ROBOT))
     assert "recover" not in message
+
+
+@pytest.mark.django_db
+def test_an_operation_is_started_only_by_a_user_with_its_role():
+    robot = Robot.objects.create(name="table-agv", domain_id=97)
+    for op in operations.OPERATIONS:
+        if op.startable:
+            with pytest.raises(RunRefused) as refused:
+                start_run(robot, op.name, user=make_user("victor-viewer", "viewer"), source="cli",
+                          nodes=["/x"] if op.scope == operations.NODE else None)
+            assert (refused.value.code, refused.value.status) == ("forbidden", 403)
+            assert refused.value.message == f"{op.button} needs the {op.role} role."
+    assert not GroupRun.objects.exists()
