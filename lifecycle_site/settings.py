@@ -17,38 +17,13 @@ from csp.constants import NONE, SELF
 from django.core.exceptions import ImproperlyConfigured
 
 from lifecycle_site.alerts.destinations import Allow, parse_allow
+from ros_gateway.shared import environment as env
+from ros_gateway.shared import protocol
 
 BASE_DIR = Path(__file__).resolve().parent.parent
 DATA_DIR = Path(os.environ.get("LIFECYCLE_DATA_DIR", BASE_DIR / "var")).resolve()
 DATA_DIR.mkdir(parents=True, exist_ok=True)
 
-
-def env_bool(name: str, default: bool) -> bool:
-    value = os.environ.get(name)
-    return default if value is None else value.strip().lower() in ("1", "true", "yes", "on")
-
-
-def env_float(name: str, default: float) -> float:
-    return float(os.environ.get(name, default))
-
-
-def _megabytes(name: str) -> int | None:
-    """A size in MB from the environment, as bytes; unset is None, anything but a positive
-    number stops the process (a typo must not silently mean "no limit")."""
-    value = os.environ.get(name, "").strip()
-    if not value:
-        return None
-    try:
-        size = float(value)
-    except ValueError:
-        size = -1.0
-    if not 0 < size < 1_000_000:
-        raise ImproperlyConfigured(f"{name}: {value!r} is not a size in MB (e.g. 16)")
-    return int(size * 1024 * 1024)
-
-
-def env_list(name: str, default: str) -> list[str]:
-    return [item.strip() for item in os.environ.get(name, default).split(",") if item.strip()]
 
 
 def _secret_key() -> str:
@@ -65,19 +40,19 @@ def _secret_key() -> str:
 
 
 SECRET_KEY = _secret_key()
-DEBUG = env_bool("DJANGO_DEBUG", False)
-ALLOWED_HOSTS = env_list("DJANGO_ALLOWED_HOSTS", "127.0.0.1,localhost,[::1]")
-CSRF_TRUSTED_ORIGINS = env_list("DJANGO_CSRF_TRUSTED_ORIGINS", "")
-if env_bool("LIFECYCLE_BEHIND_TLS_PROXY", False):
+DEBUG = env.flag("DJANGO_DEBUG", False)
+ALLOWED_HOSTS = env.items("DJANGO_ALLOWED_HOSTS", "127.0.0.1,localhost,[::1]")
+CSRF_TRUSTED_ORIGINS = env.items("DJANGO_CSRF_TRUSTED_ORIGINS", "")
+if env.flag("LIFECYCLE_BEHIND_TLS_PROXY", False):
     # The proxy terminates TLS and says so; without this, CSRF origin checks fail behind it.
     SECURE_PROXY_SSL_HEADER = ("HTTP_X_FORWARDED_PROTO", "https")
     SESSION_COOKIE_SECURE = CSRF_COOKIE_SECURE = True
     # Browsers that saw the site over TLS refuse plain HTTP to it for this long. Sent only on
     # answers to HTTPS requests (SecurityMiddleware), so a plain-HTTP demo never gets it.
-    SECURE_HSTS_SECONDS = int(os.environ.get("LIFECYCLE_HSTS_SECONDS", 365 * 24 * 3600))
+    SECURE_HSTS_SECONDS = env.whole("LIFECYCLE_HSTS_SECONDS", 365 * 24 * 3600, minimum=0, unit="seconds")
     # Off by default: on a plant network the site's name may be the parent of hosts that serve
     # plain HTTP (the device's own name is usually not).
-    SECURE_HSTS_INCLUDE_SUBDOMAINS = env_bool("LIFECYCLE_HSTS_INCLUDE_SUBDOMAINS", False)
+    SECURE_HSTS_INCLUDE_SUBDOMAINS = env.flag("LIFECYCLE_HSTS_INCLUDE_SUBDOMAINS", False)
 # Django's defaults, spelled out because docs/security.md promises them.
 SESSION_COOKIE_HTTPONLY = True
 SESSION_COOKIE_SAMESITE = CSRF_COOKIE_SAMESITE = "Lax"
@@ -105,7 +80,7 @@ CONTENT_SECURITY_POLICY = {
 # Sub-path behind a reverse proxy that strips it (see lifecycle_site/prefix.py).
 URL_PREFIX = os.environ.get("LIFECYCLE_URL_PREFIX", "").rstrip("/")
 FORCE_SCRIPT_NAME = URL_PREFIX or None
-LIFECYCLE_TRUST_FORWARDED_PREFIX = env_bool("LIFECYCLE_TRUST_FORWARDED_PREFIX", False)
+LIFECYCLE_TRUST_FORWARDED_PREFIX = env.flag("LIFECYCLE_TRUST_FORWARDED_PREFIX", False)
 
 # The site is served by daphne (``python -m lifecycle_site.serve``: make demo, the image). "daphne" is not an app
 # here: it only replaces runserver, and importing it (twisted, autobahn, cryptography) costs
@@ -148,8 +123,8 @@ MIDDLEWARE = [
 # or from one client address, logins of that account / from that address are refused for
 # LIFECYCLE_LOGIN_LOCKOUT_MINUTES (a right password included), on /login/ and /admin/login/.
 AUTHENTICATION_BACKENDS = ["axes.backends.AxesStandaloneBackend", "django.contrib.auth.backends.ModelBackend"]
-AXES_FAILURE_LIMIT = int(os.environ.get("LIFECYCLE_LOGIN_FAILURES", "5"))
-AXES_COOLOFF_TIME = timedelta(minutes=float(os.environ.get("LIFECYCLE_LOGIN_LOCKOUT_MINUTES", "15")))
+AXES_FAILURE_LIMIT = env.whole("LIFECYCLE_LOGIN_FAILURES", 5, minimum=1, unit="failed logins")
+AXES_COOLOFF_TIME = timedelta(minutes=env.number("LIFECYCLE_LOGIN_LOCKOUT_MINUTES", 15, above=0, unit="minutes"))
 AXES_LOCKOUT_PARAMETERS = ["username", "ip_address"]
 # A good login forgets only that account's failures from that address (login_attempts.py):
 # axes' own reset, by account or address, let a good login of one account wipe the failures
@@ -193,7 +168,7 @@ if DATABASES["default"]["ENGINE"] == "django.db.backends.postgresql":
     DATABASES["default"].setdefault("OPTIONS", {}).setdefault("connect_timeout", 10)
     # A process frozen (SIGSTOP, a paused container) inside a transaction holds its row locks:
     # PostgreSQL ends such a session after this long, so the others' writes go on (docs/architecture.md).
-    _idle_ms = int(env_float("LIFECYCLE_DB_IDLE_IN_TRANSACTION_S", 10) * 1000)
+    _idle_ms = int(env.number("LIFECYCLE_DB_IDLE_IN_TRANSACTION_S", 10, above=0) * 1000)
     DATABASES["default"]["OPTIONS"].setdefault("options", f"-c idle_in_transaction_session_timeout={_idle_ms}")
 elif DATABASES["default"]["ENGINE"] == "django.db.backends.sqlite3":
     # WAL lets the gateway write while the site reads; IMMEDIATE avoids lock upgrades failing.
@@ -204,7 +179,7 @@ elif DATABASES["default"]["ENGINE"] == "django.db.backends.sqlite3":
     }
 DEFAULT_AUTO_FIELD = "django.db.models.BigAutoField"
 
-REDIS_URL = os.environ.get("REDIS_URL", "redis://127.0.0.1:6479/0")
+REDIS_URL = env.text("REDIS_URL", protocol.DEFAULT_REDIS_URL)
 # Every consumer waits for its messages in a blocking BZPOPMIN of 5 s (channels-redis's
 # RedisChannelLayer.brpop_timeout). The Redis client's read timeout must outlast that pop, or
 # a consumer on a quiet page dies with "Timeout reading from" every 5 s and daphne closes its
@@ -241,7 +216,7 @@ CHANNEL_LAYERS = {
                 "socket_connect_timeout": 5.0,
                 **_channel_layer_retry(),
             }],
-            "prefix": os.environ.get("LIFECYCLE_CHANNEL_PREFIX", "lifecycle"),
+            "prefix": env.text("LIFECYCLE_CHANNEL_PREFIX", "lifecycle"),
             "capacity": 1000,
             "expiry": 30,
             "group_expiry": 3600,
@@ -293,30 +268,18 @@ LOGGING = {
 
 # What the ROS gateway and the site agree on. Times in seconds.
 LIFECYCLE = {
-    # Bound on every lifecycle/parameter service call the gateway makes.
-    "SERVICE_TIMEOUT": env_float("LIFECYCLE_SERVICE_TIMEOUT", 5.0),
-    # How often the gateway re-reads the ROS graph and the robot table.
-    "DISCOVERY_INTERVAL": env_float("LIFECYCLE_DISCOVERY_INTERVAL", 0.5),
-    "ROBOT_REFRESH_INTERVAL": env_float("LIFECYCLE_ROBOT_REFRESH_INTERVAL", 2.0),
-    # The gateway writes a heartbeat; the site calls it offline when it is older than this.
-    "HEARTBEAT_INTERVAL": env_float("LIFECYCLE_HEARTBEAT_INTERVAL", 2.0),
-    # A robot process that misses two get_state probes in a row is unreachable (its host's
-    # link may be down): seen in about 4 s instead of the DDS lease's 20+ s. 0 turns it off.
-    "LIVENESS_INTERVAL": env_float("LIFECYCLE_LIVENESS_INTERVAL", 1.0),
-    "LIVENESS_TIMEOUT": env_float("LIFECYCLE_LIVENESS_TIMEOUT", 1.5),
-    "GATEWAY_OFFLINE_AFTER": env_float("LIFECYCLE_GATEWAY_OFFLINE_AFTER", 10.0),
+    **env.agreed(),  # service timeout, gateway timings, log buffer: ros_gateway/shared/environment.py
+    "GATEWAY_OFFLINE_AFTER": env.number("LIFECYCLE_GATEWAY_OFFLINE_AFTER", 10.0, above=0),
     # A group run of a gateway silent this long (and whose facts are all stored) ends failed.
-    "RUN_ORPHAN_AFTER": env_float("LIFECYCLE_RUN_ORPHAN_AFTER", 120.0),
+    "RUN_ORPHAN_AFTER": env.number("LIFECYCLE_RUN_ORPHAN_AFTER", 120.0, above=0),
     # Extra wait the site grants the gateway beyond the service timeout before giving up.
-    "COMMAND_GRACE": env_float("LIFECYCLE_COMMAND_GRACE", 3.0),
+    "COMMAND_GRACE": env.number("LIFECYCLE_COMMAND_GRACE", 3.0, above=0),
     # /rosout history kept server-side: per logger (node) count, and age.
-    "LOG_KEEP_PER_NODE": int(os.environ.get("LIFECYCLE_LOG_KEEP_PER_NODE", 2000)),
-    "LOG_KEEP_HOURS": env_float("LIFECYCLE_LOG_KEEP_HOURS", 72.0),
-    # In-memory log buffer of the gateway; records beyond it are dropped and counted.
-    "LOG_BUFFER": int(os.environ.get("LIFECYCLE_LOG_BUFFER", 20000)),
+    "LOG_KEEP_PER_NODE": env.whole("LIFECYCLE_LOG_KEEP_PER_NODE", 2000, minimum=1, unit="log records"),
+    "LOG_KEEP_HOURS": env.number("LIFECYCLE_LOG_KEEP_HOURS", 72.0, above=0, unit="hours"),
     # Bytes each gateway's Redis keys may hold before the site cuts it off (fleet/redis_guard.py);
     # None: an eighth of Redis's maxmemory, at most 64 MB (fleet.gateway_config.redis_quota).
-    "GATEWAY_REDIS_QUOTA": _megabytes("LIFECYCLE_GATEWAY_REDIS_QUOTA_MB"),
+    "GATEWAY_REDIS_QUOTA": env.megabytes("LIFECYCLE_GATEWAY_REDIS_QUOTA_MB"),
 }
 
 # GET /metrics answers without an API token to these client addresses (comma-separated
@@ -350,22 +313,23 @@ LIFECYCLE_WEBHOOK_ALLOW = _webhook_allow()
 ALERTS = {
     # Link to the site in notifications (e.g. https://edge.plant/lifecycle); empty: no link.
     "SITE_URL": os.environ.get("LIFECYCLE_SITE_URL", "").rstrip("/"),
-    "QUEUE_SIZE": int(os.environ.get("LIFECYCLE_ALERT_QUEUE", 200)),  # deliveries waiting; more are dropped
-    "WORKERS": int(os.environ.get("LIFECYCLE_ALERT_WORKERS", 2)),
-    "TIMEOUT_S": env_float("LIFECYCLE_ALERT_TIMEOUT", 5.0),  # per webhook request or SMTP session
-    "ATTEMPTS": int(os.environ.get("LIFECYCLE_ALERT_ATTEMPTS", 5)),
-    "RETRY_BASE_S": env_float("LIFECYCLE_ALERT_RETRY_BASE", 2.0),  # then 2x, 4x ... up to the cap
-    "RETRY_CAP_S": env_float("LIFECYCLE_ALERT_RETRY_CAP", 60.0),
-    "DELIVERY_LOG_KEEP": int(os.environ.get("LIFECYCLE_ALERT_DELIVERY_LOG", 2000)),
-    "RESOLVED_KEEP_DAYS": env_float("LIFECYCLE_ALERT_KEEP_DAYS", 90.0),
+    # Deliveries waiting; more are dropped.
+    "QUEUE_SIZE": env.whole("LIFECYCLE_ALERT_QUEUE", 200, minimum=1, unit="deliveries"),
+    "WORKERS": env.whole("LIFECYCLE_ALERT_WORKERS", 2, minimum=1, maximum=64, unit="workers"),
+    "TIMEOUT_S": env.number("LIFECYCLE_ALERT_TIMEOUT", 5.0, above=0),  # per webhook request or SMTP session
+    "ATTEMPTS": env.whole("LIFECYCLE_ALERT_ATTEMPTS", 5, minimum=1, unit="attempts"),
+    "RETRY_BASE_S": env.number("LIFECYCLE_ALERT_RETRY_BASE", 2.0, above=0),  # then 2x, 4x ... up to the cap
+    "RETRY_CAP_S": env.number("LIFECYCLE_ALERT_RETRY_CAP", 60.0, above=0),
+    "DELIVERY_LOG_KEEP": env.whole("LIFECYCLE_ALERT_DELIVERY_LOG", 2000, minimum=1, unit="deliveries"),
+    "RESOLVED_KEEP_DAYS": env.number("LIFECYCLE_ALERT_KEEP_DAYS", 90.0, above=0, unit="days"),
 }
 # E-mail for alerts (Django's mail): an SMTP server of the plant; nothing is sent without receivers.
 EMAIL_BACKEND = os.environ.get("LIFECYCLE_EMAIL_BACKEND", "django.core.mail.backends.smtp.EmailBackend")
 EMAIL_HOST = os.environ.get("LIFECYCLE_EMAIL_HOST", "localhost")
-EMAIL_PORT = int(os.environ.get("LIFECYCLE_EMAIL_PORT", 25))
+EMAIL_PORT = env.whole("LIFECYCLE_EMAIL_PORT", 25, minimum=1, maximum=65535, unit="port")
 EMAIL_HOST_USER = os.environ.get("LIFECYCLE_EMAIL_USER", "")
 EMAIL_HOST_PASSWORD = os.environ.get("LIFECYCLE_EMAIL_PASSWORD", "")
-EMAIL_USE_TLS = env_bool("LIFECYCLE_EMAIL_STARTTLS", False)
-EMAIL_USE_SSL = env_bool("LIFECYCLE_EMAIL_TLS", False)
+EMAIL_USE_TLS = env.flag("LIFECYCLE_EMAIL_STARTTLS", False)
+EMAIL_USE_SSL = env.flag("LIFECYCLE_EMAIL_TLS", False)
 EMAIL_TIMEOUT = ALERTS["TIMEOUT_S"]
 DEFAULT_FROM_EMAIL = os.environ.get("LIFECYCLE_EMAIL_FROM", "lifecycle-manager@localhost")

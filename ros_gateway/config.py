@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from typing import Mapping
 from xml.sax.saxutils import escape
 
-from ros_gateway.shared import protocol
+from ros_gateway.shared import environment, protocol
 
 # DDS settings a gateway runs with, as any ROS 2 Jazzy process reads them.
 DDS_VARIABLES = (
@@ -59,11 +59,14 @@ class GatewayConfig:
         return max(3 * self.heartbeat_interval, 1.5)
 
     @classmethod
-    def load(cls, name: str, settings, environ: Mapping[str, str] = os.environ) -> "GatewayConfig":
-        """From Django's settings (which read the environment) and the DDS variables."""
+    def load(cls, name: str, environ: Mapping[str, str] = os.environ) -> "GatewayConfig":
+        """From this gateway's environment (never the site's settings: a gateway has none of them)."""
         if not protocol.GATEWAY_NAME_RE.match(name):
             raise ConfigError(f"Gateway name {name!r}: use lower-case letters, digits, '-' and '_' (e.g. cell-a).")
-        lifecycle = settings.LIFECYCLE
+        try:
+            agreed = environment.agreed(environ)
+        except environment.SettingError as exc:
+            raise ConfigError(str(exc)) from None
         dds = {key: environ[key] for key in DDS_VARIABLES if environ.get(key)}
         check_dds(dds)
         if dds.get("ROS_DISCOVERY_SERVER") and "ROS_SUPER_CLIENT" not in dds:
@@ -72,20 +75,17 @@ class GatewayConfig:
             dds["ROS_SUPER_CLIENT"] = "TRUE"
         if environ.get(INTERFACES_VARIABLE, "").strip():
             dds[INTERFACES_VARIABLE] = ",".join(interface_addresses(environ[INTERFACES_VARIABLE], dds))
-        if lifecycle["LIVENESS_INTERVAL"] < 0 or lifecycle["LIVENESS_TIMEOUT"] <= 0:
-            raise ConfigError("LIFECYCLE_LIVENESS_INTERVAL must be 0 (off) or more and LIFECYCLE_LIVENESS_TIMEOUT "
-                              "more than 0 (seconds).")
         return cls(
             name=name,
-            redis_url=settings.REDIS_URL,
-            prefix=settings.CHANNEL_LAYERS["default"]["CONFIG"].get("prefix", "lifecycle"),
-            service_timeout=lifecycle["SERVICE_TIMEOUT"],
-            discovery_interval=lifecycle["DISCOVERY_INTERVAL"],
-            robot_refresh_interval=lifecycle["ROBOT_REFRESH_INTERVAL"],
-            heartbeat_interval=lifecycle["HEARTBEAT_INTERVAL"],
-            log_buffer=lifecycle["LOG_BUFFER"],
-            liveness_interval=lifecycle["LIVENESS_INTERVAL"],
-            liveness_timeout=lifecycle["LIVENESS_TIMEOUT"],
+            redis_url=environment.text("REDIS_URL", protocol.DEFAULT_REDIS_URL, environ),
+            prefix=environment.text("LIFECYCLE_CHANNEL_PREFIX", "lifecycle", environ),
+            service_timeout=agreed["SERVICE_TIMEOUT"],
+            discovery_interval=agreed["DISCOVERY_INTERVAL"],
+            robot_refresh_interval=agreed["ROBOT_REFRESH_INTERVAL"],
+            heartbeat_interval=agreed["HEARTBEAT_INTERVAL"],
+            log_buffer=agreed["LOG_BUFFER"],
+            liveness_interval=agreed["LIVENESS_INTERVAL"],
+            liveness_timeout=agreed["LIVENESS_TIMEOUT"],
             dds=dds,
         )
 

@@ -231,9 +231,9 @@ GATEWAY_DATABASE_URL = "sqlite:////nonexistent-lifecycle-test-dir/no-database-fo
 
 
 def start_gateway(name: str = "local", **env: str) -> Process:
-    """``manage.py ros_gateway --name NAME``, with no usable database."""
+    """``python -m ros_gateway --name NAME``, with no usable database."""
     return Process(
-        name, [sys.executable, "manage.py", "ros_gateway", "--name", name],
+        name, [sys.executable, "-m", "ros_gateway", "--name", name],
         environment(**{"DATABASE_URL": GATEWAY_DATABASE_URL, **env}), log_dir(),
     )
 

@@ -84,7 +84,7 @@ case "$role" in
         health_info
         log "gateway $LIFECYCLE_GATEWAY_NAME, Redis at ${REDIS_URL##*@}; ROS discovery range" \
             "${ROS_AUTOMATIC_DISCOVERY_RANGE:-SYSTEM_DEFAULT}${ROS_STATIC_PEERS:+, static peers $ROS_STATIC_PEERS}"
-        exec "$PYTHON" manage.py ros_gateway --name "$LIFECYCLE_GATEWAY_NAME" "$@"
+        exec "$PYTHON" -m ros_gateway --name "$LIFECYCLE_GATEWAY_NAME" "$@"
         ;;
     redis)
         health_info

@@ -146,6 +146,6 @@ def cause(node: ManagedNode, start: int | None, found: int, moment: datetime) ->
     if run is not None and (not run.only_nodes or node.name in run.only_nodes) and \
             (not run.finished or run.finished >= moment - RUN_CONTEXT):
         by = f" by {run.requested_by.get_username()}" if run.requested_by else ""
-        text += (f"; the {run.get_operation_display()} run {run.pk[:8]}{by} was under way "
+        text += (f"; the {run.get_operation_display().lower()} run {run.pk[:8]}{by} was under way "
                  f"({run.status}{': ' + run.message if run.message else ''})")
     return text + "."

@@ -47,6 +47,8 @@ FLEET_GROUP = "fleet"
 GATEWAY_NAME_PATTERN = r"[a-z0-9][a-z0-9_-]{0,62}"
 GATEWAY_NAME_RE = re.compile(rf"^{GATEWAY_NAME_PATTERN}$")
 DEFAULT_GATEWAY = "local"
+# The Redis the site and a gateway use when REDIS_URL is not set (the one `make demo` starts).
+DEFAULT_REDIS_URL = "redis://127.0.0.1:6479/0"
 INGEST_GROUP = "ingest"
 # The stream field ("1") of facts entries handed over in one round trip with a command's reply.
 REPLIED = "r"

@@ -1,4 +1,4 @@
-"""The product's gateway (ros_gateway.service.Gateway, as ``manage.py ros_gateway`` runs it)
+"""The product's gateway (ros_gateway.service.Gateway, as ``python -m ros_gateway`` runs it)
 plus a JSON file of its own counters, rewritten every half second, so the benchmark can see
 what it received, dropped, handed to its outbox and published. Nothing of the gateway is
 changed. (What is stored, the ingest process stores: see Stack.ingest_stats.)
@@ -52,13 +52,7 @@ async def report(gateway, path: Path) -> None:
 
 
 def main(name: str, stats_path: str) -> None:
-    os.environ.setdefault("DJANGO_SETTINGS_MODULE", "lifecycle_site.settings")
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    import django
-
-    django.setup()
-    from django.conf import settings
-
     from ros_gateway import tasks
     from ros_gateway.config import GatewayConfig
     from ros_gateway.service import Gateway
@@ -67,7 +61,7 @@ def main(name: str, stats_path: str) -> None:
     tasks_module = tasks
 
     async def run() -> None:
-        gateway = Gateway(GatewayConfig.load(name, settings))
+        gateway = Gateway(GatewayConfig.load(name))
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, gateway.stop)

@@ -57,12 +57,12 @@ class Site:
 
     def start_gateway(self, name: str, host: netns.Host, **dds: str) -> netns.NsProcess:
         """Register ``name`` (``manage.py add_gateway --redis-url`` the private address) and run
-        ``manage.py ros_gateway`` on ``host`` with the environment add_gateway wrote."""
+        ``python -m ros_gateway`` on ``host`` with the environment add_gateway wrote."""
         path = self.tmp / f"{name}.env"
         call_command("add_gateway", name, env_file=str(path), redis_url=self.redis_url)
         env = dict(line.split("=", 1) for line in path.read_text().splitlines() if "=" in line)
         assert f"@{self.redis_address}:" in env["REDIS_URL"], env["REDIS_URL"].split("@")[-1]
-        process = host.start(name, [sys.executable, "manage.py", "ros_gateway", "--name", name],
+        process = host.start(name, [sys.executable, "-m", "ros_gateway", "--name", name],
                              stack.environment(DATABASE_URL=stack.GATEWAY_DATABASE_URL, **env, **dds))
         self.gateways[name] = process
         began = time.monotonic()

@@ -48,7 +48,7 @@ def test_a_gateway_limited_to_one_interface_finds_its_robot_and_says_so(api, cel
     ({"LIFECYCLE_DDS_INTERFACES": "eth9"}, "this host has no network interface 'eth9'"),
 ])
 def test_a_gateway_with_unusable_dds_settings_stops_at_once_saying_why(live_db, setting, says):
-    done = subprocess.run([sys.executable, "manage.py", "ros_gateway", "--name", "cell-bad"],
+    done = subprocess.run([sys.executable, "-m", "ros_gateway", "--name", "cell-bad"],
                           env=stack.environment(**setting), capture_output=True, text=True, timeout=30)
     assert done.returncode != 0
     assert says in done.stderr, done.stderr

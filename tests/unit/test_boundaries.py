@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import ast
 import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -43,6 +46,31 @@ def test_nothing_under_ros_gateway_imports_the_site():
         for path in sources("ros_gateway")
     }
     assert {path: names for path, names in offenders.items() if names} == {}
+
+
+def test_the_gateway_never_reaches_the_site_settings_included():
+    """No Django at all under ros_gateway (a management command or an app config there would run
+    the gateway on the site's settings), and the gateway starts and reads its settings without
+    them: with DJANGO_SETTINGS_MODULE unset, nothing of lifecycle_site or django is loaded."""
+    offenders = {
+        str(path.relative_to(ROOT)): sorted(n for n in imports(path) if n.split(".")[0] in ("django", "lifecycle_site"))
+        for path in sources("ros_gateway")
+    }
+    assert {path: names for path, names in offenders.items() if names} == {}
+    assert not (ROOT / "ros_gateway" / "management").exists() and not (ROOT / "ros_gateway" / "apps.py").exists()
+    probe = (
+        "import sys\n"
+        "from ros_gateway.__main__ import arguments\n"
+        "from ros_gateway.config import GatewayConfig\n"
+        "from ros_gateway import service, groups, commands\n"
+        "GatewayConfig.load(arguments(['--name', 'cell-a']).name, {'REDIS_URL': 'redis://127.0.0.1:1/0'})\n"
+        "print(sorted(m for m in sys.modules if m.split('.')[0] in ('django', 'lifecycle_site')))\n"
+    )
+    environ = {k: v for k, v in os.environ.items() if k != "DJANGO_SETTINGS_MODULE"}
+    done = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, env=environ, capture_output=True, text=True,
+                          timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]", done.stdout
 
 
 def test_the_gateway_uses_no_database():

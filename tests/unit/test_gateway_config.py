@@ -5,7 +5,6 @@ from __future__ import annotations
 import xml.etree.ElementTree as ET
 
 import pytest
-from django.conf import settings
 
 from ros_gateway.config import ANNOUNCEMENT_PERIOD_S, ConfigError, GatewayConfig, interfaces_profile
 from ros_gateway.domain import FASTDDS_PROFILES
@@ -14,7 +13,7 @@ NS = {"f": "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"}
 
 
 def load(**environ: str) -> GatewayConfig:
-    return GatewayConfig.load("cell-a", settings, environ)
+    return GatewayConfig.load("cell-a", environ)
 
 
 @pytest.mark.parametrize("environ, says", [
@@ -34,9 +33,28 @@ def test_unusable_dds_settings_are_refused_with_what_would_do(environ, says):
     assert says in str(refused.value)
 
 
+@pytest.mark.parametrize("environ, says", [
+    ({"LIFECYCLE_SERVICE_TIMEOUT": "5s"}, "LIFECYCLE_SERVICE_TIMEOUT='5s': expected a number of seconds, more than 0"),
+    ({"LIFECYCLE_LIVENESS_INTERVAL": "-1"}, "LIFECYCLE_LIVENESS_INTERVAL='-1': expected a number of seconds, at"),
+    ({"LIFECYCLE_LOG_BUFFER": "lots"}, "LIFECYCLE_LOG_BUFFER='lots': expected a whole number of log records"),
+    ({"LIFECYCLE_HEARTBEAT_INTERVAL": "nan"}, "LIFECYCLE_HEARTBEAT_INTERVAL='nan': expected a number of seconds"),
+])
+def test_unusable_timings_name_the_variable_and_the_form_it_needs(environ, says):
+    with pytest.raises(ConfigError) as refused:
+        load(**environ)
+    assert says in str(refused.value)
+
+
+def test_the_gateway_reads_its_own_environment_not_the_sites_settings():
+    config = load(REDIS_URL="redis://gw-cell-a:secret@10.0.0.9:6379/0", LIFECYCLE_CHANNEL_PREFIX="plant",
+                  LIFECYCLE_SERVICE_TIMEOUT="2.5", LIFECYCLE_LOG_BUFFER="500")
+    assert (config.redis_url, config.prefix) == ("redis://gw-cell-a:secret@10.0.0.9:6379/0", "plant")
+    assert (config.service_timeout, config.log_buffer, config.heartbeat_interval) == (2.5, 500, 2.0)
+
+
 def test_a_bad_gateway_name_is_refused():
     with pytest.raises(ConfigError, match="lower-case letters"):
-        GatewayConfig.load("Cell A", settings, {})
+        GatewayConfig.load("Cell A", {})
 
 
 def test_interfaces_by_name_or_address_are_reported_as_addresses():

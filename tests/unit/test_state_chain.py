@@ -83,4 +83,4 @@ def test_a_change_seen_only_at_its_end_during_a_run_names_the_run_and_who_starte
     apply_facts("cell-f", [seen_end])
     record = TransitionRecord.objects.get(fact_id=seen_end["id"])
     assert (record.start_state_label, record.result_state_label) == ("unconfigured", "inactive")
-    assert f"the bring up run {run.pk[:8]} by run-operator was under way (failed: the gateway cell-f" in record.error
+    assert f"the bring-up run {run.pk[:8]} by run-operator was under way (failed: the gateway cell-f" in record.error

@@ -88,7 +88,7 @@ class Command(BaseCommand):
         if env_file is not None:
             self.stderr.write(self.style.SUCCESS(
                 f"{verb} gateway {gateway.name}. Its environment is in {env_file} (readable by you only): "
-                f"start its process with it, e.g. `env $(cat {env_file}) python manage.py ros_gateway`."
+                f"start its process with it, e.g. `env $(cat {env_file}) python -m ros_gateway`."
             ))
         else:
             self.stdout.write("\n".join(lines))

@@ -173,7 +173,7 @@ class Command(BaseCommand):
         python = sys.executable
         logs = data / "logs"
         supervisor.add(Child("ingest", [python, "manage.py", "ingest"], logs / "ingest.log"))
-        supervisor.add(Child("ros_gateway", [python, "manage.py", "ros_gateway"], logs / "gateway.log"))
+        supervisor.add(Child("ros_gateway", [python, "-m", "ros_gateway"], logs / "gateway.log"))
         if not no_robots:
             for name, domain, autostart in DEMO_ROBOTS:
                 robot = [python, "-m", "ros_gateway.demo.robot", "--domain", str(domain)]
