@@ -100,7 +100,6 @@ INSTALLED_APPS = [
     "lifecycle_site.api",
     "lifecycle_site.dashboard",
     "lifecycle_site.alerts",
-    "ros_gateway",
 ]
 
 MIDDLEWARE = [

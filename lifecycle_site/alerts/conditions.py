@@ -14,10 +14,8 @@ from django.db.models import F, Q
 from lifecycle_site.alerts.models import Rule
 from lifecycle_site.fleet import gateways
 from lifecycle_site.fleet.models import Gateway, ManagedNode
+from lifecycle_site.fleet.observations import GONE, Observation  # noqa: F401 (the conditions' words)
 from ros_gateway.shared import protocol
-from ros_gateway.shared import state_machine as sm
-
-GONE = "gone"  # an observation's state when a node.gone fact reported it
 
 
 @dataclass(frozen=True)
@@ -30,18 +28,6 @@ class Condition:
     gateway: str = ""
     robot: str = ""
     node: str = ""
-
-
-@dataclass(frozen=True)
-class Observation:
-    """A node's state as one fact reported it, at the gateway's time."""
-
-    gateway: str
-    robot: str
-    node: str
-    state: str  # a state label, or GONE
-    at: datetime
-    reason: str = ""
 
 
 def _node_text(node: str, robot: str) -> str:
@@ -137,25 +123,3 @@ def from_facts(rule: Rule, observations: list[Observation]) -> dict[str, Conditi
         key = protocol.node_key(seen.robot, seen.node)
         found.setdefault(key, Condition(key, seen.at, summary, seen.gateway, seen.robot, seen.node))
     return found
-
-
-def observations(gateway: str, facts: list[dict]) -> list[Observation]:
-    """The node states and departures among a batch of facts (malformed ones are skipped:
-    fleet.facts has rejected and counted them)."""
-    from lifecycle_site.fleet.fact_context import FactRejected, parse_time
-
-    seen = []
-    for fact in facts:
-        if not isinstance(fact, dict) or fact.get("type") not in (protocol.NODE_STATE, protocol.NODE_GONE):
-            continue
-        try:
-            at = parse_time(fact.get("at"), "at")
-            if fact["type"] == protocol.NODE_STATE:
-                state = sm.state_label(int(fact["state_id"]))
-            else:
-                state = GONE
-            seen.append(Observation(gateway, str(fact["robot"]), str(fact["node"]), state, at,
-                                    str(fact.get("reason") or "")))
-        except (KeyError, TypeError, ValueError, FactRejected):
-            continue
-    return seen

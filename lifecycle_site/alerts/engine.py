@@ -25,6 +25,7 @@ from django.utils import timezone
 from lifecycle_site.alerts import conditions as cond
 from lifecycle_site.alerts.delivery import Dispatcher, Job, Result
 from lifecycle_site.alerts.models import CONTROL_CHARACTERS, Alert, Delivery, Receiver, Rule, split_emails
+from lifecycle_site.fleet.observations import Observation, observations
 
 log = logging.getLogger(__name__)
 
@@ -36,7 +37,7 @@ OBSERVATIONS_KEPT = 10_000  # between two evaluations (a second's facts)
 class Evaluator:
     def __init__(self, dispatcher: Dispatcher | None = None) -> None:
         self.dispatcher = dispatcher or Dispatcher()
-        self.observed: deque[cond.Observation] = deque(maxlen=OBSERVATIONS_KEPT)
+        self.observed: deque[Observation] = deque(maxlen=OBSERVATIONS_KEPT)
         # (rule id, subject) -> when its condition was last seen holding (for keep_firing_seconds).
         self.last_true: dict[tuple[int, str], datetime] = {}
         self.due = 0.0
@@ -47,7 +48,13 @@ class Evaluator:
 
     def observe(self, gateway: str, facts: list[dict]) -> None:
         """Facts of one gateway just stored (cheap: evaluated at the next tick)."""
-        self.observed.extend(cond.observations(gateway, facts))
+        self.take(observations(gateway, facts))
+
+    def take(self, seen: list[Observation]) -> None:
+        self.observed.extend(seen)
+
+    def stop(self) -> None:
+        self.dispatcher.stop()
 
     def tick(self) -> None:
         """One turn; never raises, but for the database being unavailable (ingest retries)."""

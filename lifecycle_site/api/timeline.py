@@ -1,7 +1,7 @@
 """GET /api/v1/nodes/{id}/timeline and /api/v1/robots/{name}/timeline (docs/api.md, "Timeline"):
 a node's states over the last 15 minutes, hour, day or week or a range (from, to), time in each,
 availability, failures, restarts and the events to look at, rebuilt from the audit log
-(lifecycle_site/dashboard/timeline.py)."""
+(lifecycle_site/timelines/node.py)."""
 from __future__ import annotations
 
 from django.http import HttpRequest, JsonResponse
@@ -9,10 +9,10 @@ from django.http import HttpRequest, JsonResponse
 from lifecycle_site.api.auth import api_view, error
 from lifecycle_site.api.limits import shown
 from lifecycle_site.api.views import get_node
-from lifecycle_site.dashboard import timeline as tl
-from lifecycle_site.dashboard import timeline_windows as tw
-from lifecycle_site.dashboard.robot_timeline import robot_timeline as robot_timeline_of
 from lifecycle_site.fleet.models import Robot
+from lifecycle_site.timelines import node as tl
+from lifecycle_site.timelines import windows as tw
+from lifecycle_site.timelines.robot import robot_timeline as robot_timeline_of
 
 
 def _window(request: HttpRequest) -> tw.Window | JsonResponse:

@@ -1,7 +1,6 @@
 from django.urls import path, re_path
 
-from lifecycle_site.alerts import api as alerts
-from lifecycle_site.api import operations, parameters, timeline, views
+from lifecycle_site.api import alerts, operations, parameters, timeline, views
 from lifecycle_site.api.auth import not_found
 
 app_name = "api"

@@ -92,7 +92,7 @@ class TransitionRecord(AppendOnlyRecord):
         indexes = [
             models.Index(fields=["robot_name", "-requested_at"], name="audit_robot_recent"),
             models.Index(fields=["node", "-requested_at"], name="audit_node_recent"),
-            # Covering indexes of the state timeline's counts over a window (dashboard/timeline.py),
+            # Covering indexes of the state timeline's counts over a window (timelines/node.py),
             # read without a visit to the table's rows: a node's records by outcome, and a robot's
             # failures and restarts only (a few among a week's records).
             models.Index(fields=["node", "requested_at", "outcome"], name="audit_node_outcomes"),

@@ -16,8 +16,8 @@ from django.urls import reverse
 from django.utils.html import escape
 from django.utils.safestring import SafeString, mark_safe
 
-from lifecycle_site.dashboard import timeline as tl
-from lifecycle_site.dashboard.timeline_events import OUTAGE, Event
+from lifecycle_site.timelines import node as tl
+from lifecycle_site.timelines.events import OUTAGE, Event
 from ros_gateway.shared import state_machine as sm
 
 BAR_H = 26

@@ -9,14 +9,14 @@ from django.http import Http404, HttpRequest, HttpResponse
 from django.shortcuts import render
 from django.urls import reverse
 
-from lifecycle_site.dashboard import timeline as tl
-from lifecycle_site.dashboard import timeline_windows as tw
 from lifecycle_site.dashboard.access import viewer_required
-from lifecycle_site.dashboard.robot_timeline import robot_timeline as robot_timeline_of
 from lifecycle_site.dashboard.timeline_drawing import drawing, duration, numbered, pattern, utc
-from lifecycle_site.dashboard.timeline_events import MAX_EVENTS, MAX_EVENTS_ROBOT, OUTAGE, moment_query
 from lifecycle_site.dashboard.views import node_or_404
 from lifecycle_site.fleet.models import Robot
+from lifecycle_site.timelines import node as tl
+from lifecycle_site.timelines import windows as tw
+from lifecycle_site.timelines.events import MAX_EVENTS, MAX_EVENTS_ROBOT, OUTAGE, moment_query
+from lifecycle_site.timelines.robot import robot_timeline as robot_timeline_of
 
 
 def legend(timeline_list: list[tl.Timeline]) -> list[dict]:

@@ -1,5 +1,5 @@
 """When nodes were away: opened by node.gone (or a robot's node list without the node), closed
-by the node's return. The state timeline reads them (dashboard/timeline.py).
+by the node's return. The state timeline reads them (timelines/node.py).
 
 Applying a fact twice, or late, changes nothing: a node has at most one open absence (a
 partial unique constraint), an absence is opened only for a node that had been seen, and a

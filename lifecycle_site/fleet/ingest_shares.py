@@ -21,7 +21,7 @@ from datetime import datetime
 
 import redis
 
-from lifecycle_site.alerts.conditions import Observation
+from lifecycle_site.fleet.observations import Observation
 from ros_gateway.shared import protocol
 
 LEASE_S = 15.0

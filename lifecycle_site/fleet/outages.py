@@ -2,7 +2,7 @@
 leader, every few seconds) sees a gateway offline, stopped or quarantined, and closed when it
 sees it online again; and, for a restart too quick to be seen offline, when a new process's
 first heartbeat comes (``note_restart``). The state timeline marks them
-(dashboard/timeline_events.py), and the log consoles: nothing received the robots' /rosout then.
+(timelines/events.py), and the log consoles: nothing received the robots' /rosout then.
 
 It begins at the gateway's last heartbeat (its last sign of life; for a quarantine, when the
 site cut it off) and ends at the first heartbeat seen after it. Only what the site saw is

@@ -226,6 +226,7 @@ def test_the_ingest_loop_fires_on_a_state_it_stored_in_passing(ingest_cell):
               part.fact(protocol.NODE_STATE, robot=robot.name, node="/flaky", state_id=sm.ERRORPROCESSING),
               part.fact(protocol.NODE_STATE, robot=robot.name, node="/flaky", state_id=sm.UNCONFIGURED))
     ingest = Ingest()
+    assert [type(w).__name__ for w in ingest.watchers] == ["Evaluator"]  # registered by the alerts app
     assert ingest.hold_lease()
     try:
         stack.wait_for(lambda: ingest.step(block_ms=100) is not None and Alert.objects.filter(rule=rule).exists(),
@@ -235,4 +236,5 @@ def test_the_ingest_loop_fires_on_a_state_it_stored_in_passing(ingest_cell):
                        and Alert.objects.get(rule=rule).status == "resolved", 10, "the alert to resolve")
     finally:
         ingest.release_lease()
-        ingest.alerts.dispatcher.stop()
+        for watcher in ingest.watchers:
+            watcher.stop()

@@ -245,3 +245,26 @@ def test_refusals_before_any_view_can_answer_in_json():
     assert "Invalid HTTP_HOST header" in json.loads(api.content)["error"]["message"]
     page = bad_request(RequestFactory().get("/audit/"), DisallowedHost("x"))
     assert page.status_code == 400 and page["Content-Type"].startswith("text/html")
+
+
+def test_no_two_apps_of_the_site_import_each_other():
+    """Each pair of the site's apps depends one way at most (alerts watch fleet through
+    fleet/watchers.py; the API's alert endpoints live in api; timelines are their own package)."""
+    apps = sorted(p.name for p in (ROOT / "lifecycle_site").iterdir() if (p / "__init__.py").exists())
+    uses: dict[str, set[str]] = {app: set() for app in apps}
+    for app in apps:
+        for path in sources(f"lifecycle_site/{app}"):
+            if "migrations" in path.parts:
+                continue
+            for name in imports(path):
+                parts = name.split(".")
+                if parts[0] == "lifecycle_site" and len(parts) > 1 and parts[1] in uses and parts[1] != app:
+                    uses[app].add(parts[1])
+    both = sorted({tuple(sorted((a, b))) for a in apps for b in uses[a] if a in uses[b]})
+    assert both == [], f"apps importing each other: {both}"
+
+
+def test_no_product_file_is_over_400_lines():
+    long = {str(p.relative_to(ROOT)): n for folder in ("lifecycle_site", "ros_gateway")
+            for p in sources(folder) if (n := len(p.read_text().splitlines())) > 400}
+    assert long == {}

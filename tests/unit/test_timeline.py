@@ -11,9 +11,9 @@ from django.db import connection
 from django.test.utils import CaptureQueriesContext
 
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.dashboard import timeline as tl
-from lifecycle_site.dashboard.robot_timeline import robot_timeline as robot_timeline_of
 from lifecycle_site.fleet.models import ManagedNode, NodeAbsence, Robot
+from lifecycle_site.timelines import node as tl
+from lifecycle_site.timelines.robot import robot_timeline as robot_timeline_of
 from ros_gateway.shared import state_machine as sm
 
 NOW = datetime(2026, 11, 23, 12, 0, tzinfo=timezone.utc)

@@ -11,14 +11,14 @@ from urllib.parse import parse_qs, urlsplit
 import pytest
 
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.dashboard import timeline as tl
 from lifecycle_site.dashboard import timeline_drawing as td
-from lifecycle_site.dashboard import timeline_events as te
-from lifecycle_site.dashboard import timeline_windows as tw
-from lifecycle_site.dashboard.robot_timeline import robot_timeline
 from lifecycle_site.fleet import gateways as gw
 from lifecycle_site.fleet import outages
 from lifecycle_site.fleet.models import Gateway, GatewayOutage, LogRecord, ManagedNode, Robot
+from lifecycle_site.timelines import events as te
+from lifecycle_site.timelines import node as tl
+from lifecycle_site.timelines import windows as tw
+from lifecycle_site.timelines.robot import robot_timeline
 from ros_gateway.shared import state_machine as sm
 
 NOW = datetime(2026, 11, 23, 12, 0, tzinfo=timezone.utc)

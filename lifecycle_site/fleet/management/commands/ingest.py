@@ -30,10 +30,8 @@ from django.conf import settings
 from django.core.management.base import BaseCommand
 from django.db import DatabaseError, InterfaceError, OperationalError, connection, transaction
 
-from lifecycle_site.alerts.conditions import observations
-from lifecycle_site.alerts.engine import Evaluator
 from lifecycle_site.fleet import gateways as gw
-from lifecycle_site.fleet import quarantine, state_chain
+from lifecycle_site.fleet import quarantine, state_chain, watchers
 from lifecycle_site.fleet.absences import prune_absences
 from lifecycle_site.fleet.fact_context import FactRejected
 from lifecycle_site.fleet.facts import apply_facts
@@ -44,6 +42,7 @@ from lifecycle_site.fleet.live_relay import LiveRelay
 from lifecycle_site.fleet.live_updates import push, record_messages
 from lifecycle_site.fleet.log_store import LogTargets, prune_logs, store_batch
 from lifecycle_site.fleet.models import Gateway
+from lifecycle_site.fleet.observations import observations
 from lifecycle_site.fleet.outages import prune_outages
 from lifecycle_site.fleet.redis_guard import RedisGuard
 from lifecycle_site.fleet.runs import fail_runs_of_silent_gateways
@@ -94,7 +93,8 @@ class Ingest:
         self.due: dict[str, float] = {}
         self.last_complaint = 0.0
         self.applied = 0
-        self.alerts = Evaluator()  # alert rules, evaluated by the leader: once per site (docs/alerts.md)
+        # The alert rules (registered by alerts/apps.py), evaluated by the leader: once per site.
+        self.watchers = watchers.start()
         self.refresh_wanted = threading.Event()  # another thread quarantined a gateway
 
     # --- the loop --------------------------------------------------------------------------
@@ -131,7 +131,8 @@ class Ingest:
                 self.shares.leave()
             except redis.RedisError:
                 pass
-            self.alerts.dispatcher.stop()
+            for watcher in self.watchers:
+                watcher.stop()
 
     def step(self, block_ms: int = BLOCK_MS) -> int:
         """Read and apply what is there (waiting up to ``block_ms``), then the periodic work."""
@@ -140,8 +141,10 @@ class Ingest:
             self.refresh()
         applied = self.read(block_ms)
         if self.shares.leader:
-            self.alerts.observed.extend(self.shares.take_over())
-            self.alerts.tick()
+            handed = self.shares.take_over()
+            for watcher in self.watchers:
+                watcher.take(handed)
+                watcher.tick()
             if self.is_due("beats", BEATS_S):
                 self.duties.copy_beats(self.gateways)
                 self.duties.publish_configs(self.gateways)
@@ -333,7 +336,8 @@ class Ingest:
         applied = apply_facts(row.name, facts)
         seen = observations(row.name, applied.accepted)
         if self.shares.leader:
-            self.alerts.observed.extend(seen)
+            for watcher in self.watchers:
+                watcher.take(seen)
         else:
             self.shares.hand_over(seen)
         row.facts_rejected += applied.rejected

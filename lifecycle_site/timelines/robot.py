@@ -1,4 +1,4 @@
-"""A robot's state timeline: each of its nodes over one window (dashboard/timeline.py), read
+"""A robot's state timeline: each of its nodes over one window (timelines/node.py), read
 together in a bounded number of queries whatever the robot's size: its nodes with their last
 record before the window, at most MAX_ROWS_ROBOT records and MAX_ABSENCES_ROBOT absences of the
 window (newest first) and one count per node and outcome.
@@ -11,7 +11,9 @@ from datetime import datetime
 from django.db.models import Count, OuterRef, Subquery
 
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.dashboard.timeline import (
+from lifecycle_site.fleet.models import ManagedNode, NodeAbsence, Robot
+from lifecycle_site.timelines.events import MAX_EVENTS_ROBOT, Event, outage_events, record_events
+from lifecycle_site.timelines.node import (
     ABSENCE_FIELDS,
     DEFAULT_WINDOW,
     FAILURE_OUTCOMES,
@@ -29,8 +31,6 @@ from lifecycle_site.dashboard.timeline import (
     overlapping,
     read_newest,
 )
-from lifecycle_site.dashboard.timeline_events import MAX_EVENTS_ROBOT, Event, outage_events, record_events
-from lifecycle_site.fleet.models import ManagedNode, NodeAbsence, Robot
 
 
 @dataclass

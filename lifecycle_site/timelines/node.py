@@ -1,4 +1,4 @@
-"""A node's states over a window, rebuilt from the audit log (a robot's nodes together: robot_timeline.py).
+"""A node's states over a window, rebuilt from the audit log (a robot's nodes together: robot.py).
 
 What the records tell, and what they cannot:
 - every transition attempt and every change made by another tool ("observed") is a
@@ -14,7 +14,7 @@ What the records tell, and what they cannot:
 
 Reads are bounded: one indexed query for the state before the window, at most MAX_ROWS
 records and MAX_ABSENCES absences of the window (newest first; what is older is drawn as "not
-read"), one count per outcome, and for the marks (timeline_events.py) the reasons of at most
+read"), one count per outcome, and for the marks (events.py) the reasons of at most
 MAX_EVENTS marked records by primary key and the gateway's outages in one indexed query.
 Availability counts from when the node was first seen ("not seen yet" is neither).
 """
@@ -29,8 +29,9 @@ from typing import Iterable
 from django.db.models import Count
 
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.dashboard.timeline_events import MAX_EVENTS, Event, outage_events, record_events
-from lifecycle_site.dashboard.timeline_facts import (  # noqa: F401 (names of this module too)
+from lifecycle_site.fleet.models import ManagedNode, NodeAbsence
+from lifecycle_site.timelines.events import MAX_EVENTS, Event, outage_events, record_events
+from lifecycle_site.timelines.facts import (  # noqa: F401 (names of this module too)
     ABSENCE_FIELDS,
     FAILURE_OUTCOMES,
     GONE,
@@ -47,8 +48,7 @@ from lifecycle_site.dashboard.timeline_facts import (  # noqa: F401 (names of th
     Row,
     Segment,
 )
-from lifecycle_site.dashboard.timeline_windows import DEFAULT_WINDOW, WINDOWS, Window, window_of  # noqa: F401
-from lifecycle_site.fleet.models import ManagedNode, NodeAbsence
+from lifecycle_site.timelines.windows import DEFAULT_WINDOW, WINDOWS, Window, window_of  # noqa: F401
 from ros_gateway.shared import state_machine as sm
 
 # Records read per timeline at most (a node's page; a robot's page shares them among its nodes).
@@ -57,7 +57,7 @@ MAX_ROWS_ROBOT = 5000
 MAX_ABSENCES = 1000
 MAX_ABSENCES_ROBOT = 2000
 
-# The facts' shapes and the pseudo-states are in timeline_facts.py (imported above: they are
+# The facts' shapes and the pseudo-states are in facts.py (imported above: they are
 # part of this module's names too).
 
 
@@ -75,7 +75,7 @@ class Timeline:
     cut_before: datetime | None  # records older than this were not read
     notes: list[str] = field(default_factory=list)
     absences: int = 0  # times the node went away within the window
-    events: list[Event] = field(default_factory=list)  # its marked records (timeline_events.py)
+    events: list[Event] = field(default_factory=list)  # its marked records (events.py)
     outages: list[Event] = field(default_factory=list)  # its gateway's, in the window
 
     @property
