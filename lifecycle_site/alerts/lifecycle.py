@@ -7,17 +7,10 @@ from django.db.models import Count, Q, QuerySet
 from django.utils import timezone
 
 from lifecycle_site.alerts.models import Alert
+from lifecycle_site.refusal import Refusal
 
 ACKNOWLEDGE_PERMISSION = "alerts.acknowledge_alert"
 VIEW_PERMISSION = "alerts.view_alert"
-
-
-class AlertRefused(Exception):
-    """Why an alert could not be acknowledged: a code, a message for a person, an HTTP status."""
-
-    def __init__(self, code: str, message: str, status: int) -> None:
-        super().__init__(message)
-        self.code, self.message, self.status = code, message, status
 
 
 def acknowledge(alert_id: int, user) -> Alert:
@@ -29,12 +22,12 @@ def acknowledge(alert_id: int, user) -> Alert:
     )
     alert = Alert.objects.select_related("rule").filter(pk=alert_id).first()
     if alert is None:
-        raise AlertRefused("not_found", f"There is no alert {alert_id}.", 404)
+        raise Refusal("not_found", f"There is no alert {alert_id}.", 404)
     if not updated:
         if alert.status == Alert.Status.ACKNOWLEDGED:
-            raise AlertRefused("already_acknowledged", f"Alert {alert_id} was acknowledged already by "
+            raise Refusal("already_acknowledged", f"Alert {alert_id} was acknowledged already by "
                                f"{alert.acknowledged_by_name or 'a deleted user'}.", 409)
-        raise AlertRefused("already_resolved", f"Alert {alert_id} is resolved already: its condition is over; "
+        raise Refusal("already_resolved", f"Alert {alert_id} is resolved already: its condition is over; "
                            "nothing to acknowledge.", 409)
     return alert
 

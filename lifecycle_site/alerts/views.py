@@ -9,6 +9,7 @@ from django.views.decorators.http import require_POST
 
 from lifecycle_site.alerts import lifecycle
 from lifecycle_site.audit import denials
+from lifecycle_site.refusal import Refusal
 
 PAGE_LIMIT = 200
 STATUSES = [("recent", "active, and resolved in the last hour"), ("active", "active"), ("firing", "firing"),
@@ -46,7 +47,7 @@ def acknowledge(request: HttpRequest, alert_id: int) -> HttpResponse:
     error = ""
     try:
         alert = lifecycle.acknowledge(alert_id, request.user)
-    except lifecycle.AlertRefused as refused:
+    except Refusal as refused:
         if refused.status == 404:
             return HttpResponse(format_html('<p class="result fail" role="alert">{}</p>', refused.message), status=404)
         error = refused.message

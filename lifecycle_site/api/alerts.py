@@ -70,11 +70,7 @@ def alert_detail(request: HttpRequest, alert_id: int) -> JsonResponse:
 def acknowledge(request: HttpRequest, alert_id: int) -> JsonResponse:
     if not request.user.has_perm(lifecycle.ACKNOWLEDGE_PERMISSION):
         return _refuse(request, "operator or admin")
-    try:
-        alert = lifecycle.acknowledge(alert_id, request.user)
-    except lifecycle.AlertRefused as refused:
-        return error(refused.code, refused.message, refused.status)
-    return JsonResponse(alert.as_dict())
+    return JsonResponse(lifecycle.acknowledge(alert_id, request.user).as_dict())
 
 
 def _rules():
@@ -82,11 +78,7 @@ def _rules():
 
 
 def _save_rule(request: HttpRequest, instance: Rule | None) -> JsonResponse:
-    body = json_body(request)
-    if isinstance(body, JsonResponse):
-        return body
-    if not isinstance(body, dict):
-        return error("malformed_json", "The request body must be a JSON object of rule fields.", 400)
+    body = json_body(request, shape=dict, wanted="of rule fields")
     unknown = sorted(set(body) - set(RULE_FIELDS))
     if unknown:
         return error("unknown_fields", f"Unknown rule fields: {', '.join(map(str, unknown))[:200]}; "

@@ -21,7 +21,7 @@ from lifecycle_site.api.limits import MAX_DEPTH, MAX_DIGITS, body_limit, cut, si
 from lifecycle_site.api.models import ApiToken, hash_token
 from lifecycle_site.audit import denials
 from lifecycle_site.database_input import MESSAGE as DATA_ERROR_MESSAGE
-from lifecycle_site.fleet.gateway_client import GatewayError
+from lifecycle_site.refusal import Refusal
 from ros_gateway.shared import param_types as pt
 
 UNSAFE_METHODS = {"POST", "PUT", "PATCH", "DELETE"}
@@ -35,7 +35,7 @@ DATABASE_DOWN_MESSAGE = (
 
 def error(code: str, message: str, status: int, **details) -> JsonResponse:
     """The one error shape of the API: {"error": {"code", "message", ...details}}."""
-    return JsonResponse({"error": {"code": code, "message": message, **details}}, status=status)
+    return refusal_response(Refusal(code, message, status, **details))
 
 
 class NonFiniteNumber(ValueError):
@@ -111,35 +111,47 @@ def loads_finite(text: str | bytes) -> Any:
     return document
 
 
-def json_body(request: HttpRequest, empty: bytes = b""):
-    """The request body parsed as JSON, or the API's 400 answer (malformed_json, or
-    non_finite_number for NaN, Infinity, -Infinity, 1e999: nothing is sent to a robot).
+def json_body(request: HttpRequest, empty: bytes = b"", *, shape: type | None = None, wanted: str = ""):
+    """The request body parsed as JSON; a Refusal (400: malformed_json, or non_finite_number for
+    NaN, Infinity, -Infinity, 1e999; 413 too large) when it cannot be, nothing sent to a robot.
 
-    ``empty`` stands in for an empty body (b"" keeps an empty body malformed)."""
+    ``empty`` stands in for an empty body (b"" keeps an empty body malformed); with ``shape``
+    (dict, list) anything else is refused as malformed_json, ``wanted`` saying what to send."""
     try:
-        return loads_finite(request.body or empty)
+        body = loads_finite(request.body or empty)
     except RequestDataTooBig:
-        return body_too_large()
+        raise too_large() from None
     except TooDeep:
-        return error("too_deep", f"Nothing was sent: the request body nests lists or objects deeper than "
-                     f"{MAX_DEPTH} levels; no endpoint takes more than 3.", 400)
+        raise Refusal("too_deep", f"Nothing was sent: the request body nests lists or objects deeper than "
+                      f"{MAX_DEPTH} levels; no endpoint takes more than 3.") from None
     except TooManyDigits as exc:
-        return error("malformed_json", f"Nothing was sent: {exc}.", 400)
+        raise Refusal("malformed_json", f"Nothing was sent: {exc}.") from None
     except NonFiniteNumber as exc:
-        return error(
-            "non_finite_number", f"Nothing was sent: {exc}.", 400,
-            value=exc.literal, path=list(exc.path),
-        )
+        raise Refusal("non_finite_number", f"Nothing was sent: {exc}.", value=exc.literal,
+                      path=list(exc.path)) from None
     except UnicodeDecodeError as exc:
-        return error("malformed_json", f"The request body is not UTF-8 text: {exc}.", 400)
+        raise Refusal("malformed_json", f"The request body is not UTF-8 text: {exc}.") from None
     except ValueError as exc:
-        return error("malformed_json", f"The request body is not valid JSON: {exc}.", 400)
+        raise Refusal("malformed_json", f"The request body is not valid JSON: {exc}.") from None
+    if shape is not None and not isinstance(body, shape):
+        kind = "object" if shape is dict else "list"
+        raise Refusal("malformed_json", f"The request body must be a JSON {kind}" + (f" {wanted}." if wanted else "."))
+    return body
+
+
+def too_large() -> Refusal:
+    limit = size_text(body_limit())
+    return Refusal("body_too_large", f"The request body is larger than {limit}, the most this site takes; "
+                   "nothing was done.", 413, limit=body_limit())
 
 
 def body_too_large() -> JsonResponse:
-    limit = size_text(body_limit())
-    return error("body_too_large", f"The request body is larger than {limit}, the most this site takes; "
-                 "nothing was done.", 413, limit=body_limit())
+    return refusal_response(too_large())
+
+
+def refusal_response(refusal: Refusal) -> JsonResponse:
+    """Every refusal in the API's one error shape."""
+    return JsonResponse(refusal.as_json(), status=refusal.status)
 
 
 def _token_user(request: HttpRequest):
@@ -234,8 +246,8 @@ def api_view(methods: tuple[str, ...] = ("GET",), permission: str = VIEW_PERMISS
                 return view(request, *args, **kwargs)
             except Http404 as exc:
                 return error("not_found", str(exc) or "Not found.", 404)
-            except GatewayError as exc:
-                return error(exc.code, exc.message, exc.status, **exc.details)
+            except Refusal as refusal:  # the operations', the gateway link's, the alerts'
+                return refusal_response(refusal)
             except RequestDataTooBig:
                 return body_too_large()
             except TooManyFieldsSent:

@@ -10,27 +10,23 @@ from lifecycle_site.api.limits import MAX_NODES, shown
 from lifecycle_site.api.views import get_node
 from lifecycle_site.fleet.gateway_client import MAX_SERVICE_TIMEOUT
 from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
-from lifecycle_site.fleet.runs import RunRefused, start_run, wait_for
+from lifecycle_site.fleet.runs import start_run, wait_for
+from lifecycle_site.refusal import Refusal
 from ros_gateway.shared import operations, param_types
 
 OPERATE = "fleet.operate_node"
 NODE_NAME_LENGTH = ManagedNode._meta.get_field("name").max_length
 
 
-def _body(request: HttpRequest) -> dict | JsonResponse:
-    body = json_body(request, empty=b"{}")
-    if isinstance(body, JsonResponse):
-        return body
-    if not isinstance(body, dict):
-        return error("malformed_json", "The request body must be a JSON object.", 400)
-    return body
+def _body(request: HttpRequest) -> dict:
+    return json_body(request, empty=b"{}", shape=dict)
 
 
 def _positive(value, name: str, default: float) -> float:
     if value is None:
         return default
     if not param_types.is_number(value) or not 0 < value <= MAX_SERVICE_TIMEOUT:
-        raise RunRefused("invalid_field", f"'{name}' must be a positive number of seconds, at most "
+        raise Refusal("invalid_field", f"'{name}' must be a positive number of seconds, at most "
                          f"{MAX_SERVICE_TIMEOUT:g} (per node).")
     return float(value)
 
@@ -52,8 +48,6 @@ def robot_operation(request: HttpRequest, name: str) -> JsonResponse:
     if robot is None:
         raise Http404(f"There is no robot named {shown(name)}.")
     body = _body(request)
-    if isinstance(body, JsonResponse):
-        return body
     robot_operations = operations.names(operations.ROBOT)
     if "operation" not in body:
         return error("missing_field", f'Send {{"operation": "bringup"}} ({", ".join(robot_operations)}).', 400)
@@ -69,14 +63,10 @@ def robot_operation(request: HttpRequest, name: str) -> JsonResponse:
                      "in one operation (leave it out to run every node of the robot).", 400, limit=MAX_NODES)
     if any(len(n) > NODE_NAME_LENGTH for n in nodes):
         return error("invalid_field", f"A node name is at most {NODE_NAME_LENGTH} characters long.", 400)
-    try:
-        run = start_run(
-            robot, operation, user=request.user, source="api",
-            policy=str(body.get("policy", GroupRun.Policy.STOP)),
-            node_timeout=_positive(body.get("timeout"), "timeout", 5.0), nodes=nodes,
-        )
-    except RunRefused as exc:
-        return error(exc.code, exc.message, exc.status)
+    run = start_run(
+        robot, operation, user=request.user, source="api", policy=str(body.get("policy", GroupRun.Policy.STOP)),
+        node_timeout=_positive(body.get("timeout"), "timeout", 5.0), nodes=nodes,
+    )
     return _answer(request, run)
 
 
@@ -84,13 +74,8 @@ def robot_operation(request: HttpRequest, name: str) -> JsonResponse:
 def node_restart(request: HttpRequest, key: str) -> JsonResponse:
     node = get_node(key)
     body = _body(request)
-    if isinstance(body, JsonResponse):
-        return body
-    try:
-        run = start_run(node.robot, "restart", user=request.user, source="api", nodes=[node.name],
-                        node_timeout=_positive(body.get("timeout"), "timeout", 5.0))
-    except RunRefused as exc:
-        return error(exc.code, exc.message, exc.status)
+    run = start_run(node.robot, "restart", user=request.user, source="api", nodes=[node.name],
+                    node_timeout=_positive(body.get("timeout"), "timeout", 5.0))
     return _answer(request, run)
 
 
@@ -114,8 +99,6 @@ def robot_runs(request: HttpRequest, name: str) -> JsonResponse:
 def desired_state(request: HttpRequest, key: str) -> JsonResponse:
     node = get_node(key)
     body = _body(request)
-    if isinstance(body, JsonResponse):
-        return body
     if "desired_state" not in body:
         return error("missing_field", 'Send {"desired_state": "active"} (or null to clear it).', 400)
     wanted = body["desired_state"]

@@ -73,8 +73,6 @@ def node_parameters(request: HttpRequest, key: str) -> JsonResponse:
     if not request.user.has_perm("fleet.operate_node"):
         return error("forbidden", "Your role may view parameters but not change them (operator needed).", 403)
     values = json_body(request)
-    if isinstance(values, JsonResponse):
-        return values
     if not isinstance(values, dict) or not values:
         return error("missing_field", 'Send the new values as {"name": value, ...}.', 400)
     if len(values) > MAX_PARAMETERS:  # each one is sent to the node and audited

@@ -10,26 +10,25 @@ from lifecycle_site.api.auth import api_view, error
 from lifecycle_site.api.limits import shown
 from lifecycle_site.api.views import get_node
 from lifecycle_site.fleet.models import Robot
+from lifecycle_site.refusal import Refusal
 from lifecycle_site.timelines import node as tl
 from lifecycle_site.timelines import windows as tw
 from lifecycle_site.timelines.robot import robot_timeline as robot_timeline_of
 
 
-def _window(request: HttpRequest) -> tw.Window | JsonResponse:
+def _window(request: HttpRequest) -> tw.Window:
     try:
         return tw.parse(request.GET)
     except tw.WindowError as exc:
         if request.GET.get("from") or request.GET.get("to"):
-            return error("invalid_field", f"from, to: {exc}", 400)
+            raise Refusal("invalid_field", f"from, to: {exc}") from None
         asked = request.GET.get("window", "")
-        return error("invalid_field", f"window must be one of {', '.join(tl.WINDOWS)}, not {shown(asked)}.", 400)
+        raise Refusal("invalid_field", f"window must be one of {', '.join(tl.WINDOWS)}, not {shown(asked)}.") from None
 
 
 @api_view()
 def node_timeline(request: HttpRequest, key: str) -> JsonResponse:
     window = _window(request)
-    if isinstance(window, JsonResponse):
-        return window
     node = get_node(key)
     return JsonResponse(tl.node_timeline(node, window).as_dict())
 
@@ -37,8 +36,6 @@ def node_timeline(request: HttpRequest, key: str) -> JsonResponse:
 @api_view()
 def robot_timeline(request: HttpRequest, name: str) -> JsonResponse:
     window = _window(request)
-    if isinstance(window, JsonResponse):
-        return window
     robot = Robot.objects.filter(name=name).first()
     if robot is None:
         return error("not_found", f"There is no robot named {shown(name)}; GET /api/v1/robots lists them.", 404)

@@ -135,8 +135,6 @@ def get_node(key: str) -> ManagedNode:
 @api_view(methods=("POST",), permission="fleet.operate_node")
 def transition(request: HttpRequest, key: str) -> JsonResponse:
     body = json_body(request)
-    if isinstance(body, JsonResponse):
-        return body
     if not isinstance(body, dict) or "transition" not in body:
         return error("missing_field", 'Send {"transition": "configure"} (a label or a numeric id).', 400)
     requested = body["transition"]

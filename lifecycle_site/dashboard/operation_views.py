@@ -9,12 +9,13 @@ from lifecycle_site.dashboard import snapshots
 from lifecycle_site.dashboard.access import operator_required
 from lifecycle_site.dashboard.views import node_or_404
 from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
-from lifecycle_site.fleet.runs import RunRefused, start_run
+from lifecycle_site.fleet.runs import start_run
 from lifecycle_site.fleet.serializers import node_dict
+from lifecycle_site.refusal import Refusal
 
 
 def _run_panel(request: HttpRequest, run: GroupRun | None, runs_in: str, error: str = "",
-               status: int = 200, refused: RunRefused | None = None, robot: Robot | None = None) -> HttpResponse:
+               status: int = 200, refused: Refusal | None = None, robot: Robot | None = None) -> HttpResponse:
     """The answer to a run's button: an error in place, or the run's panel put into the page's
     run list (out of band: a live update of the same run may have put it there already). A
     refusal because the gateway is offline names it: the page drops it once the gateway is back."""
@@ -37,7 +38,7 @@ def robot_operation(request: HttpRequest, robot: str) -> HttpResponse:
                         policy=request.POST.get("policy", "stop"), node_timeout=max(0.5, min(timeout, 25.0)))
     except ValueError:
         return _run_panel(request, None, runs_in, "The timeout must be a number of seconds.")
-    except RunRefused as exc:
+    except Refusal as exc:
         return _run_panel(request, None, runs_in, exc.message, refused=exc, robot=robot_obj)
     return _run_panel(request, run, runs_in)
 
@@ -51,7 +52,7 @@ def node_restart(request: HttpRequest, key: str) -> HttpResponse:
         return _run_panel(request, None, "node-run", refusal)
     try:
         run = start_run(node.robot, "restart", user=request.user, source="dashboard", nodes=[node.name])
-    except RunRefused as exc:
+    except Refusal as exc:
         return _run_panel(request, None, "node-run", exc.message, refused=exc, robot=node.robot)
     return _run_panel(request, run, "node-run")
 

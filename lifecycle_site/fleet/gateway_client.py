@@ -21,6 +21,7 @@ from django.conf import settings
 from lifecycle_site.fleet import attribution, gateways, presence, redis_guard
 from lifecycle_site.fleet import gateway_input as checks
 from lifecycle_site.fleet.gateways import MAX_SERVICE_TIMEOUT, channel_prefix
+from lifecycle_site.refusal import Refusal
 from ros_gateway.shared import protocol
 
 __all__ = ["GatewayError", "GatewayOffline", "GatewayNoAnswer", "call_gateway", "channel_prefix",
@@ -33,7 +34,7 @@ MAX_REPLY_BYTES = 4 * 1024 * 1024
 WAIT_SLICE_S = 1.0
 
 
-class GatewayError(Exception):
+class GatewayError(Refusal):
     """A command could not be carried out; ``code`` and ``message`` are shown to the user.
 
     ``facts`` are what the gateway (or the site, for a command it withdrew) reported along with
@@ -45,13 +46,10 @@ class GatewayError(Exception):
 
     def __init__(self, code: str, message: str, facts: list | None = None, *, carried_out: bool | None = False,
                  requested_at: datetime | None = None, **details: Any) -> None:
-        super().__init__(message)
-        self.code = code
-        self.message = message
+        super().__init__(code, message, **details)
         self.facts = facts or []
         self.carried_out = carried_out
         self.requested_at = requested_at or datetime.now(timezone.utc)
-        self.details = details
 
 
 class GatewayOffline(GatewayError):

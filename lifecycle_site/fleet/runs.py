@@ -17,19 +17,12 @@ from django.db.models import F
 from lifecycle_site.fleet import gateways, roles, verdicts
 from lifecycle_site.fleet.gateway_client import GatewayError, call_gateway
 from lifecycle_site.fleet.models import Gateway, GroupRun, ManagedNode, Robot
+from lifecycle_site.refusal import Refusal
 from ros_gateway.shared import operations, protocol
 
 log = logging.getLogger(__name__)
 
 MAX_WAIT_S = 600.0
-
-
-class RunRefused(Exception):
-    """The run cannot start; ``code`` and ``message`` are shown to the user."""
-
-    def __init__(self, code: str, message: str, status: int = 400) -> None:
-        super().__init__(message)
-        self.code, self.message, self.status = code, message, status
 
 
 def start_run(
@@ -42,23 +35,24 @@ def start_run(
     node_timeout: float = 5.0,
     nodes: list[str] | None = None,
 ) -> GroupRun:
-    """Record a run and hand it to the gateway; returns at once (the run goes on there)."""
+    """Record a run and hand it to the gateway; returns at once (the run goes on there). What
+    cannot start is a Refusal (nothing recorded, but for a gateway that did not take the run)."""
     known = operations.get(operation)
     if known is None or not known.startable:
-        raise RunRefused("unknown_operation", f"{operation!r} is not an operation; use one of "
+        raise Refusal("unknown_operation", f"{operation!r} is not an operation; use one of "
                          f"{', '.join(operations.names())}.")
     if getattr(user, "pk", None) and not roles.may_act_as(user, known.role):
-        raise RunRefused("forbidden", f"{known.button} needs the {known.role} role.", 403)
+        raise Refusal("forbidden", f"{known.button} needs the {known.role} role.", 403)
     if policy not in GroupRun.Policy.values:
-        raise RunRefused("invalid_field", "policy must be 'stop' (at the first failure) or 'continue'.")
+        raise Refusal("invalid_field", "policy must be 'stop' (at the first failure) or 'continue'.")
     if not robot.enabled:
-        raise RunRefused("robot_disabled", f"Robot {robot.name} is disabled; enable it first.", 409)
+        raise Refusal("robot_disabled", f"Robot {robot.name} is disabled; enable it first.", 409)
     nodes = list(nodes or [])
     unknown = [n for n in nodes if not ManagedNode.objects.filter(robot=robot, name=n).exists()]
     if unknown:
-        raise RunRefused("not_found", f"{robot.name} has no node {', '.join(unknown)}.", 404)
+        raise Refusal("not_found", f"{robot.name} has no node {', '.join(unknown)}.", 404)
     if known.scope == operations.NODE and len(nodes) != 1:
-        raise RunRefused("invalid_field", f"{operation} works on exactly one node.")
+        raise Refusal("invalid_field", f"{operation} works on exactly one node.")
     order = tiers(robot, nodes)
     run = GroupRun.objects.create(
         id=uuid.uuid4().hex,
@@ -81,7 +75,7 @@ def start_run(
         # The gateway may have taken the run all the same (no answer in time): it must not go on.
         verdicts.publish(robot.gateway.name, [run.id], GroupRun.Status.FAILED, exc.message)
         GroupRun.objects.filter(pk=run.pk).update(status=GroupRun.Status.FAILED, message=exc.message)
-        raise RunRefused(exc.code, exc.message, exc.status) from None
+        raise
     return run
 
 

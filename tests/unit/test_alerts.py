@@ -14,6 +14,7 @@ from lifecycle_site.alerts.engine import Evaluator
 from lifecycle_site.alerts.models import Alert, Rule
 from lifecycle_site.fleet.management.commands.ingest import Ingest
 from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
+from lifecycle_site.refusal import Refusal
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 from tests import stack
@@ -158,7 +159,7 @@ def test_acknowledged_alerts_keep_who_and_when_then_resolve(fleet):
     olga = make_user("olga-operator", "operator")
     acknowledged = lifecycle.acknowledge(alert.id, olga)
     assert (acknowledged.status, acknowledged.acknowledged_by_name) == ("acknowledged", "olga-operator")
-    with pytest.raises(lifecycle.AlertRefused, match="acknowledged already by olga-operator"):
+    with pytest.raises(Refusal, match="acknowledged already by olga-operator"):
         lifecycle.acknowledge(alert.id, olga)
     assert lifecycle.counts() == {"firing": 0, "acknowledged": 1}
     evaluator.evaluate()  # still finalized: stays acknowledged, no second alert
@@ -167,7 +168,7 @@ def test_acknowledged_alerts_keep_who_and_when_then_resolve(fleet):
     evaluator.evaluate()
     alert.refresh_from_db()
     assert alert.status == "resolved" and alert.acknowledged_by_name == "olga-operator"
-    with pytest.raises(lifecycle.AlertRefused, match="resolved already"):
+    with pytest.raises(Refusal, match="resolved already"):
         lifecycle.acknowledge(alert.id, olga)
 
 

@@ -9,7 +9,8 @@ from django.test import Client
 
 from lifecycle_site.fleet import cli_output
 from lifecycle_site.fleet.models import GroupRun, Robot
-from lifecycle_site.fleet.runs import RunRefused, start_run
+from lifecycle_site.fleet.runs import start_run
+from lifecycle_site.refusal import Refusal
 from ros_gateway.shared import operations
 from ros_gateway.shared import state_machine as sm
 from tests.conftest import make_user
@@ -76,7 +77,7 @@ def test_an_operation_is_started_only_by_a_user_with_its_role():
     robot = Robot.objects.create(name="table-agv", domain_id=97)
     for op in operations.OPERATIONS:
         if op.startable:
-            with pytest.raises(RunRefused) as refused:
+            with pytest.raises(Refusal) as refused:
                 start_run(robot, op.name, user=make_user("victor-viewer", "viewer"), source="cli",
                           nodes=["/x"] if op.scope == operations.NODE else None)
             assert (refused.value.code, refused.value.status) == ("forbidden", 403)

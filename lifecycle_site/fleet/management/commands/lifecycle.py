@@ -18,8 +18,9 @@ from django.db.models import Q
 from lifecycle_site.fleet import cli_output as out
 from lifecycle_site.fleet.gateway_client import GatewayError, GatewayOffline, call_gateway
 from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
-from lifecycle_site.fleet.runs import RunRefused, start_run, wait_for
+from lifecycle_site.fleet.runs import start_run, wait_for
 from lifecycle_site.fleet.transitions import ago, request_transition
+from lifecycle_site.refusal import Refusal
 from ros_gateway.shared import operations, protocol
 from ros_gateway.shared import state_machine as sm
 
@@ -171,7 +172,7 @@ class Command(BaseCommand):
         extra = {"node_timeout": opts.timeout} if opts.timeout else {}
         try:
             run = start_run(robot, opts.verb, user=user, source="cli", policy=opts.policy, nodes=only, **extra)
-        except RunRefused as exc:
+        except Refusal as exc:
             code = {"gateway_offline": EXIT_OFFLINE, "not_found": EXIT_USAGE}.get(exc.code, EXIT_FAILED)
             raise CliExit(code, exc.message, exc.code) from None
         shown: set[str] = set()
