@@ -9,15 +9,8 @@ from dataclasses import dataclass
 
 from ros_gateway.domain import COMMAND_DISCOVERY_WAIT_S, RosDomain
 from ros_gateway.groups import GroupRunner
-from ros_gateway.lifecycle import (
-    DELIVERY_WAIT_S,
-    NodeDriver,
-    NodeUnreachable,
-    NodeUnreachableRecorded,
-    available_states,
-    available_transitions,
-    read_state,
-)
+from ros_gateway.lifecycle import NodeUnreachable, available_states, available_transitions, read_state
+from ros_gateway.node_driver import DELIVERY_WAIT_S, NodeDriver, NodeUnreachableRecorded
 from ros_gateway.outbox import Outbox
 from ros_gateway.param_keeper import ParameterKeeper
 from ros_gateway.registry import LiveNode, NodeRegistry

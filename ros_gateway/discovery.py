@@ -14,13 +14,13 @@ from typing import Callable
 
 from ros_gateway.domain import RosDomain
 from ros_gateway.lifecycle import NodeUnreachable, read_state
-from ros_gateway.outbox import Outbox
-from ros_gateway.processes import LocalProcesses, ProcessRecords
-from ros_gateway.registry import LiveNode, NodeRegistry, NodeSettings, RobotInfo, participants
+from ros_gateway.parts import Core
+from ros_gateway.processes import ProcessRecords
+from ros_gateway.registry import LiveNode, NodeSettings, RobotInfo, participants
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
-from ros_gateway.streams import Completed, TransitionTracker
 from ros_gateway.tasks import spawn
+from ros_gateway.topic_messages import Completed, TransitionTracker
 
 log = logging.getLogger(__name__)
 
@@ -59,16 +59,14 @@ def robots_from_config(config: dict) -> tuple[dict[int, RobotInfo], dict[int, di
 
 
 class Discovery:
-    def __init__(self, registry: NodeRegistry, domains: dict[int, RosDomain], new_domain: DomainFactory,
-                 outbox: Outbox, service_timeout: float, forget_parameters: Callable[[str], None],
+    def __init__(self, core: Core, new_domain: DomainFactory, forget_parameters: Callable[[str], None],
                  holds_back: HoldsBack = lambda domain, name, departed: False,
-                 unresponsive: Callable[[LiveNode], None] = lambda node: None,
-                 processes: LocalProcesses | None = None) -> None:
-        self.registry, self.domains, self.new_domain, self.outbox = registry, domains, new_domain, outbox
-        self.processes = processes or LocalProcesses()
-        self.records = ProcessRecords(outbox)
+                 unresponsive: Callable[[LiveNode], None] = lambda node: None) -> None:
+        self.registry, self.domains, self.new_domain, self.outbox = core.registry, core.domains, new_domain, core.outbox
+        self.processes = core.processes
+        self.records = ProcessRecords(core.outbox)
         self.unresponsive = unresponsive
-        self.service_timeout = service_timeout
+        self.service_timeout = core.service_timeout
         self.forget_parameters = forget_parameters
         self.holds_back = holds_back
         self.config_version: str | None = None

@@ -14,11 +14,10 @@ import time
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 
-from ros_gateway.domain import RosDomain
-from ros_gateway.lifecycle import NodeDriver, NodeUnreachable, read_state
-from ros_gateway.outbox import Outbox
+from ros_gateway.lifecycle import NodeUnreachable, read_state
+from ros_gateway.node_driver import NodeDriver
+from ros_gateway.parts import Core
 from ros_gateway.registry import LiveNode, NodeRegistry, RobotInfo
-from ros_gateway.relay import Relay
 from ros_gateway.shared import operations, protocol
 from ros_gateway.shared import state_machine as sm
 from ros_gateway.shared.operations import Phase
@@ -86,9 +85,9 @@ class Run:
 
 
 class GroupRunner:
-    def __init__(self, domains: dict[int, RosDomain], registry: NodeRegistry, driver: NodeDriver, outbox: Outbox,
-                 relay: Relay) -> None:
-        self.domains, self.registry, self.driver, self.outbox, self.relay = domains, registry, driver, outbox, relay
+    def __init__(self, core: Core, driver: NodeDriver) -> None:
+        self.domains, self.registry, self.driver = core.domains, core.registry, driver
+        self.outbox, self.relay = core.outbox, core.relay
         self.recovering: set[str] = set()  # node keys with a recovery under way
         self.recent_recoveries: dict[str, list[float]] = {}
 

@@ -11,7 +11,7 @@ from datetime import datetime, timedelta
 from ros_gateway.outbox import Outbox
 from ros_gateway.registry import LiveNode, NodeRegistry
 from ros_gateway.shared import protocol
-from ros_gateway.streams import LogBuffer, LogEntry, logger_to_node_name, owning_node
+from ros_gateway.topic_messages import LogBuffer, LogEntry, logger_to_node_name, owning_node
 
 log = logging.getLogger(__name__)
 

@@ -12,7 +12,7 @@ from typing import Callable
 
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
-from ros_gateway.streams import TransitionTracker
+from ros_gateway.topic_messages import TransitionTracker
 
 log = logging.getLogger(__name__)
 

@@ -27,12 +27,12 @@ from ros_gateway.config import GatewayConfig
 from ros_gateway.discovery import Discovery
 from ros_gateway.domain import RosDomain
 from ros_gateway.groups import GroupRunner
-from ros_gateway.lifecycle import NodeDriver
 from ros_gateway.liveness import Liveness
 from ros_gateway.logs import LogPipeline
+from ros_gateway.node_driver import NodeDriver
 from ros_gateway.outbox import Outbox
 from ros_gateway.param_keeper import ParameterKeeper
-from ros_gateway.processes import LocalProcesses
+from ros_gateway.parts import Core
 from ros_gateway.registry import NodeRegistry, StateChange, StateChanges
 from ros_gateway.relay import Relay
 from ros_gateway.shared import protocol
@@ -66,13 +66,12 @@ class Gateway:
         self.logs = LogPipeline(self.registry, self.outbox, config.log_buffer)
         self.params = ParameterKeeper(self.domains, self.registry, self.outbox, self.relay, config.service_timeout)
         self.liveness = Liveness(self.registry, self.domains, config.liveness_interval, config.liveness_timeout)
-        self.processes = LocalProcesses()
-        self.discovery = Discovery(self.registry, self.domains, self._new_domain, self.outbox,
-                                   config.service_timeout, self.params.forget, self.liveness.holds_back,
-                                   self.liveness.suspect, self.processes)
-        self.driver = NodeDriver(self.domains, self.registry, self.outbox, self.logs, config.service_timeout,
-                                 self.processes)
-        self.runs = GroupRunner(self.domains, self.registry, self.driver, self.outbox, self.relay)
+        core = Core(self.registry, self.domains, self.outbox, self.relay, config.service_timeout)
+        self.processes = core.processes
+        self.discovery = Discovery(core, self._new_domain, self.params.forget, self.liveness.holds_back,
+                                   self.liveness.suspect)
+        self.driver = NodeDriver(core, self.logs)
+        self.runs = GroupRunner(core, self.driver)
         self.commands = CommandHandler(Parts(self.relay, self.registry, self.domains, self.driver, self.params,
                                              self.runs, config.service_timeout, self.outbox))
         # Who hears of a state change, in this order: the site (a fact), the pages (a push),

@@ -6,13 +6,14 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 from ros_gateway import discovery as disc
+from ros_gateway.parts import Core
 from ros_gateway.registry import LiveNode, NodeRegistry, RobotInfo, StateChanges
 
 
 class SlowChecks(disc.Discovery):
     def __init__(self, cost_s: float) -> None:
-        super().__init__(NodeRegistry(StateChanges()), {}, lambda domain_id: None, outbox=None, service_timeout=1.0,
-                         forget_parameters=lambda key: None)
+        core = Core(NodeRegistry(StateChanges()), {}, outbox=None, relay=None, service_timeout=1.0)
+        super().__init__(core, lambda domain_id: None, forget_parameters=lambda key: None)
         self.cost_s, self.checked = cost_s, []
 
     def _check_incarnation(self, domain, node) -> None:

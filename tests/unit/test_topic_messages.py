@@ -1,6 +1,6 @@
 """Pairing transition events, and mapping /rosout loggers to nodes (no ROS needed)."""
 from ros_gateway.shared import state_machine as sm
-from ros_gateway.streams import LogBuffer, TransitionTracker, owning_node
+from ros_gateway.topic_messages import LogBuffer, TransitionTracker, owning_node
 
 
 def test_external_transition_is_reported_once_with_its_outcome():
