@@ -100,6 +100,7 @@ INSTALLED_APPS = [
     "lifecycle_site.api",
     "lifecycle_site.dashboard",
     "lifecycle_site.alerts",
+    "lifecycle_site.operations",
 ]
 
 MIDDLEWARE = [

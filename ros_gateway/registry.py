@@ -97,7 +97,7 @@ class LiveNode:
 @dataclass
 class StateChange:
     """A node appeared, vanished or moved to another state. ``fact`` is what was reported
-    to the site for it (set by the reporting listener)."""
+    to the site for it (by the stream's reporter, before any listener hears of it)."""
 
     node: LiveNode
     kind: str  # "seen" | "gone" | "state"
@@ -111,16 +111,24 @@ Listener = Callable[[StateChange], None]
 
 
 class StateChanges:
-    """One stream of state changes. Listeners are called in the order they subscribed, at
-    once and on the gateway's loop: each must be quick (hand slow work to a task)."""
+    """One stream of state changes. Each is first reported (``report`` returns the fact it
+    emitted for the site, kept on the change), then its listeners, side reactions only, are
+    called in the order they subscribed, at once and on the gateway's loop: each must be quick
+    (hand slow work to a task)."""
 
-    def __init__(self) -> None:
+    def __init__(self, report: Callable[[StateChange], dict] | None = None) -> None:
+        self._report = report
         self._listeners: list[tuple[str, Listener]] = []
 
     def subscribe(self, name: str, listener: Listener) -> None:
         self._listeners.append((name, listener))
 
     def publish(self, change: StateChange) -> StateChange:
+        if self._report is not None:
+            try:
+                change.fact = self._report(change)
+            except Exception:  # as for a listener: the change still reaches the others
+                log.exception("reporting the state change of %s failed", change.node.key)
         for name, listener in self._listeners:
             try:
                 listener(change)

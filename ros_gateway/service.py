@@ -60,7 +60,7 @@ class Gateway:
         self._stopping = asyncio.Event()
         self.relay = Relay(config.name, config.redis_url, config.prefix, instance=self.instance)
         self.outbox = Outbox(self.relay, config.name, self.instance)
-        self.changes = StateChanges()
+        self.changes = StateChanges(report=self._report)
         self.registry = NodeRegistry(self.changes)
         self.domains: dict[int, RosDomain] = {}
         self.logs = LogPipeline(self.registry, self.outbox, config.log_buffer)
@@ -74,10 +74,9 @@ class Gateway:
         self.runs = GroupRunner(core, self.driver)
         self.commands = CommandHandler(Parts(self.relay, self.registry, self.domains, self.driver, self.params,
                                              self.runs, config.service_timeout, self.outbox))
-        # Who hears of a state change, in this order: the site (a fact), the pages (a push),
-        # the audit of a new process instance, its parameters read again, the stuck-transition
-        # check, and automatic recovery.
-        self.changes.subscribe("report", self._report)
+        # A state change is reported to the site first (self._report, its fact kept on the change);
+        # then, in this order: the pages (a push), the audit of a new process instance, its
+        # parameters read again, the stuck-transition check, and automatic recovery.
         self.changes.subscribe("push", self._push)
         self.changes.subscribe("restarts", self.discovery.records.on_change)
         self.changes.subscribe("parameters", self.params.on_change)
@@ -89,7 +88,8 @@ class Gateway:
                          self.logs.on_log, self.params.on_event)
 
     # -- state-change listeners --------------------------------------------------------
-    def _report(self, change: StateChange) -> None:
+    def _report(self, change: StateChange) -> dict:
+        """The change's fact for the site, emitted and returned."""
         node = change.node
         kind = {"seen": protocol.NODE_SEEN, "gone": protocol.NODE_GONE, "state": protocol.NODE_STATE}[change.kind]
         fields = {"state_id": change.state_id} if change.kind == "state" else {}
@@ -97,7 +97,7 @@ class Gateway:
             fields["reason"] = change.reason
         if change.reason == protocol.PROCESS_LOST and node.process_since is not None:
             fields["since"] = node.process_since.isoformat()  # the time the node's payload shows
-        change.fact = self.outbox.emit(kind, robot=node.robot.name, node=node.name, **fields)
+        return self.outbox.emit(kind, robot=node.robot.name, node=node.name, **fields)
 
     def _push(self, change: StateChange) -> None:
         """The node's live update, after its previous one (so pages see them in order)."""

@@ -10,7 +10,8 @@ from lifecycle_site.api.limits import MAX_NODES, shown
 from lifecycle_site.api.views import get_node
 from lifecycle_site.fleet.gateway_client import MAX_SERVICE_TIMEOUT
 from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
-from lifecycle_site.fleet.runs import start_run, wait_for
+from lifecycle_site.operations.desired_state import set_desired_state
+from lifecycle_site.operations.runs import start_run, wait_for
 from lifecycle_site.refusal import Refusal
 from ros_gateway.shared import operations, param_types
 
@@ -101,13 +102,6 @@ def desired_state(request: HttpRequest, key: str) -> JsonResponse:
     body = _body(request)
     if "desired_state" not in body:
         return error("missing_field", 'Send {"desired_state": "active"} (or null to clear it).', 400)
-    wanted = body["desired_state"]
-    if wanted is None:  # null clears it; false, 0, [] are not a state (nor "none")
-        wanted = ""
-    allowed = [value for value, _ in node._meta.get_field("desired_state").choices]
-    if not isinstance(wanted, str) or wanted not in allowed:
-        return error("invalid_field", "desired_state must be unconfigured, inactive, active or null.", 400)
-    node.desired_state = wanted
-    node.save(update_fields=["desired_state"])
+    wanted = set_desired_state(node, body["desired_state"])  # null clears it; false, 0, [] are no state
     return JsonResponse({"id": node.key, "desired_state": wanted or None,
                          "auto_recover": node.robot.auto_recover})

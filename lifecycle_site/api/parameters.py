@@ -6,61 +6,8 @@ from django.http import HttpRequest, HttpResponse, JsonResponse
 from lifecycle_site.api.auth import api_view, error, json_body
 from lifecycle_site.api.limits import MAX_PARAMETERS
 from lifecycle_site.api.views import get_node
-from lifecycle_site.audit.models import ParameterRecord
-from lifecycle_site.fleet import gateway_input as checks
-from lifecycle_site.fleet.facts import apply_facts
-from lifecycle_site.fleet.gateway_client import GatewayError, call_gateway
-from lifecycle_site.fleet.live_updates import AUDIT_STORED, push, record_messages
 from lifecycle_site.fleet.param_files import dump
-from ros_gateway.shared import protocol
-
-
-def fetch(node) -> list[dict]:
-    gateway = node.robot.gateway.name
-    listing = call_gateway(gateway, protocol.GET_PARAMETERS, robot=node.robot.name, node=node.name).get("parameters")
-    if not isinstance(listing, list) or not all(isinstance(p, dict) and isinstance(p.get("name"), str)
-                                                 for p in listing):
-        raise GatewayError("gateway_error", f"Gateway {gateway} answered with a parameter list the site cannot read.",
-                           carried_out=False)
-    return listing
-
-
-def apply(node, values: dict, user, source: str, atomic: bool = False) -> list[dict]:
-    """Set parameters through the node's gateway (``atomic``: all or none, in one call of the
-    node's set_parameters_atomically); every requested name is audited: by the
-    facts that come with the answer (the gateway's, or the site's for a command it withdrew),
-    applied here before answering, or here when nothing reached the node. Only when the gateway
-    took the command and did not answer is the record left to it (it reports what it did)."""
-    gateway = node.robot.gateway.name
-    user_id = user.pk if getattr(user, "pk", None) else None
-    try:
-        reply = call_gateway(gateway, protocol.SET_PARAMETERS, robot=node.robot.name, node=node.name,
-                             values=values, user_id=user_id, source=source, **({"atomic": True} if atomic else {}))
-    except GatewayError as exc:
-        if exc.facts:
-            _store(gateway, exc.facts)
-        elif exc.carried_out is False:
-            for name, value in values.items():
-                ParameterRecord(node=node, robot_name=node.robot.name, node_name=node.name, name=name,
-                                new_value=protocol.finite(value), outcome="rejected", reason=exc.message,
-                                source=source, requested_by_id=user_id, at=exc.requested_at).save()
-            push([AUDIT_STORED])
-        raise
-    if reply.get("facts"):
-        _store(gateway, reply["facts"])
-    try:
-        return checks.parameter_results(reply.get("results"), values)
-    except checks.GatewayInputRefused as exc:
-        raise GatewayError("gateway_error", f"Gateway {gateway} answered with results the site cannot read ({exc}); "
-                           "the audit log shows what it reported. Check the parameters before you try again.",
-                           carried_out=None) from None
-
-
-def _store(gateway: str, facts: list) -> None:
-    """Apply a reply's facts and tell the open audit pages (the ingest process will find them
-    stored already)."""
-    applied = apply_facts(gateway, facts)
-    push(record_messages(applied.created, applied.created_parameters))
+from lifecycle_site.operations.parameters import apply, fetch
 
 
 @api_view(methods=("GET", "PATCH"))

@@ -14,7 +14,7 @@ from lifecycle_site.fleet import gateways as gateway_status
 from lifecycle_site.fleet.gateway_client import MAX_SERVICE_TIMEOUT, GatewayError, call_gateway
 from lifecycle_site.fleet.models import Gateway, LogRecord, ManagedNode, Robot
 from lifecycle_site.fleet.serializers import node_dict
-from lifecycle_site.fleet.transitions import request_transition
+from lifecycle_site.operations.transitions import request_transition
 from ros_gateway.shared import param_types, protocol
 from ros_gateway.shared import state_machine as sm
 

@@ -8,9 +8,10 @@ from django.views.decorators.http import require_POST
 from lifecycle_site.dashboard import snapshots
 from lifecycle_site.dashboard.access import operator_required
 from lifecycle_site.dashboard.views import node_or_404
-from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
-from lifecycle_site.fleet.runs import start_run
+from lifecycle_site.fleet.models import GroupRun, Robot
 from lifecycle_site.fleet.serializers import node_dict
+from lifecycle_site.operations.desired_state import set_desired_state
+from lifecycle_site.operations.runs import start_run
 from lifecycle_site.refusal import Refusal
 
 
@@ -61,9 +62,9 @@ def node_restart(request: HttpRequest, key: str) -> HttpResponse:
 @require_POST
 def desired_state(request: HttpRequest, key: str) -> HttpResponse:
     node = node_or_404(key)
-    wanted = request.POST.get("desired_state", "")
-    if wanted not in dict(ManagedNode._meta.get_field("desired_state").choices):
-        wanted = ""
-    node.desired_state = wanted
-    node.save(update_fields=["desired_state"])
+    try:
+        set_desired_state(node, request.POST.get("desired_state", ""))
+    except Refusal as refused:
+        context = {"node_obj": node, "can_operate": True, "error": refused.message}
+        return render(request, "dashboard/_desired_state.html", context, status=refused.status)
     return render(request, "dashboard/_desired_state.html", {"node_obj": node, "can_operate": True, "saved": True})

@@ -12,12 +12,12 @@ from django.views.decorators.http import require_POST
 
 from lifecycle_site.api import limits
 from lifecycle_site.api.auth import NonFiniteNumber, loads_finite
-from lifecycle_site.api.parameters import apply, fetch
 from lifecycle_site.dashboard.access import operator_required, viewer_required
 from lifecycle_site.dashboard.views import node_or_404
 from lifecycle_site.fleet.gateway_client import GatewayError
 from lifecycle_site.fleet.models import ManagedNode
 from lifecycle_site.fleet.param_files import ParameterFileError, diff, load
+from lifecycle_site.operations.parameters import apply, fetch
 from ros_gateway.shared import param_types as pt
 
 MAX_FILE_BYTES = 256 * 1024

@@ -43,7 +43,7 @@ def includes(run: GroupRun, node_name: str, seen: bool) -> bool:
 
 
 def not_started(run: GroupRun) -> bool:
-    """A run refused at its start (its gateway offline: nothing was sent; fleet/runs.start_run):
+    """A run refused at its start (its gateway offline: nothing was sent; operations/runs.start_run):
     the page that asked showed the refusal, which it drops once the gateway is back; as a red
     "failed" panel it would stay, saying so, after the gateway is back and later runs went well."""
     return run.status == GroupRun.Status.FAILED and run.started is None and run.finished is None and not run.results

@@ -17,7 +17,7 @@ from lifecycle_site.dashboard.access import viewer_required
 from lifecycle_site.dashboard.templatetags.dashboard import dom_id
 from lifecycle_site.fleet.models import ManagedNode, Robot
 from lifecycle_site.fleet.serializers import node_dict
-from lifecycle_site.fleet.transitions import request_transition
+from lifecycle_site.operations.transitions import request_transition
 from ros_gateway.shared import state_machine as sm
 
 ROS_NAME = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")

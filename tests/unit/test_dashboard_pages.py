@@ -109,7 +109,7 @@ def test_watch_answers_in_the_page_and_a_name_never_seen_can_be_unwatched(operat
 
 
 def test_whole_robot_runs_leave_out_names_never_seen(fleet):
-    from lifecycle_site.fleet.runs import tiers
+    from lifecycle_site.operations.runs import tiers
 
     robot = fleet[0][0]
     ManagedNode.objects.create(robot=robot, name="/not_started", key=f"{robot.name}.not_started")

@@ -235,7 +235,7 @@ def test_the_ingest_process_catches_up_in_order_after_a_stop(cell):
 
 def test_runs_of_a_gateway_silent_past_the_bound_end_failed_and_others_stay(cell, settings):
     from lifecycle_site.fleet.models import GroupRun
-    from lifecycle_site.fleet.runs import fail_runs_of_silent_gateways
+    from lifecycle_site.fleet.run_orphans import fail_runs_of_silent_gateways
 
     _part, robot = cell
     other = Robot.objects.create(name="ingest-arm", domain_id=43, gateway=Gateway.objects.create(name="cell-j"))

@@ -7,9 +7,9 @@ from pathlib import Path
 import pytest
 from django.test import Client
 
-from lifecycle_site.fleet import cli_output
 from lifecycle_site.fleet.models import GroupRun, Robot
-from lifecycle_site.fleet.runs import start_run
+from lifecycle_site.operations import cli_output
+from lifecycle_site.operations.runs import start_run
 from lifecycle_site.refusal import Refusal
 from ros_gateway.shared import operations
 from ros_gateway.shared import state_machine as sm

@@ -8,7 +8,7 @@ from django.test import Client
 from lifecycle_site.alerts.lifecycle import acknowledge
 from lifecycle_site.fleet.gateway_client import GatewayNoAnswer, GatewayOffline
 from lifecycle_site.fleet.models import Robot
-from lifecycle_site.fleet.runs import start_run
+from lifecycle_site.operations.runs import start_run
 from lifecycle_site.refusal import Refusal
 from tests.conftest import make_user
 

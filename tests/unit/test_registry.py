@@ -68,3 +68,19 @@ def test_dropping_a_robot_forgets_only_its_nodes():
     dropped = registry.drop_robot(1)
     assert [(domain, node.robot.name) for domain, node in dropped] == [(20, "agv-1")]
     assert [n.robot.name for n in registry.nodes.values()] == ["agv-2"]
+
+
+def test_a_change_is_reported_first_and_its_fact_kept_for_the_listeners():
+    robot = RobotInfo(1, "agv-1", 20, "")
+    order: list[str] = []
+
+    def report(change):
+        order.append("report")
+        return {"type": protocol.NODE_STATE, "node": change.node.name, "state_id": change.state_id}
+
+    registry = NodeRegistry(StateChanges(report=report))
+    registry.changes.subscribe("push", lambda c: order.append(f"push saw {c.fact['type']}"))
+    node = registry.appeared(20, robot, "/lidar", frozenset({GID_A}))
+    change = registry.set_state(node, sm.ACTIVE)
+    assert change.fact == {"type": protocol.NODE_STATE, "node": "/lidar", "state_id": sm.ACTIVE}
+    assert order == ["report", f"push saw {protocol.NODE_STATE}"] * 2

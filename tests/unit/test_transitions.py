@@ -1,4 +1,4 @@
-"""Requesting a transition on behalf of a user (lifecycle_site/fleet/transitions.py), without a
+"""Requesting a transition on behalf of a user (lifecycle_site/operations/transitions.py), without a
 robot: what cannot be sent is answered with a reason and recorded, whatever the adapter."""
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import pytest
 
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.fleet.models import ManagedNode, Robot
-from lifecycle_site.fleet.transitions import request_transition
+from lifecycle_site.operations.transitions import request_transition
 from ros_gateway.shared import state_machine as sm
 from tests.conftest import make_user
 

@@ -140,7 +140,7 @@ def run_by(run: dict) -> str:
     return f"started {how}" if how else "started"
 
 
-# The gateway drives a run's nodes in steps (fleet/runs.py tiers(), ros_gateway/groups.py): one per
+# The gateway drives a run's nodes in steps (operations/runs.py tiers(), ros_gateway/groups.py): one per
 # position of the robot's bring-up order, the nodes without one last, side by side (up to 8 at a
 # time). With the "stop" policy a failure starts no further node; those already under way finish.
 SIDE_BY_SIDE = "no bring-up order among its nodes: they run side by side, up to 8 at a time"

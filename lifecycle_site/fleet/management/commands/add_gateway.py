@@ -17,7 +17,7 @@ from django.conf import settings
 from django.core.management.base import BaseCommand, CommandError
 
 from lifecycle_site.fleet import gateways, quarantine, redis_users
-from lifecycle_site.fleet.cli_output import clean_or_fail
+from lifecycle_site.fleet.command_checks import clean_or_fail
 from lifecycle_site.fleet.models import Gateway
 
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from django.core.management.base import BaseCommand, CommandError
 
-from lifecycle_site.fleet.cli_output import clean_or_fail
+from lifecycle_site.fleet.command_checks import clean_or_fail
 from lifecycle_site.fleet.models import Gateway, Robot
 from ros_gateway.shared import protocol
 

@@ -45,7 +45,7 @@ from lifecycle_site.fleet.models import Gateway
 from lifecycle_site.fleet.observations import observations
 from lifecycle_site.fleet.outages import prune_outages
 from lifecycle_site.fleet.redis_guard import RedisGuard
-from lifecycle_site.fleet.runs import fail_runs_of_silent_gateways
+from lifecycle_site.fleet.run_orphans import fail_runs_of_silent_gateways
 from lifecycle_site.fleet.stream_entries import count_gap, decode, entry_id, is_after, replied, text
 from lifecycle_site.fleet.stream_reader import StreamReader
 from ros_gateway.shared import protocol

@@ -1,6 +1,6 @@
 """The face of ``manage.py lifecycle``: its verbs, arguments and help, and what it prints (the
 shapes of ``ros2 lifecycle`` where the verbs overlap, the API's JSON shapes for ``--json``, one
-line per node of a group run). The command itself is fleet/management/commands/lifecycle.py."""
+line per node of a group run). The command itself is operations/management/commands/lifecycle.py."""
 from __future__ import annotations
 
 import argparse
@@ -9,13 +9,11 @@ import math
 from collections.abc import Iterable
 from typing import Any
 
-from django.core.exceptions import ValidationError
-from django.core.management.base import CommandError, DjangoHelpFormatter
-from django.db import models
+from django.core.management.base import DjangoHelpFormatter
 
 from lifecycle_site.fleet.gateway_client import MAX_SERVICE_TIMEOUT
 from lifecycle_site.fleet.models import GroupRun, ManagedNode
-from lifecycle_site.fleet.runs import MAX_WAIT_S
+from lifecycle_site.operations.runs import MAX_WAIT_S
 from ros_gateway.shared import operations, protocol
 from ros_gateway.shared import state_machine as sm
 
@@ -247,12 +245,3 @@ def unknown_node(ref: str, robot: str | None, known: list[str], same_name: list[
         return (f"There is no node id {ref!r}; a ROS name needs --robot R. Node ids of that name: "
                 f"{sample(same_name, 'lifecycle nodes -a')}.")
     return f"There is no node {ref!r}. Node ids look like ROBOT.NAME; known: {sample(known, 'lifecycle nodes -a')}."
-
-
-def clean_or_fail(instance: models.Model) -> None:
-    """``full_clean()``, its problems as one CommandError line ("name: ...; domain_id: ...")."""
-    try:
-        instance.full_clean()
-    except ValidationError as exc:
-        problems = "; ".join(f"{field}: {' '.join(msgs)}" for field, msgs in exc.message_dict.items())
-        raise CommandError(problems) from None

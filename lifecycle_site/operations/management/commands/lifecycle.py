@@ -15,11 +15,11 @@ from django.core.management.base import BaseCommand, CommandError
 from django.db import DatabaseError
 from django.db.models import Q
 
-from lifecycle_site.fleet import cli_output as out
 from lifecycle_site.fleet.gateway_client import GatewayError, GatewayOffline, call_gateway
 from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
-from lifecycle_site.fleet.runs import start_run, wait_for
-from lifecycle_site.fleet.transitions import ago, request_transition
+from lifecycle_site.operations import cli_output as out
+from lifecycle_site.operations.runs import start_run, wait_for
+from lifecycle_site.operations.transitions import ago, request_transition
 from lifecycle_site.refusal import Refusal
 from ros_gateway.shared import operations, protocol
 from ros_gateway.shared import state_machine as sm
