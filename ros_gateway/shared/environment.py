@@ -24,6 +24,22 @@ def text(name: str, default: str = "", environ: Mapping[str, str] | None = None)
     return _raw(name, environ) or default
 
 
+def _outside(value: float, above: float | None, minimum: float | None, maximum: float | None) -> bool:
+    return ((above is not None and value <= above) or (minimum is not None and value < minimum)
+            or (maximum is not None and value > maximum))
+
+
+def _refusal(name: str, raw: str, what: str, example: float, show, *, above: float | None = None,
+             minimum: float | None = None, maximum: float | None = None) -> SettingError:
+    """``NAME='raw': expected WHAT, more than A and at most B (e.g. EXAMPLE).``"""
+    bounds = [f"more than {show(above)}" if above is not None else "",
+              f"at least {show(minimum)}" if minimum is not None else "",
+              f"at most {show(maximum)}" if maximum is not None else ""]
+    wanted = " and ".join(b for b in bounds if b)
+    return SettingError(f"{name}={raw!r}: expected {what}" + (f", {wanted}" if wanted else "")
+                        + f" (e.g. {show(example)}).")
+
+
 def number(name: str, default: float, *, minimum: float | None = None, maximum: float | None = None,
            above: float | None = None, unit: str = "seconds", example: float | None = None,
            environ: Mapping[str, str] | None = None) -> float:
@@ -35,14 +51,9 @@ def number(name: str, default: float, *, minimum: float | None = None, maximum: 
         value = float(raw)
     except ValueError:
         value = math.nan
-    bounds = [f"more than {above:g}" if above is not None else "",
-              f"at least {minimum:g}" if minimum is not None else "",
-              f"at most {maximum:g}" if maximum is not None else ""]
-    if (not math.isfinite(value) or (above is not None and value <= above)
-            or (minimum is not None and value < minimum) or (maximum is not None and value > maximum)):
-        wanted = " and ".join(b for b in bounds if b)
-        raise SettingError(f"{name}={raw!r}: expected a number of {unit}" + (f", {wanted}" if wanted else "")
-                           + f" (e.g. {default if example is None else example:g}).")
+    if not math.isfinite(value) or _outside(value, above, minimum, maximum):
+        raise _refusal(name, raw, f"a number of {unit}", default if example is None else example,
+                       lambda x: f"{x:g}", above=above, minimum=minimum, maximum=maximum)
     return value
 
 
@@ -56,13 +67,9 @@ def whole(name: str, default: int, *, minimum: int | None = None, maximum: int |
         value = int(raw)
     except ValueError:
         value = None
-    if value is None or (minimum is not None and value < minimum) or (maximum is not None and value > maximum):
-        bounds = [f"at least {minimum}" if minimum is not None else "", f"at most {maximum}" if maximum is not None
-                  else ""]
-        wanted = " and ".join(b for b in bounds if b)
-        what = f"a whole number{f' of {unit}' if unit else ''}"
-        raise SettingError(f"{name}={raw!r}: expected {what}" + (f", {wanted}" if wanted else "")
-                           + f" (e.g. {default}).")
+    if value is None or _outside(value, None, minimum, maximum):
+        raise _refusal(name, raw, f"a whole number{f' of {unit}' if unit else ''}", default, str,
+                       minimum=minimum, maximum=maximum)
     return value
 
 
