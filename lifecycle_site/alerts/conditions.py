@@ -14,7 +14,7 @@ from django.db.models import F, Q
 from lifecycle_site.alerts.models import Rule
 from lifecycle_site.fleet import gateways
 from lifecycle_site.fleet.models import Gateway, ManagedNode
-from lifecycle_site.fleet.observations import GONE, Observation  # noqa: F401 (the conditions' words)
+from lifecycle_site.fleet.observations import GONE, Observation
 from ros_gateway.shared import protocol
 
 
