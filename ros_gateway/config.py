@@ -42,15 +42,16 @@ class GatewayConfig:
     name: str
     redis_url: str
     prefix: str
-    service_timeout: float = 5.0
-    discovery_interval: float = 0.5
-    robot_refresh_interval: float = 2.0
-    heartbeat_interval: float = 2.0
-    log_buffer: int = 20000
+    # Their defaults are environment.agreed()'s, the site's too.
+    service_timeout: float
+    discovery_interval: float
+    robot_refresh_interval: float
+    heartbeat_interval: float
+    log_buffer: int
     # One get_state per robot process this often (0: off), bounded by the timeout; two misses
     # in a row and its nodes are unreachable (see liveness.py).
-    liveness_interval: float = 1.0
-    liveness_timeout: float = 1.5
+    liveness_interval: float
+    liveness_timeout: float
     dds: dict = field(default_factory=dict)
 
     @property
