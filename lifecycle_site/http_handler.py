@@ -15,7 +15,6 @@ has been open for CONNECTION_LIFETIME_S. docs/performance.md has the figures.
 from __future__ import annotations
 
 import asyncio
-import os
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -29,12 +28,13 @@ from django.http import HttpRequest, HttpResponseBase
 from django.urls import set_script_prefix
 
 from lifecycle_site.fleet import live_updates
+from ros_gateway.shared import environment
 
 # Requests served at once. A transition waits for its gateway (seconds, if a node hangs), so
 # the pool is wide; threads (and their connections) are only made when all others are busy.
 # Lower it where the database limits connections: PostgreSQL's max_connections must cover
 # WORKERS x site instances + the ingest process and commands (docker/README.md).
-WORKERS = int(os.environ.get("LIFECYCLE_HTTP_WORKERS", "64"))
+WORKERS = environment.whole("LIFECYCLE_HTTP_WORKERS", 64, minimum=1, maximum=1024, unit="threads")
 CONNECTION_LIFETIME_S = 300.0
 
 _opened = threading.local()  # per worker: connection alias -> when this thread opened it

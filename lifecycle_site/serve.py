@@ -16,6 +16,9 @@ temporary file before Django sees it. Here daphne's channel answers instead:
 in the API's JSON error shape for paths under /api/, as a short HTML page otherwise. The
 connection is closed after the answer; what the client still sends is read and dropped for a
 few seconds, so that it sees the answer rather than a reset connection.
+
+With ``LIFECYCLE_WEB_PROCESSES`` above 1, this starts that many daphne processes on one socket
+instead (web_processes.py).
 """
 from __future__ import annotations
 
@@ -30,6 +33,7 @@ from daphne.http_protocol import HTTPFactory
 from twisted.web import http
 
 from lifecycle_site.api.limits import size_text
+from ros_gateway.shared import environment
 
 LINE_LIMIT = 16 * 1024  # Twisted's own limit for one line (its LineReceiver.MAX_LENGTH)
 HEADERS_LIMIT = 32 * 1024  # twice Twisted's: an id or query just under LINE_LIMIT still fits
@@ -147,8 +151,17 @@ def install() -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
+    argv = sys.argv[1:] if argv is None else argv
+    try:
+        processes = environment.whole("LIFECYCLE_WEB_PROCESSES", 1, minimum=1, maximum=32, unit="processes")
+    except environment.SettingError as exc:
+        raise SystemExit(str(exc)) from None
+    if processes > 1:
+        from lifecycle_site import web_processes
+
+        raise SystemExit(web_processes.serve(processes, argv, dict(os.environ)))
     install()
-    CommandLineInterface().run(sys.argv[1:] if argv is None else argv)
+    CommandLineInterface().run(argv)
 
 
 if __name__ == "__main__":

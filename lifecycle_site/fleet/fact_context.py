@@ -70,6 +70,7 @@ class KnownRecords:
         self.all_robots = False  # every robot of the gateway read (else only the hinted one)
         self.nodes: dict[int, dict[str, ManagedNode | None]] = {}  # None: known not to exist
         self.usernames: dict[int, str | None] = {}  # None: no such user
+        self.stored: set[str] = set()  # fact ids of the batch's audit records stored before it
         node = hints.node if hints else None
         if node is not None and node.robot.gateway.name == name:
             self.robots[node.robot.name] = node.robot
@@ -100,7 +101,10 @@ class KnownRecords:
 
     def prefetch(self, facts: list) -> None:
         """Read the nodes the facts name, in one query (not all nodes of their robots: a
-        reply's three facts on a robot of 100 nodes read 1 node, not 100)."""
+        reply's three facts on a robot of 100 nodes read 1 node, not 100); and which of their
+        audit records are stored already (the request path and the ingest process both apply
+        a reply's facts), one query per kind of record."""
+        self._find_stored(facts)
         wanted: dict[int, set[str]] = {}
         for fact in facts:
             if isinstance(fact, dict) and isinstance(fact.get("node"), str) and self.owns(fact.get("robot")):
@@ -117,6 +121,16 @@ class KnownRecords:
                 known.setdefault(name, None)
         for node in ManagedNode.objects.filter(query):
             self.nodes[node.robot_id][node.name] = node
+
+    def _find_stored(self, facts: list) -> None:
+        ids: dict[str, list[str]] = {protocol.TRANSITION: [], protocol.PARAMETER: []}
+        for fact in facts:
+            if isinstance(fact, dict) and fact.get("type") in ids:
+                ids[fact["type"]].append(str(fact.get("id")))
+        for kind, model in ((protocol.TRANSITION, TransitionRecord), (protocol.PARAMETER, ParameterRecord)):
+            if ids[kind]:
+                found = model.objects.filter(fact_id__in=ids[kind]).order_by().values_list("fact_id", flat=True)
+                self.stored.update(found)
 
     def robot(self, fact: dict, required: bool = True) -> Robot | None:
         """The fact's robot; it must be one of this gateway's. ``required=False`` allows a robot

@@ -212,9 +212,8 @@ def _label(state_id: int | None) -> str:
 
 def _transition(known: KnownRecords, fact: dict, at: datetime, applied: Applied) -> None:
     fact_id = str(fact["id"])
-    existing = TransitionRecord.objects.select_related("node").filter(fact_id=fact_id).first()
-    if existing is not None:
-        applied.transitions[fact_id] = existing
+    if fact_id in known.stored:
+        applied.transitions[fact_id] = TransitionRecord.objects.select_related("node").get(fact_id=fact_id)
         return
     robot = known.robot(fact)
     name = checks.node_name(fact.get("node"))
@@ -268,9 +267,8 @@ def _transition(known: KnownRecords, fact: dict, at: datetime, applied: Applied)
 
 def _parameter(known: KnownRecords, fact: dict, at: datetime, applied: Applied) -> None:
     fact_id = str(fact["id"])
-    existing = ParameterRecord.objects.filter(fact_id=fact_id).first()
-    if existing is not None:
-        applied.parameters[fact_id] = existing
+    if fact_id in known.stored:
+        applied.parameters[fact_id] = ParameterRecord.objects.get(fact_id=fact_id)
         return
     robot = known.robot(fact)
     name = checks.node_name(fact.get("node"))

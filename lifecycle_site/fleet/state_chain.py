@@ -60,7 +60,8 @@ def recorded(node: ManagedNode, result_state: int | None, at: datetime) -> None:
 def start_of_observed(node: ManagedNode, result: int | None, at: datetime) -> tuple[int | None, str]:
     """A gateway's own "observed" record (it saw only the end of a transition, e.g. just after
     it started): where the chain had the node, and what is known of the cause."""
-    start = ManagedNode.objects.filter(pk=node.pk).values_list("audited_state_id", flat=True).first()
+    start = next(iter(ManagedNode.objects.filter(pk=node.pk).order_by().values_list("audited_state_id", flat=True)),
+                 None)
     return start, cause(node, start, result if result is not None else node.state_id, at)
 
 
@@ -72,8 +73,8 @@ def bridge(node: ManagedNode, start: int | None, requested_at: datetime) -> Tran
     still be on its way (the ingest behind the request path)."""
     if start is None or not sm.is_primary(start):
         return None
-    found = ManagedNode.objects.filter(pk=node.pk).values_list(
-        "audited_state_id", "audited_at", "unexplained_since").first()
+    found = next(iter(ManagedNode.objects.filter(pk=node.pk).order_by().values_list(
+        "audited_state_id", "audited_at", "unexplained_since")), None)
     # (No record yet: the first state seen only marks where the chain may begin; the first
     # record says where it does. Its own result may even have been seen first.)
     if found is None or found[0] is None or found[1] is None or found[2] is None or found[0] == start:

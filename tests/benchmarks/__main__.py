@@ -43,6 +43,9 @@ def parse(argv: list[str]) -> argparse.Namespace:
     parser.add_argument("--database", choices=DATABASES, default="sqlite",
                         help="the site's database: SQLite files, or a throw-away PostgreSQL cluster (Debian's "
                              "postgresql), one database per scenario")
+    parser.add_argument("--web-processes", type=int, metavar="N",
+                        help="daphne processes of the site (LIFECYCLE_WEB_PROCESSES) in every scenario; without it "
+                             "1, as installed, and the load scenario runs with 1 and with 2")
     parser.add_argument("--keep", action="store_true", help="keep the work dir (databases, process logs)")
     parser.add_argument("--strict", action="store_true", help="exit 1 when a target is missed")
     return parser.parse_args(argv)
@@ -83,11 +86,13 @@ def main(argv: list[str]) -> int:
     measured_on = machine()
     template = Template(workdir, options.database)
     try:
-        results, failed = _run_all(names, BenchContext(workdir, template, options.quick, options.profile))
+        context = BenchContext(workdir, template, options.quick, options.profile, options.web_processes)
+        results, failed = _run_all(names, context)
     finally:
         template.close()
     write_json(options.output, results, {"quick": options.quick, "only": options.only,
-                                         "database": options.database}, measured_on)
+                                         "database": options.database,
+                                         "web_processes": options.web_processes}, measured_on)
     missed = [f"{r.name}: {c.name}" for r in results for c in r.checks if not c.met]
     print(f"\n{len(results) - len(failed)} of {len(names)} scenarios ran in {time.monotonic() - began:.0f} s; "
           f"results in {options.output}")

@@ -265,11 +265,15 @@ class Stack:
 class BenchContext:
     """What every scenario gets: a work dir, the template database, the run's options."""
 
-    def __init__(self, workdir: Path, template: Template, quick: bool, profile_dir: Path | None) -> None:
+    def __init__(self, workdir: Path, template: Template, quick: bool, profile_dir: Path | None,
+                 web_processes: int | None = None) -> None:
         self.workdir = workdir
         self.template = template
         self.quick = quick
         self.profile_dir = profile_dir
+        self.web_processes = web_processes
 
     def stack(self, name: str, robots: list[tuple[str, int]], **env_extra: str) -> Stack:
+        if self.web_processes is not None:
+            env_extra.setdefault("LIFECYCLE_WEB_PROCESSES", str(self.web_processes))
         return Stack(self.workdir, self.template, name, robots, **env_extra)
