@@ -7,6 +7,9 @@ from __future__ import annotations
 
 from typing import Any
 
+# A refused value is echoed in a message up to this many characters.
+MAX_SHOWN = 80
+
 
 class Refusal(Exception):
     status = 400
@@ -19,3 +22,15 @@ class Refusal(Exception):
 
     def as_json(self) -> dict:
         return {"error": {"code": self.code, "message": self.message, **self.details}}
+
+
+def cut(text: str) -> str:
+    """``text``, cut short when long (a message never echoes a whole oversized value)."""
+    if len(text) <= MAX_SHOWN:
+        return text
+    return f"{text[:MAX_SHOWN]}… ({len(text):,} characters)"
+
+
+def shown(value: Any) -> str:
+    """A value a request sent, as a refusal may quote it."""
+    return cut(repr(value))

@@ -17,11 +17,11 @@ from django.utils import timezone
 from django.views.decorators.csrf import csrf_exempt
 
 from lifecycle_site.api import grants
-from lifecycle_site.api.limits import MAX_DEPTH, MAX_DIGITS, body_limit, cut, size_text
+from lifecycle_site.api.limits import MAX_DEPTH, MAX_DIGITS, body_limit, size_text
 from lifecycle_site.api.models import ApiToken, hash_token
 from lifecycle_site.audit import denials
 from lifecycle_site.database_input import MESSAGE as DATA_ERROR_MESSAGE
-from lifecycle_site.refusal import Refusal
+from lifecycle_site.refusal import Refusal, cut
 from ros_gateway.shared import param_types as pt
 
 UNSAFE_METHODS = {"POST", "PUT", "PATCH", "DELETE"}

@@ -4,8 +4,6 @@ The body size itself is Django's DATA_UPLOAD_MAX_MEMORY_SIZE (settings.py), whic
 layer (lifecycle_site/serve.py) enforces too, before a body is read."""
 from __future__ import annotations
 
-from typing import Any
-
 from django.conf import settings
 
 # Lists and objects nested deeper than this in a JSON body are refused (no endpoint needs more
@@ -17,8 +15,6 @@ MAX_DIGITS = 4300
 MAX_PARAMETERS = 200
 # Node names in "nodes" of one group operation.
 MAX_NODES = 200
-# A refused value is echoed in a message up to this many characters.
-MAX_SHOWN = 80
 
 
 def body_limit() -> int:
@@ -33,13 +29,3 @@ def size_text(size: int) -> str:
         return f"{size // 1024} KiB"
     return f"{size:,} bytes"
 
-
-def cut(text: str) -> str:
-    """``text``, cut short when long (a message never echoes a whole oversized value)."""
-    if len(text) <= MAX_SHOWN:
-        return text
-    return f"{text[:MAX_SHOWN]}… ({len(text):,} characters)"
-
-
-def shown(value: Any) -> str:
-    return cut(repr(value))

@@ -7,10 +7,9 @@ from __future__ import annotations
 from django.http import HttpRequest, JsonResponse
 
 from lifecycle_site.api.auth import api_view, error
-from lifecycle_site.api.limits import shown
 from lifecycle_site.api.views import get_node
 from lifecycle_site.fleet.models import Robot
-from lifecycle_site.refusal import Refusal
+from lifecycle_site.refusal import Refusal, shown
 from lifecycle_site.timelines import node as tl
 from lifecycle_site.timelines import windows as tw
 from lifecycle_site.timelines.robot import robot_timeline as robot_timeline_of

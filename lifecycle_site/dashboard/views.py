@@ -17,7 +17,7 @@ from lifecycle_site.dashboard.access import viewer_required
 from lifecycle_site.dashboard.templatetags.dashboard import dom_id
 from lifecycle_site.fleet.models import ManagedNode, Robot
 from lifecycle_site.fleet.serializers import node_dict
-from lifecycle_site.operations.transitions import request_transition
+from lifecycle_site.operations.transitions import TransitionRefused, request_transition
 from ros_gateway.shared import state_machine as sm
 
 ROS_NAME = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
@@ -124,23 +124,22 @@ def node_transition(request: HttpRequest, key: str) -> HttpResponse:
         denials.record(request, 403, "forbidden", "operator needed")
         outcome_context = {"ok": False, "message": "Your role may view but not operate nodes (operator needed)."}
         return render(request, answer, {**named, **outcome_context}, status=403)
-    requested = request.POST.get("transition", "")
     try:
-        sm.resolve_transition(requested, sm.UNCONFIGURED)
-    except sm.UnknownTransition:
-        refused = {**named, "ok": False, "message": f"{requested!r} is not a lifecycle transition."}
-        return render(request, answer, refused, status=400)
-    outcome = request_transition(node, requested, request.user, "dashboard")
+        done = request_transition(node, request.POST.get("transition", ""), request.user, "dashboard")
+    except TransitionRefused as refused:
+        if refused.code == "unknown_transition":  # (no button sends one)
+            return render(request, answer, {**named, "ok": False, "message": refused.message}, status=400)
+        done, context = None, {"ok": False, "code": refused.code, "message": refused.message}
+    else:
+        context = {"ok": True, "code": None, "message": done.message}
     if on_row:
-        return render(request, answer, {**named, "ok": outcome.succeeded, "code": outcome.code,
-                                        "message": outcome.message})
+        return render(request, answer, {**named, **context})
     node.refresh_from_db()
     payload = snapshots.node_with_since(node)
-    if outcome.data.get("to"):  # the gateway's answer is fresher than the database write
-        payload = {**payload, "state": outcome.data["to"],
-                   "transitions": [t.as_dict() for t in sm.valid_transitions(outcome.data["to"]["id"])]}
-    context = {"ok": outcome.succeeded, "code": outcome.code, "message": outcome.message,
-               "gateway_name": named["gateway_name"]}
+    if done is not None and done.data.get("to"):  # the gateway's answer is fresher than the database write
+        payload = {**payload, "state": done.data["to"],
+                   "transitions": [t.as_dict() for t in sm.valid_transitions(done.data["to"]["id"])]}
+    context["gateway_name"] = named["gateway_name"]
     if request.htmx.target == "transition-result":  # the node page: refresh its state panel too
         context.update(snapshots.state_panel(payload), can_operate=True, oob=True)
     # htmx swaps only 2xx answers by default; the message is the content either way.

@@ -18,22 +18,23 @@ from lifecycle_site.fleet.facts import apply_facts
 from lifecycle_site.fleet.gateway_client import GatewayError, call_gateway
 from lifecycle_site.fleet.live_updates import push, record_messages
 from lifecycle_site.fleet.models import ManagedNode
+from lifecycle_site.refusal import Refusal, shown
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 
 
 @dataclass
-class Outcome:
-    """What became of a request: ``code`` is None on success."""
+class Transitioned:
+    """A transition carried out: ``message`` for people, ``data`` the API's answer."""
 
-    status: int
-    code: str | None
     message: str
     data: dict = field(default_factory=dict)
 
-    @property
-    def succeeded(self) -> bool:
-        return self.code is None
+
+class TransitionRefused(Refusal):
+    """A transition not carried out, or not as asked: refused before the node (its reason
+    recorded), refused by the gateway or the node, failed, timed out, or its outcome unknown.
+    ``details`` holds the node's state as known and the audit record's id when there is one."""
 
 
 # HTTP status of each gateway refusal; anything else keeps GatewayError's own status.
@@ -48,14 +49,35 @@ STATUS_BY_CODE = {
 RECORDED_HERE = {"gateway_offline", "node_offline", "node_busy", "robot_not_watched"}
 
 
-def request_transition(node: ManagedNode, requested, user, source: str, timeout: float | None = None) -> Outcome:
+def named(requested: object) -> str | int:
+    """The transition asked for, as a label or an id, if it names one at all (whether the node's
+    state allows it is the gateway's to check, against the node's real state)."""
+    if isinstance(requested, bool) or not isinstance(requested, (str, int)):
+        raise TransitionRefused("invalid_field", "'transition' must be a label such as \"activate\" or a numeric id.")
+    try:
+        sm.resolve_transition(requested, sm.UNCONFIGURED)
+    except sm.UnknownTransition:
+        raise TransitionRefused(
+            "unknown_transition", f"{shown(requested)} is not a lifecycle transition; use one of "
+            f"{', '.join(sm.EXTERNAL_LABELS)} or an id 1-7.") from None
+    if isinstance(requested, str):  # (a name it resolved: digits are few)
+        text = requested.strip()
+        return int(text) if text.isascii() and text.isdigit() else text.lower()
+    return requested
+
+
+def request_transition(node: ManagedNode, requested: object, user, source: str,
+                       timeout: float | None = None) -> Transitioned:
+    """Carry out one transition for ``user``; raises TransitionRefused for anything else than
+    success (the audit record exists before either)."""
+    requested = named(requested)
     if not node.robot.enabled or not node.alive:
         if not node.robot.enabled:
             message = f"Robot {node.robot.name} is disabled: its nodes are not watched. Enable it in the admin."
         else:
             message = f"{node.name} is not running on {node.robot.name}; it was last seen {ago(node.last_seen)}."
         record = record_rejection(node, requested, user, source, message)
-        return Outcome(409, "node_offline", message, {"state": node.state, "record_id": record.id})
+        raise TransitionRefused("node_offline", message, 409, state=node.state, record_id=record.id)
     gateway = node.robot.gateway.name
     try:
         reply = call_gateway(
@@ -75,32 +97,31 @@ def request_transition(node: ManagedNode, requested, user, source: str, timeout:
             details["record_id"] = record.id
         elif exc.code in RECORDED_HERE:
             details["record_id"] = record_rejection(node, requested, user, source, exc.message).id
-        return Outcome(STATUS_BY_CODE.get(exc.code, exc.status), exc.code, exc.message, details)
+        raise TransitionRefused(exc.code, exc.message, STATUS_BY_CODE.get(exc.code, exc.status), **details) from None
     record = _apply(gateway, reply.get("facts") or [], Hints(node, user))
+    record_id = record.id if record is not None else None
     try:
         reply = checks.change_state_reply(reply)
     except checks.GatewayInputRefused as exc:
         message = (f"Gateway {gateway} answered with a reply the site cannot read ({exc}): whether "
                    f"{requested} reached {node.name} is not known. Check the node's state before you try again.")
-        return Outcome(502, "gateway_error", message, {"state": node.state,
-                                                      "record_id": record.id if record is not None else None})
-    common = {"from": reply["from"], "transition": reply["transition"],
-              "record_id": record.id if record is not None else None}
+        raise TransitionRefused("gateway_error", message, 502, state=node.state, record_id=record_id) from None
+    common = {"from": reply["from"], "transition": reply["transition"], "record_id": record_id}
     outcome = reply["outcome"]
     if outcome == "succeeded":
         label = (reply["transition"] or {}).get("label", str(requested))
         message = f"{label} succeeded: {node.name} is now {(reply['to'] or {}).get('label', 'in an unknown state')}."
-        return Outcome(200, None, message, {"success": True, **common, "to": reply["to"],
-                                            "duration_ms": reply["duration_ms"]})
+        return Transitioned(message, {"success": True, **common, "to": reply["to"],
+                                      "duration_ms": reply["duration_ms"]})
     if outcome == "rejected":
-        return Outcome(409, "invalid_transition", reply["message"], {
-            "state": reply["from"], "valid_transitions": reply["valid_transitions"], "record_id": common["record_id"]})
+        raise TransitionRefused("invalid_transition", reply["message"], 409, state=reply["from"],
+                                valid_transitions=reply["valid_transitions"], record_id=record_id)
     details = {"state": reply["to"], "duration_ms": reply["duration_ms"], **common}
     if outcome == "timed_out":
-        return Outcome(504, "timeout", reply["message"], details)
+        raise TransitionRefused("timeout", reply["message"], 504, **details)
     if outcome == protocol.PROCESS_LOST:  # the node's process ended during the transition
-        return Outcome(422, "process_lost", reply["message"], details)
-    return Outcome(422, "transition_failed", reply["message"], details)
+        raise TransitionRefused("process_lost", reply["message"], 422, **details)
+    raise TransitionRefused("transition_failed", reply["message"], 422, **details)
 
 
 def _apply(gateway: str, facts: list, hints: Hints) -> TransitionRecord | None:

@@ -19,7 +19,7 @@ from lifecycle_site.fleet.gateway_client import GatewayError, GatewayOffline, ca
 from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
 from lifecycle_site.operations import cli_output as out
 from lifecycle_site.operations.runs import start_run, wait_for
-from lifecycle_site.operations.transitions import ago, request_transition
+from lifecycle_site.operations.transitions import TransitionRefused, ago, named, request_transition
 from lifecycle_site.refusal import Refusal
 from ros_gateway.shared import operations, protocol
 from ros_gateway.shared import state_machine as sm
@@ -146,19 +146,19 @@ class Command(BaseCommand):
     def do_set(self, opts: SimpleNamespace) -> int:
         node = self.node(opts.node, self.robot(opts.robot))
         requested = self.transition(opts.transition)
-        outcome = request_transition(node, requested, self.user(opts.user), "cli", opts.timeout)
-        if outcome.code == "gateway_offline":
-            raise CliExit(EXIT_OFFLINE, outcome.message, outcome.code, **outcome.data)
-        if outcome.succeeded:
-            self.emit(opts, outcome.data, ["Transitioning successful"])
-            return EXIT_OK
-        self.emit(opts, {"error": {"code": outcome.code, "message": outcome.message, **outcome.data}},
-                  ["Transitioning failed"])
-        self.stderr.write(outcome.message)
-        if outcome.code == "invalid_transition" and not opts.json:
-            state_id = outcome.data["state"]["id"]
-            self.stderr.write("\n".join(out.available_lines(state_id, outcome.data.get("valid_transitions"))))
-        return EXIT_FAILED
+        try:
+            done = request_transition(node, requested, self.user(opts.user), "cli", opts.timeout)
+        except TransitionRefused as refused:
+            if refused.code == "gateway_offline":
+                raise CliExit(EXIT_OFFLINE, refused.message, refused.code, **refused.details) from None
+            self.emit(opts, refused.as_json(), ["Transitioning failed"])
+            self.stderr.write(refused.message)
+            if refused.code == "invalid_transition" and not opts.json:
+                state_id = refused.details["state"]["id"]
+                self.stderr.write("\n".join(out.available_lines(state_id, refused.details.get("valid_transitions"))))
+            return EXIT_FAILED
+        self.emit(opts, done.data, ["Transitioning successful"])
+        return EXIT_OK
 
     def do_group(self, opts: SimpleNamespace) -> int:
         """An operation of the shared table, of a robot or of a node: one GroupRun."""
@@ -250,13 +250,11 @@ class Command(BaseCommand):
         raise CliExit(EXIT_USAGE, message, "not_found")
 
     def transition(self, requested: str) -> str | int:
+        """Checked before anything else is looked up: a mistyped name is a usage error."""
         try:
-            sm.resolve_transition(requested, sm.UNCONFIGURED)  # only checks that it names a transition
-        except sm.UnknownTransition:
-            raise CliExit(EXIT_USAGE, f"{requested!r} is not a lifecycle transition; use one of "
-                          f"{', '.join(sm.EXTERNAL_LABELS)} or an id 1-7.", "unknown_transition") from None
-        text = requested.strip()
-        return int(text) if text.isascii() and text.isdigit() else text.lower()
+            return named(requested)
+        except TransitionRefused as refused:
+            raise CliExit(EXIT_USAGE, refused.message, refused.code) from None
 
     def user(self, username: str | None):
         """The site user a change is made as, who must be allowed to operate nodes."""
