@@ -12,7 +12,7 @@ from pathlib import Path
 
 import redis
 
-from lifecycle_site.child_process import die_with_parent
+from ros_gateway.shared.child_process import die_with_parent
 
 
 def answers(url: str, timeout: float = 0.5) -> bool:

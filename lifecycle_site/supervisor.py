@@ -9,7 +9,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from lifecycle_site.child_process import die_with_parent
+from ros_gateway.shared.child_process import die_with_parent
 
 RESPAWN_DELAY_S = 2.0
 

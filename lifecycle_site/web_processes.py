@@ -15,7 +15,6 @@ once), and gives up, ending with an error, when they end at once RESTART_LIMIT t
 """
 from __future__ import annotations
 
-import ctypes
 import logging
 import signal
 import socket
@@ -24,6 +23,8 @@ import sys
 import time
 from dataclasses import dataclass, field
 
+from ros_gateway.shared.child_process import die_with_parent
+
 log = logging.getLogger("lifecycle_site.web")
 
 STOP_WAIT_S = 15.0  # how long the processes get to finish their answers when told to stop
@@ -31,18 +32,6 @@ EARLY_EXIT_S = 10.0  # a process that ends sooner after its start than this ende
 RESTART_LIMIT = 5  # ... that many times in a row: the site cannot start (bad settings, say)
 MAX_RESTART_PAUSE_S = 8.0
 BACKLOG = 1024
-
-
-PR_SET_PDEATHSIG = 1
-
-
-def _end_with_parent() -> None:
-    """In each process before daphne starts: Linux sends it SIGTERM when this supervisor ends,
-    even by SIGKILL, so no daphne outlives it holding the port."""
-    try:
-        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
-    except (OSError, AttributeError):
-        pass  # not Linux: a supervisor killed outright leaves its processes to be stopped by hand
 
 
 class LaunchRefused(SystemExit):
@@ -113,7 +102,7 @@ class Processes:
 
     def start(self, slot: int) -> None:
         self.children[slot] = subprocess.Popen(self.command(), env=self.environ, pass_fds=(self.socket.fileno(),),
-                                               preexec_fn=_end_with_parent)
+                                               preexec_fn=die_with_parent())
         self.started[slot] = time.monotonic()
 
     def run(self) -> int:

@@ -17,6 +17,7 @@ from ros_gateway.registry import LiveNode, NodeRegistry
 from ros_gateway.relay import Relay
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
+from ros_gateway.supervisor import Supervisor, UnknownProcess
 from ros_gateway.tasks import spawn
 
 log = logging.getLogger(__name__)
@@ -45,6 +46,7 @@ class Parts:
     runs: GroupRunner
     service_timeout: float
     outbox: Outbox
+    supervisor: Supervisor
 
 
 class CommandHandler:
@@ -131,6 +133,8 @@ class CommandHandler:
             return {"ok": True, "domains": sorted(parts.domains), "nodes": len(parts.registry.nodes)}
         if name == protocol.START_RUN:
             return parts.runs.start(command.get("run"))
+        if name == protocol.PROCESS_CONTROL:
+            return await self.process_control(command)
         node = await self._node(command, timeout)
         domain = parts.domains[node.robot.domain_id]
         first_call = self._first_call_timeout(command, domain, timeout)
@@ -161,6 +165,28 @@ class CommandHandler:
         if name == protocol.CHANGE_STATE:
             return await self.change_state(node, command, timeout, first_call)
         raise CommandError("unknown_command", f"The gateway has no command {name!r}.")
+
+    async def process_control(self, command: dict) -> dict:
+        """Start, stop or restart a process of one of the robot's launch profiles: only a profile
+        this gateway has for that robot, named by the profile's name (never a pid)."""
+        robot = self.parts.registry.robot_named(str(command.get("robot")))
+        if robot is None:
+            raise CommandError("robot_not_watched", f"Robot {command.get('robot')!r} is not watched (unknown or "
+                                                    "disabled).")
+        action = command.get("action")
+        if action not in protocol.PROCESS_ACTIONS:
+            raise CommandError("unknown_action", f"{action!r} is not a process action; use one of "
+                                                 f"{', '.join(protocol.PROCESS_ACTIONS)}.")
+        supervisor = self.parts.supervisor
+        act = {"start": supervisor.start, "stop": supervisor.stop, "restart": supervisor.restart}[action]
+        try:
+            fact = await act(robot.name, str(command.get("process")), source=str(command.get("source") or "api"),
+                             user_id=_user(command), vouching=protocol.vouching(command))
+        except UnknownProcess:
+            raise CommandError("unknown_process", f"Gateway {self.parts.relay.gateway} runs no process "
+                                                  f"{command.get('process')!r} for {robot.name} (its launch profiles "
+                                                  "may not have reached it yet).") from None
+        return {"ok": True, "outcome": fact.get("outcome"), "message": fact.get("message"), "facts": [fact]}
 
     async def _node(self, command: dict, timeout: float) -> LiveNode:
         robot_name, name = command.get("robot"), command.get("node")

@@ -6,7 +6,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections import deque
-from datetime import datetime, timedelta
+from datetime import datetime, timedelta, timezone
 
 from ros_gateway.outbox import Outbox
 from ros_gateway.registry import LiveNode, NodeRegistry
@@ -26,6 +26,9 @@ class LogPipeline:
         self.registry = registry
         self.outbox = outbox
         self.buffer = LogBuffer(buffer_limit)
+        # Supervised processes' output lines, as rows, bounded like the buffer (oldest dropped).
+        self.output: deque[list] = deque(maxlen=max(1, buffer_limit // 4))
+        self.output_dropped = 0
         self.recent_errors: dict[str, deque[LogEntry]] = {}
         self.collected = 0
         self._reported_drops = 0
@@ -37,6 +40,14 @@ class LogPipeline:
         except Exception:
             log.exception("ignored a malformed /rosout message")
 
+    def on_output(self, robot: str, process: str, stream: str, line: str) -> None:
+        """A line a supervised process wrote (supervisor.py): a record of its robot's log, under
+        the logger "PROCESS/stdout" or "PROCESS/stderr"."""
+        if len(self.output) == self.output.maxlen:
+            self.output_dropped += 1
+        self.output.append([robot, "", f"{process}/{stream}"[:255], datetime.now(timezone.utc).isoformat(), INFO,
+                            line, "", "", 0])
+
     async def run(self, stopping: asyncio.Event) -> None:
         while not stopping.is_set():
             try:
@@ -47,6 +58,11 @@ class LogPipeline:
 
     def collect(self) -> None:
         """Move what the buffer holds into log batches for the site (never blocks)."""
+        while self.output:
+            rows = [self.output.popleft() for _ in range(min(len(self.output), protocol.LOG_BATCH))]
+            dropped, self.output_dropped = self.output_dropped, 0
+            self.outbox.emit_logs(rows, dropped=dropped)
+            self.collected += len(rows)
         while len(self.buffer):
             rows = self._to_rows(self.buffer.drain(protocol.LOG_BATCH))
             dropped = self.buffer.dropped - self._reported_drops

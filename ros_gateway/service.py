@@ -36,6 +36,7 @@ from ros_gateway.parts import Core
 from ros_gateway.registry import NodeRegistry, StateChange, StateChanges
 from ros_gateway.relay import Relay
 from ros_gateway.shared import protocol
+from ros_gateway.supervisor import LaunchProfile, Supervisor
 
 log = logging.getLogger(__name__)
 
@@ -72,8 +73,10 @@ class Gateway:
                                    self.liveness.suspect)
         self.driver = NodeDriver(core, self.logs)
         self.runs = GroupRunner(core, self.driver)
+        # The robots' launch profiles: processes this gateway runs for them (its facts: audit records).
+        self.supervisor = Supervisor(lambda **fields: self.outbox.emit(protocol.PROCESS, **fields), self.logs.on_output)
         self.commands = CommandHandler(Parts(self.relay, self.registry, self.domains, self.driver, self.params,
-                                             self.runs, config.service_timeout, self.outbox))
+                                             self.runs, config.service_timeout, self.outbox, self.supervisor))
         # A state change is reported to the site first (self._report, its fact kept on the change);
         # then, in this order: the pages (a push), the audit of a new process instance, its
         # parameters read again, the stuck-transition check, and automatic recovery.
@@ -135,6 +138,10 @@ class Gateway:
         for task in running:
             task.cancel()
         await asyncio.gather(*running, return_exceptions=True)
+        try:  # the processes it runs end with it (as ros2 launch's do); the next instance starts them
+            await self.supervisor.close()
+        except Exception:
+            log.exception("stopping the supervised processes failed")
         await tasks.cancel_all()
         self.logs.collect()
         try:  # what is still held goes out if Redis answers; bounded, the process is stopping
@@ -202,6 +209,25 @@ class Gateway:
                 self.outbox.set_quota(quota)
                 self.relay.live.set_quota(quota)
             await self.discovery.apply_config(config)
+            await self.supervisor.apply(self._profiles(config))
+
+    def _profiles(self, config: dict) -> list[LaunchProfile]:
+        """The launch profiles of the watched robots in the site's config; one the gateway cannot
+        read is left out (and said so once per config)."""
+        profiles = []
+        for robot in config.get("robots") or []:
+            if not isinstance(robot, dict) or self.registry.robot_named(str(robot.get("name"))) is None:
+                continue
+            for data in robot.get("processes") or []:
+                try:
+                    profiles.append(LaunchProfile.from_config(str(robot["name"]), data))
+                except ValueError as exc:
+                    if config.get("version") != self._complained_about:
+                        log.error("ignored a launch profile of robot %s: %s", robot.get("name"), exc)
+        self._complained_about = config.get("version")
+        return profiles
+
+    _complained_about: object = None
 
     def _beat(self) -> dict:
         return {

@@ -62,13 +62,16 @@ class GatewayPart:
         """The fact with the grant the site gave the command it answers, and the id that goes
         with it (lifecycle_site/fleet/attribution.py, protocol.vouching)."""
         request_id = fact["request_id"] = fact["id"]
+        node = fact.get("node")
         if fact["type"] == protocol.TRANSITION:
             what = f"transition:{fact['transition_label']}"
+        elif fact["type"] == protocol.PROCESS:
+            what, node = f"process:{fact['action']}", fact.get("process")
         else:
             what = f"parameter:{fact['name']}"
             fact["id"] = protocol.parameter_fact_id(request_id, fact["name"])
         fact["grant"] = attribution.grant(request_id, fact.get("user_id"), fact.get("source"), fact.get("robot"),
-                                          fact.get("node"), what)
+                                          node, what)
         return fact
 
     def log_batch(self, records: list[list], dropped: int = 0) -> dict:

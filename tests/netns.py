@@ -34,7 +34,7 @@ import threading
 import time
 from pathlib import Path
 
-from lifecycle_site.child_process import die_with_parent
+from ros_gateway.shared.child_process import die_with_parent
 from tests import stack
 
 PREFIX = "lcn"

@@ -17,7 +17,7 @@ from urllib.parse import urlparse
 
 from django.conf import settings
 
-from lifecycle_site.child_process import die_with_parent
+from ros_gateway.shared.child_process import die_with_parent
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -1,6 +1,6 @@
 from django.urls import path, re_path
 
-from lifecycle_site.api import alerts, operations, parameters, timeline, views
+from lifecycle_site.api import alerts, operations, parameters, processes, timeline, views
 from lifecycle_site.api.auth import not_found
 
 app_name = "api"
@@ -14,6 +14,8 @@ urlpatterns = [
     path("transitions", views.transitions, name="transitions"),
     path("robots/<str:name>/operations", operations.robot_operation, name="robot-operation"),
     path("robots/<str:name>/runs", operations.robot_runs, name="robot-runs"),
+    path("robots/<str:name>/processes", processes.robot_processes, name="robot-processes"),
+    path("robots/<str:name>/processes/<str:process>", processes.process_action, name="process-action"),
     path("runs/<str:run_id>", operations.run_detail, name="run"),
     path("nodes/<str:key>/restart", operations.node_restart, name="node-restart"),
     path("nodes/<str:key>/desired-state", operations.desired_state, name="node-desired-state"),

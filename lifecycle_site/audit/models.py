@@ -166,6 +166,58 @@ class ParameterRecord(AppendOnlyRecord):
         }
 
 
+class ProcessRecord(AppendOnlyRecord):
+    """One action on a robot's process through its supervisor (start, stop, restart), asked for
+    or refused, or what the supervisor did by itself (an exit, a respawn, giving up)."""
+
+    class Action(models.TextChoices):
+        START = "start", "start"
+        STOP = "stop", "stop"
+        RESTART = "restart", "restart"
+        EXITED = "exited", "exited"
+        RESPAWN = "respawn", "respawned"
+        GAVE_UP = "gave_up", "respawning given up"
+
+    class Source(models.TextChoices):
+        DASHBOARD = "dashboard", "dashboard"
+        API = "api", "API"
+        CLI = "cli", "command line"
+        SUPERVISOR = "supervisor", "supervisor (by itself)"
+        CONFIG = "config", "profile changed"
+        EXTERNAL = "external", "external"
+
+    profile = models.ForeignKey("fleet.ProcessProfile", null=True, blank=True, on_delete=models.SET_NULL,
+                                related_name="records")
+    robot_name = models.CharField(max_length=63)
+    process_name = models.CharField("process", max_length=64)
+    supervisor = models.CharField(max_length=16, default="launch", help_text="What started the process.")
+    action = models.CharField(max_length=16, choices=Action.choices)
+    outcome = models.CharField(max_length=16, choices=[("succeeded", "succeeded"), ("failed", "failed"),
+                                                        ("rejected", "rejected")])
+    source = models.CharField(max_length=16, choices=Source.choices)
+    pid = models.PositiveIntegerField(null=True, blank=True)
+    old_pid = models.PositiveIntegerField(null=True, blank=True)
+    exit_code = models.IntegerField(null=True, blank=True)
+    exit_signal = models.CharField(max_length=16, blank=True)
+    message = models.TextField(blank=True)
+    took_ms = models.FloatField(null=True, blank=True)
+    at = models.DateTimeField()
+    fact_id = models.CharField(max_length=32, null=True, blank=True, unique=True, editable=False)
+
+    class Meta:
+        ordering = ["-at", "-id"]
+        indexes = [models.Index(fields=["robot_name", "-at"], name="process_robot_recent")]
+
+    def as_dict(self) -> dict:
+        return {
+            "id": self.id, "robot": self.robot_name, "process": self.process_name, "supervisor": self.supervisor,
+            "action": self.action, "outcome": self.outcome, "source": self.source,
+            "requested_by": self.requested_by_name or None, "pid": self.pid, "old_pid": self.old_pid,
+            "exit_code": self.exit_code, "exit_signal": self.exit_signal or None, "message": self.message,
+            "took_ms": self.took_ms, "at": self.at.isoformat(),
+        }
+
+
 class AccessDenial(models.Model):
     """A refused attempt: a change without the role for it, a bad token or session, a failed
     login. Kept for review by admins, bounded (audit/denials.py prunes the oldest)."""

@@ -8,6 +8,7 @@ from django.utils.html import format_html
 from lifecycle_site.fleet import (
     accounts_admin,  # noqa: F401  (users and groups, limited by role)
     gateways,
+    process_admin,  # noqa: F401  (launch profiles)
     quarantine,
 )
 from lifecycle_site.fleet.models import Gateway, ManagedNode, NodeAbsence, Robot

@@ -25,6 +25,7 @@ from ros_gateway.shared import protocol
 
 SALT = "lifecycle_site.fleet.attribution"
 GATEWAY_SOURCES = ("external", "recovery")  # what a gateway may say on its own
+GATEWAY_PROCESS_SOURCES = ("supervisor", "config", "external")  # ... of a supervised process
 
 
 def _message(request_id: Any, user_id: Any, source: Any, robot: Any, node: Any, what: Any) -> str:
@@ -43,6 +44,8 @@ def grants_for(command: dict) -> dict:
     """The grant fields a command of the site carries (none for a command that is not audited)."""
     common = (command["request_id"], command.get("user_id"), str(command.get("source") or "api"),
               str(command.get("robot")), str(command.get("node")))
+    if command["command"] == protocol.PROCESS_CONTROL:  # (the process's name where a node's would be)
+        return {"grant": grant(*common[:4], str(command.get("process")), f"process:{command.get('action')}")}
     if command["command"] == protocol.CHANGE_STATE:
         return {"grant": grant(*common, f"transition:{protocol.transition_word(command.get('transition'))}")}
     if command["command"] == protocol.SET_PARAMETERS and isinstance(command.get("values"), dict):
@@ -57,17 +60,21 @@ def vouched(fact: dict) -> bool:
     found, request_id = fact.get("grant"), fact.get("request_id")
     if not isinstance(found, str) or not isinstance(request_id, str):
         return False
+    node = fact.get("node")
     if fact.get("type") == protocol.TRANSITION:
         what = f"transition:{fact.get('transition_label')}"
         ids = (request_id, protocol.unanswered_id(request_id))
+    elif fact.get("type") == protocol.PROCESS:
+        what, node = f"process:{fact.get('action')}", fact.get("process")
+        ids = (request_id,)
     else:
         what = f"parameter:{fact.get('name')}"
         ids = (protocol.parameter_fact_id(request_id, str(fact.get("name"))),)
     if fact.get("id") not in ids:
         return False
     for secret in (settings.SECRET_KEY, *getattr(settings, "SECRET_KEY_FALLBACKS", [])):
-        expected = grant(request_id, fact.get("user_id"), fact.get("source"), fact.get("robot"), fact.get("node"),
-                         what, secret=secret)
+        expected = grant(request_id, fact.get("user_id"), fact.get("source"), fact.get("robot"), node, what,
+                         secret=secret)
         if constant_time_compare(expected, found):
             return True
     return False
@@ -101,6 +108,23 @@ def requester(known: Any, fact: dict, robot: Any) -> tuple[str, int | None, str]
                 return run_source, run["requested_by_id"], ""
             return "external", None, f" (the gateway said it was a step of run {run_id[:8]}, which it is not)"
     if source in GATEWAY_SOURCES and user_id is None:
+        return source, None, ""
+    if vouched(fact):
+        return source, user_id, ""
+    claimed = f"source {source}" + (f", user #{user_id}" if user_id is not None else "")
+    return "external", None, f" (the gateway said {claimed}; the site sent it no such request)"
+
+
+def process_requester(known: Any, fact: dict) -> tuple[str, int | None, str]:
+    """(source, user id, note) of a ``process`` fact, as requester() does for transitions: a user
+    and a person's source only with the site's grant; on its own word the gateway may say only
+    that its supervisor acted by itself, or on a changed profile."""
+    from lifecycle_site.audit.models import ProcessRecord
+    from lifecycle_site.fleet import gateway_input as checks
+
+    source = checks.choice(fact.get("source"), ProcessRecord.Source.values, "source")
+    user_id = checks.user_id(fact.get("user_id"))
+    if source in GATEWAY_PROCESS_SOURCES and user_id is None:
         return source, None, ""
     if vouched(fact):
         return source, user_id, ""

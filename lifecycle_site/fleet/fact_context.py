@@ -8,9 +8,10 @@ from datetime import datetime, timezone
 from typing import Any, Iterable
 
 from django.contrib.auth import get_user_model
+from django.db import IntegrityError, transaction
 from django.db.models import Q
 
-from lifecycle_site.audit.models import ParameterRecord, TransitionRecord
+from lifecycle_site.audit.models import ParameterRecord, ProcessRecord, TransitionRecord
 from lifecycle_site.fleet.models import ManagedNode, Robot
 from ros_gateway.shared import protocol
 
@@ -27,6 +28,7 @@ class Applied:
     parameters: dict[str, ParameterRecord] = field(default_factory=dict)
     created: list[TransitionRecord] = field(default_factory=list)  # made by this call (pages get them)
     created_parameters: list[ParameterRecord] = field(default_factory=list)  # made by this call
+    created_processes: list[ProcessRecord] = field(default_factory=list)  # made by this call
     accepted: list[dict] = field(default_factory=list)  # the facts applied (not rejected), in order
     rejected: int = 0
 
@@ -123,11 +125,12 @@ class KnownRecords:
             self.nodes[node.robot_id][node.name] = node
 
     def _find_stored(self, facts: list) -> None:
-        ids: dict[str, list[str]] = {protocol.TRANSITION: [], protocol.PARAMETER: []}
+        ids: dict[str, list[str]] = {protocol.TRANSITION: [], protocol.PARAMETER: [], protocol.PROCESS: []}
         for fact in facts:
             if isinstance(fact, dict) and fact.get("type") in ids:
                 ids[fact["type"]].append(str(fact.get("id")))
-        for kind, model in ((protocol.TRANSITION, TransitionRecord), (protocol.PARAMETER, ParameterRecord)):
+        for kind, model in ((protocol.TRANSITION, TransitionRecord), (protocol.PARAMETER, ParameterRecord),
+                            (protocol.PROCESS, ProcessRecord)):
             if ids[kind]:
                 found = model.objects.filter(fact_id__in=ids[kind]).order_by().values_list("fact_id", flat=True)
                 self.stored.update(found)
@@ -164,3 +167,18 @@ class KnownRecords:
         self.nodes.setdefault(robot.id, {})[name] = node
         node.robot = robot
         return node
+
+
+def save_once(known: KnownRecords, record: TransitionRecord | ParameterRecord | ProcessRecord) -> bool:
+    """Save an audit record unless one with its fact id was saved meanwhile by another process
+    (the request path and the ingest process both apply a reply's facts): False then. Outside
+    isolated mode that race fails the batch, which is then applied again isolated."""
+    if not known.isolated:
+        record.save()
+        return True
+    try:
+        with transaction.atomic():
+            record.save()
+    except IntegrityError:
+        return False
+    return True

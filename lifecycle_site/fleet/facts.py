@@ -12,7 +12,7 @@ import logging
 from datetime import datetime
 from typing import Any, Iterable
 
-from django.db import IntegrityError, InterfaceError, OperationalError, transaction
+from django.db import InterfaceError, OperationalError, transaction
 from django.db.models import Q
 from django.db.models.functions import Coalesce
 
@@ -20,8 +20,9 @@ from lifecycle_site.audit.models import ParameterRecord, TransitionRecord
 from lifecycle_site.fleet import attribution, state_chain, verdicts
 from lifecycle_site.fleet import gateway_input as checks
 from lifecycle_site.fleet.absences import node_back, node_left
-from lifecycle_site.fleet.fact_context import Applied, FactRejected, Hints, KnownRecords
+from lifecycle_site.fleet.fact_context import Applied, FactRejected, Hints, KnownRecords, save_once
 from lifecycle_site.fleet.models import GroupRun, ManagedNode
+from lifecycle_site.fleet.process_facts import apply_process
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 
@@ -254,7 +255,7 @@ def _transition(known: KnownRecords, fact: dict, at: datetime, applied: Applied)
         error=error,
         run_id=_run_id(fact.get("run_id")),
     )
-    if _save_once(known, record):
+    if save_once(known, record):
         applied.created.append(record)
         if node is not None:
             state_chain.recorded(node, result, completed_at or requested_at)
@@ -288,26 +289,11 @@ def _parameter(known: KnownRecords, fact: dict, at: datetime, applied: Applied) 
         **_requester(known, user_id),
         at=at,
     )
-    if _save_once(known, record):
+    if save_once(known, record):
         applied.created_parameters.append(record)
     else:
         record = ParameterRecord.objects.get(fact_id=fact_id)
     applied.parameters[fact_id] = record
-
-
-def _save_once(known: KnownRecords, record: TransitionRecord | ParameterRecord) -> bool:
-    """Save an audit record unless one with its fact id was saved meanwhile by another process
-    (the request path and the ingest process both apply a reply's facts): False then. Outside
-    isolated mode that race fails the batch, which is then applied again isolated."""
-    if not known.isolated:
-        record.save()
-        return True
-    try:
-        with transaction.atomic():
-            record.save()
-    except IntegrityError:
-        return False
-    return True
 
 
 def _run(known: KnownRecords, fact: dict, at: datetime, applied: Applied) -> None:
@@ -395,4 +381,5 @@ HANDLERS = {
     protocol.PARAMETER: _parameter,
     protocol.RUN: _run,
     protocol.GATEWAY_STARTED: _gateway_started,
+    protocol.PROCESS: apply_process,
 }

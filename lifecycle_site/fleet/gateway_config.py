@@ -15,14 +15,15 @@ from django.db import transaction
 from django.db.models.signals import post_delete, post_save
 
 from lifecycle_site.fleet.gateways import channel_prefix, redis_client
-from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
+from lifecycle_site.fleet.models import Gateway, ManagedNode, ProcessProfile, Robot
 from ros_gateway.shared import protocol
 
 log = logging.getLogger(__name__)
 
 
 def build_config(gateway_name: str) -> dict:
-    """What a gateway watches: its enabled robots and their nodes' order and desired state."""
+    """What a gateway watches: its enabled robots, their nodes' order and desired state, and
+    the processes it runs for them (their launch profiles)."""
     robots = list(Robot.objects.filter(gateway__name=gateway_name, enabled=True).order_by("name"))
     nodes: dict[int, dict[str, dict]] = {r.id: {} for r in robots}
     rows = ManagedNode.objects.filter(robot__in=robots).order_by("name").values_list(
@@ -30,11 +31,14 @@ def build_config(gateway_name: str) -> dict:
     )
     for robot_id, name, order, desired in rows:
         nodes[robot_id][name] = {"order": order, "desired_state": desired}
+    processes: dict[int, list[dict]] = {r.id: [] for r in robots}
+    for profile in ProcessProfile.objects.filter(robot__in=robots, enabled=True).order_by("name"):
+        processes[profile.robot_id].append(profile.for_gateway())
     body = {
         "gateway": gateway_name,
         "robots": [
             {"id": r.id, "name": r.name, "domain_id": r.domain_id, "namespace": r.namespace,
-             "auto_recover": r.auto_recover, "nodes": nodes[r.id]}
+             "auto_recover": r.auto_recover, "nodes": nodes[r.id], "processes": processes[r.id]}
             for r in robots
         ],
     }
@@ -118,6 +122,14 @@ def _node_changed(sender, instance: ManagedNode, created: bool = False, update_f
         publish_on_commit([gateway])
 
 
+def _profile_changed(sender, instance: ProcessProfile, **kwargs) -> None:
+    gateway = Robot.objects.filter(pk=instance.robot_id).values_list("gateway__name", flat=True).first()
+    if gateway:
+        publish_on_commit([gateway])
+
+
+post_save.connect(_profile_changed, sender=ProcessProfile, dispatch_uid="fleet.gateways.profile_saved")
+post_delete.connect(_profile_changed, sender=ProcessProfile, dispatch_uid="fleet.gateways.profile_deleted")
 post_save.connect(_robot_changed, sender=Robot, dispatch_uid="fleet.gateways.robot_saved")
 post_delete.connect(_robot_changed, sender=Robot, dispatch_uid="fleet.gateways.robot_deleted")
 post_save.connect(_node_changed, sender=ManagedNode, dispatch_uid="fleet.gateways.node_saved")

@@ -363,3 +363,6 @@ class GroupRun(models.Model):
             "started": self.started.isoformat() if self.started else None,
             "finished": self.finished.isoformat() if self.finished else None,
         }
+
+
+from lifecycle_site.fleet.process_profiles import ProcessProfile  # noqa: E402, F401 - registered with this app

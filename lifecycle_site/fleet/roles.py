@@ -14,6 +14,8 @@ VIEW = [
     "fleet.view_nodeabsence",
     "audit.view_transitionrecord",
     "audit.view_parameterrecord",
+    "audit.view_processrecord",
+    "fleet.view_processprofile",
     "alerts.view_alert",
 ]
 OPERATE = VIEW + ["fleet.operate_node", "alerts.acknowledge_alert"]
@@ -24,6 +26,9 @@ ADMINISTER = OPERATE + [
     "fleet.add_managednode",
     "fleet.change_managednode",
     "fleet.delete_managednode",
+    "fleet.add_processprofile",
+    "fleet.change_processprofile",
+    "fleet.delete_processprofile",
     "auth.view_user",
     "auth.add_user",
     "auth.change_user",

@@ -32,6 +32,11 @@ VERBS: dict[str, tuple[str, str]] = {
     "list": ("list the transitions available from the node's current state",
              "'- configure [1]', then its start and goal states; -a: the node's whole transition graph."),
     **{op.name: (op.help, RUN_DETAILS) for op in operations.OPERATIONS if op.startable},
+    "process": ("list a robot's supervised processes, or start, stop or restart one",
+                "Without PROCESS: one line per launch profile ('drivers: running, pid 4242, 2 restarts').\n"
+                "With PROCESS ACTION (start, stop, restart): done by the robot's gateway, its supervisor; prints\n"
+                "what it did (exit 0), or why not on stderr (exit 1). Stopping does not ask: the CLI is for\n"
+                "people who mean it (the page asks first)."),
 }
 DESCRIPTION = """\
 Like 'ros2 lifecycle', but against the site: every call goes through the ROS gateway (no DDS
@@ -55,7 +60,8 @@ examples:
   manage.py lifecycle get agv-1.joy_to_vel
   manage.py lifecycle set --robot agv-1 /joy_to_vel configure
   manage.py lifecycle list agv-1.joy_to_vel -a
-  manage.py lifecycle bringup agv-1 --policy continue --timeout 10 --json"""
+  manage.py lifecycle bringup agv-1 --policy continue --timeout 10 --json
+  manage.py lifecycle process agv-1 drivers restart"""
 
 NODE_HELP = "node id (agv-1.joy_to_vel), or with --robot its ROS name (/joy_to_vel)"
 # How many known names an "unknown node/robot" message lists.
@@ -122,6 +128,10 @@ def add_verbs(parser: argparse.ArgumentParser) -> None:
     sub["list"].add_argument("-a", "--all", action="store_true", help="the node's whole transition graph")
     for name in ROBOT_RUNS:
         sub[name].add_argument("robot_name", nargs="?", metavar="ROBOT", help="the robot (or --robot R)")
+    sub["process"].add_argument("robot_name", metavar="ROBOT", help="the robot")
+    sub["process"].add_argument("process", nargs="?", metavar="PROCESS", help="a launch profile's name")
+    sub["process"].add_argument("action", nargs="?", choices=protocol.PROCESS_ACTIONS, metavar="ACTION",
+                                help="start, stop or restart")
 
 
 # --- output --------------------------------------------------------------------------
@@ -245,3 +255,16 @@ def unknown_node(ref: str, robot: str | None, known: list[str], same_name: list[
         return (f"There is no node id {ref!r}; a ROS name needs --robot R. Node ids of that name: "
                 f"{sample(same_name, 'lifecycle nodes -a')}.")
     return f"There is no node {ref!r}. Node ids look like ROBOT.NAME; known: {sample(known, 'lifecycle nodes -a')}."
+
+
+def process_line(profile: Any) -> str:
+    """``drivers: running, pid 4242, 2 restarts`` (and the last exit, when there was one)."""
+    parts = [profile.get_status_display()]
+    if profile.pid:
+        parts.append(f"pid {profile.pid}")
+    if profile.restarts:
+        parts.append(f"{profile.restarts} restart{'s' * (profile.restarts != 1)}")
+    if profile.last_exit_at is not None:
+        how = profile.last_exit_signal or f"status {profile.last_exit_code}"
+        parts.append(f"last exit: {how} at {profile.last_exit_at:%Y-%m-%d %H:%M:%S} UTC")
+    return f"{profile.name}: {', '.join(parts)}{'' if profile.enabled else ' (disabled)'}"

@@ -103,6 +103,9 @@ GET_PARAMETERS = "get_parameters"
 SET_PARAMETERS = "set_parameters"  # values; atomic: true for all or none (a parameter file)
 START_RUN = "start_run"
 PING = "ping"
+# A process of a robot's launch profile (ros_gateway/supervisor.py): robot, process, action.
+PROCESS_CONTROL = "process_control"
+PROCESS_ACTIONS = ("start", "stop", "restart")
 
 # Facts a gateway reports (the ``type`` of each; fields as in the docstrings of the
 # builders below and in docs/architecture.md).
@@ -114,6 +117,7 @@ TRANSITION = "transition"  # one audit record of a lifecycle transition (or atte
 PARAMETER = "parameter"  # one audit record of a parameter change (or attempt)
 RUN = "run"  # a group run's spec (for runs the gateway starts) and its progress or end
 GATEWAY_STARTED = "gateway.started"  # a new instance: runs it does not know are over
+PROCESS = "process"  # one audit record of a supervised process: an action on it, an exit, a respawn
 
 # A node's process: lost (it ended, or its node left the graph), or replaced by a new instance.
 # A node.gone reason, and, with PROCESS_RESTARTED, a transition record's outcome (which also

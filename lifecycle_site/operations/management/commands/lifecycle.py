@@ -18,6 +18,7 @@ from django.db.models import Q
 from lifecycle_site.fleet.gateway_client import GatewayError, GatewayOffline, call_gateway
 from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
 from lifecycle_site.operations import cli_output as out
+from lifecycle_site.operations import processes
 from lifecycle_site.operations.runs import start_run, wait_for
 from lifecycle_site.operations.transitions import TransitionRefused, ago, named, request_transition
 from lifecycle_site.refusal import Refusal
@@ -68,7 +69,8 @@ class Command(BaseCommand):
 
     def handle(self, *args: Any, verb: str, **options: Any) -> None:
         opts = SimpleNamespace(verb=verb, **options)
-        handlers = {"nodes": self.do_nodes, "get": self.do_get, "set": self.do_set, "list": self.do_list}
+        handlers = {"nodes": self.do_nodes, "get": self.do_get, "set": self.do_set, "list": self.do_list,
+                    "process": self.do_process}
         code = handlers.get(verb, self.do_group)(opts)
         if code:
             raise CliExit(code)
@@ -158,6 +160,32 @@ class Command(BaseCommand):
                 self.stderr.write("\n".join(out.available_lines(state_id, refused.details.get("valid_transitions"))))
             return EXIT_FAILED
         self.emit(opts, done.data, ["Transitioning successful"])
+        return EXIT_OK
+
+    def do_process(self, opts: SimpleNamespace) -> int:
+        """A robot's supervised processes, or one action on one of them."""
+        robot = self.robot(opts.robot_name)
+        if not opts.process:
+            profiles = list(robot.process_profiles.order_by("name"))
+            lines = [out.process_line(p) for p in profiles] or [f"{robot.name} has no launch profiles."]
+            self.emit(opts, {"robot": robot.name, "processes": [p.as_dict() for p in profiles]}, lines)
+            return EXIT_OK
+        if not opts.action:
+            raise CliExit(EXIT_USAGE, f"What should happen to {opts.process}? Give an action: "
+                                      f"{', '.join(protocol.PROCESS_ACTIONS)}.")
+        try:
+            profile = processes.profile_of(robot, opts.process)
+        except Refusal as exc:
+            raise CliExit(EXIT_USAGE, exc.message, exc.code) from None
+        try:
+            record = processes.control(profile, opts.action, self.user(opts.user), "cli")
+        except Refusal as refused:
+            if refused.code == "gateway_offline":
+                raise CliExit(EXIT_OFFLINE, refused.message, refused.code, **refused.details) from None
+            self.emit(opts, refused.as_json(), [f"{opts.action} failed"])
+            self.stderr.write(refused.message)
+            return EXIT_FAILED
+        self.emit(opts, {"record": record.as_dict()}, [record.message])
         return EXIT_OK
 
     def do_group(self, opts: SimpleNamespace) -> int:

@@ -1,0 +1,45 @@
+"""JSON API for a robot's processes (its launch profiles, run by its gateway): their status,
+and start, stop, restart (docs/api.md, "Processes")."""
+from __future__ import annotations
+
+from django.http import Http404, HttpRequest, JsonResponse
+
+from lifecycle_site.api.auth import api_view, json_body
+from lifecycle_site.audit.models import ProcessRecord
+from lifecycle_site.fleet.models import Robot
+from lifecycle_site.operations import processes
+from lifecycle_site.refusal import Refusal, shown
+
+OPERATE = "fleet.operate_node"
+RECORDS_SHOWN = 20
+
+
+def _robot(name: str) -> Robot:
+    robot = Robot.objects.select_related("gateway").filter(name=name).first()
+    if robot is None:
+        raise Http404(f"There is no robot named {shown(name)}.")
+    return robot
+
+
+@api_view()
+def robot_processes(request: HttpRequest, name: str) -> JsonResponse:
+    """The robot's launch profiles with what its gateway last reported of each process."""
+    robot = _robot(name)
+    profiles = robot.process_profiles.order_by("name")
+    records = ProcessRecord.objects.filter(robot_name=robot.name)[:RECORDS_SHOWN]
+    return JsonResponse({"robot": robot.name, "gateway": robot.gateway.name,
+                         "processes": [{**p.as_dict(), "robot": robot.name} for p in profiles],
+                         "records": [r.as_dict() for r in records]})
+
+
+@api_view(methods=("POST",), permission=OPERATE)
+def process_action(request: HttpRequest, name: str, process: str) -> JsonResponse:
+    """``{"action": "start" | "stop" | "restart"}``: carried out by the robot's gateway; the answer
+    is the action's audit record (a refusal: the API's error, with the record's id)."""
+    body = json_body(request, shape=dict)
+    if "action" not in body:
+        raise Refusal("missing_field", 'Send {"action": "restart"} (start, stop or restart).')
+    profile = processes.profile_of(_robot(name), process)
+    record = processes.control(profile, body["action"], request.user, "api")
+    profile.refresh_from_db()
+    return JsonResponse({"record": record.as_dict(), "process": profile.as_dict()})

@@ -1,0 +1,171 @@
+"""Launch profiles on the real stack: the gateway runs a robot's process (the demo robot's nodes)
+as its supervisor; restart, stop and start it through the API; a crash is respawned; each
+action is on record with who asked; refusals answer clearly and are recorded too."""
+from __future__ import annotations
+
+import os
+import signal
+import sys
+from pathlib import Path
+
+import pytest
+from django.test import Client
+
+from lifecycle_site.audit.models import ProcessRecord, TransitionRecord
+from lifecycle_site.fleet.gateway_client import GatewayError, call_gateway
+from lifecycle_site.fleet.models import ManagedNode, ProcessProfile, Robot
+from tests import stack
+from tests.conftest import make_user
+from tests.integration.conftest import register, wait_node
+from tests.integration.test_cli import cli
+
+ROBOT = "proc-agv"
+PROCESS = "drivers"
+NODE = f"{ROBOT}.lidar_driver"
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def profile() -> ProcessProfile:
+    return ProcessProfile.objects.select_related("robot").get(robot__name=ROBOT, name=PROCESS)
+
+
+def running_pid() -> int:
+    """The pid the gateway reports once the process runs (its status on the profile)."""
+    found = stack.wait_for(lambda: (p := profile()).status == "running" and p.pid, 30, "the process to run")
+    return int(found)
+
+
+def alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
+
+
+@pytest.fixture(scope="module")
+def supervised(gateway):
+    robot = register(ROBOT, stack.domain(35))
+    Robot.objects.filter(pk=robot.pk).update(auto_recover=True)
+    made = ProcessProfile.objects.create(
+        robot=robot, name=PROCESS, command=sys.executable, cwd=str(ROOT), respawn_delay_s=0.2, stop_grace_s=5.0,
+        args=["-m", "ros_gateway.demo.robot", "--domain", str(stack.domain(35)), "--nodes", "lidar_driver"],
+        env={"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}, secret_env={"DEMO_TOKEN": "not-shown"})
+    Robot.objects.get(pk=robot.pk).save()  # (saving the robot publishes its gateway's config again)
+    pid = running_pid()
+    wait_node(None, NODE, timeout=40, alive=True)
+    yield made
+    ProcessProfile.objects.filter(pk=made.pk).delete()
+    Robot.objects.get(pk=robot.pk).save()
+    stack.wait_for(lambda: not alive(pid) and not alive(profile_pid_or(pid)), 30, "the gateway to stop the process")
+
+
+def profile_pid_or(pid: int) -> int:
+    found = ProcessProfile.objects.filter(robot__name=ROBOT, name=PROCESS).values_list("pid", flat=True).first()
+    return found or pid
+
+
+def control(api: Client, action: str, process: str = PROCESS):
+    return api.post(f"/api/v1/robots/{ROBOT}/processes/{process}", {"action": action},
+                    content_type="application/json")
+
+
+def test_the_processes_are_listed_with_their_status_and_never_a_secret(api, supervised):
+    listing = api.get(f"/api/v1/robots/{ROBOT}/processes")
+    assert listing.status_code == 200
+    (shown,) = listing.json()["processes"]
+    assert shown["name"] == PROCESS and shown["status"] == "running" and shown["pid"] == running_pid()
+    assert "ros_gateway.demo.robot" in shown["command"]
+    assert "not-shown" not in listing.content.decode() and "DEMO_TOKEN" not in listing.content.decode()
+
+
+def test_a_restart_gets_a_new_process_whose_node_is_driven_back_to_its_desired_state(api, supervised):
+    activated = api.post(f"/api/v1/nodes/{NODE}/transition", {"transition": "configure"},
+                         content_type="application/json")
+    assert activated.status_code in (200, 409), activated.json()
+    ManagedNode.objects.filter(key=NODE).update(desired_state="inactive")
+    Robot.objects.get(name=ROBOT).save()  # the gateway learns the desired state
+    wait_node(None, NODE, state="inactive")
+    before = running_pid()
+    answer = control(api, "restart")
+    assert answer.status_code == 200, answer.json()
+    record = answer.json()["record"]
+    assert (record["action"], record["outcome"], record["source"], record["requested_by"]) == (
+        "restart", "succeeded", "api", "ivan-operator")
+    assert record["old_pid"] == before and record["pid"] not in (None, before)
+    assert not alive(before)
+    assert answer.json()["process"]["restarts"] >= 1
+    # The new instance comes up unconfigured; recovery brings it back to its desired state.
+    asked = ProcessRecord.objects.get(pk=record["id"]).at
+    stack.wait_for(lambda: TransitionRecord.objects.filter(node__key=NODE, outcome="process_restarted",
+                                                           completed_at__gte=asked).exists(), 40, "the new instance")
+    recovered = stack.wait_for(lambda: TransitionRecord.objects.filter(
+        node__key=NODE, source="recovery", transition_label="configure", outcome="succeeded",
+        requested_at__gte=asked).first(), 40, "the recovery's configure")
+    assert recovered.result_state_label == "inactive"
+    wait_node(None, NODE, alive=True, state="inactive")
+
+
+def test_a_crash_is_respawned_and_both_are_on_record(supervised):
+    before = running_pid()
+    os.kill(before, signal.SIGKILL)
+    exited = stack.wait_for(lambda: ProcessRecord.objects.filter(process_name=PROCESS, action="exited",
+                                                                 old_pid=before).first(), 20, "the exit's record")
+    assert (exited.source, exited.exit_signal, exited.requested_by_name) == ("supervisor", "SIGKILL", "")
+    respawned = stack.wait_for(lambda: ProcessRecord.objects.filter(process_name=PROCESS, action="respawn",
+                                                                    at__gte=exited.at).first(), 20, "the respawn")
+    assert respawned.outcome == "succeeded" and respawned.pid != before
+    assert running_pid() == respawned.pid
+    wait_node(None, NODE, timeout=40, alive=True)
+
+
+def test_stop_then_start(api, supervised):
+    before = running_pid()
+    stopped = control(api, "stop")
+    assert stopped.status_code == 200, stopped.json()
+    assert stopped.json()["process"]["status"] == "stopped" and not alive(before)
+    again = control(api, "stop")
+    assert again.status_code == 409 and again.json()["error"]["code"] == "process_state"
+    assert ProcessRecord.objects.get(pk=again.json()["error"]["record_id"]).outcome == "rejected"
+    wait_node(None, NODE, timeout=40, alive=False)
+    started = control(api, "start")
+    assert started.status_code == 200, started.json()
+    assert started.json()["record"]["pid"] == running_pid()
+    wait_node(None, NODE, timeout=40, alive=True)
+
+
+def test_what_cannot_be_done_is_refused_plainly(api, supervised):
+    unknown = control(api, "restart", "no-such-process")
+    assert unknown.status_code == 404 and unknown.json()["error"]["code"] == "unknown_process"
+    assert "Robot proc-agv has no process 'no-such-process' (its launch profiles: drivers" in \
+        unknown.json()["error"]["message"]
+    action = control(api, "reboot")
+    assert action.status_code == 400 and action.json()["error"]["code"] == "unknown_action"
+    viewer = Client()
+    viewer.force_login(make_user("vera-processes", "viewer"))
+    assert control(viewer, "restart").status_code == 403
+    # The gateway itself acts only on its own profiles, whatever it is sent.
+    with pytest.raises(GatewayError) as refused:
+        call_gateway("local", "process_control", robot=ROBOT, process="sshd", action="stop", source="api")
+    assert refused.value.code == "unknown_process"
+    with pytest.raises(GatewayError) as refused:
+        call_gateway("local", "process_control", robot="not-a-watched-robot", process=PROCESS, action="stop",
+                     source="api")
+    assert refused.value.code == "robot_not_watched"
+
+
+def test_the_command_line_lists_and_restarts_a_process(supervised):
+    make_user("carl-cli", "operator")
+    listed = cli("process", ROBOT)
+    assert listed.code == 0 and listed.out.startswith(f"{PROCESS}: running, pid {running_pid()}"), listed
+    before = running_pid()
+    restarted = cli("process", ROBOT, PROCESS, "restart", "--user", "carl-cli")
+    assert restarted.code == 0, restarted
+    assert "restarted as pid" in restarted.out and str(before) in restarted.out
+    record = ProcessRecord.objects.filter(action="restart", source="cli").latest("at")
+    assert (record.requested_by_name, record.old_pid) == ("carl-cli", before)
+    unknown = cli("process", ROBOT, "nope", "stop", "--user", "carl-cli")
+    assert unknown.code == 2 and "Robot proc-agv has no process 'nope'" in unknown.err
+    missing = cli("process", ROBOT, PROCESS, "--user", "carl-cli")
+    assert missing.code == 2 and "Give an action: start, stop, restart." in missing.err
+    wait_node(None, NODE, timeout=40, alive=True)
