@@ -72,6 +72,7 @@ class LiveNode:
     departed: frozenset = frozenset()
     process_status: str = ""  # protocol.PROCESS_LOST / "restarted": what was last seen of its process
     process_since: datetime | None = None
+    process: str = ""  # the launch profile whose process runs it (process_owners.py), if any
 
     @property
     def key(self) -> str:

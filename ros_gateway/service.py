@@ -33,6 +33,7 @@ from ros_gateway.node_driver import NodeDriver
 from ros_gateway.outbox import Outbox
 from ros_gateway.param_keeper import ParameterKeeper
 from ros_gateway.parts import Core
+from ros_gateway.process_owners import ProcessOwners
 from ros_gateway.registry import NodeRegistry, StateChange, StateChanges
 from ros_gateway.relay import Relay
 from ros_gateway.shared import protocol
@@ -43,6 +44,8 @@ log = logging.getLogger(__name__)
 VERSION = "2.0"
 # How often all live nodes' "last seen" goes to the site, and all states are re-read.
 RESYNC_EVERY_S = 30.0
+# How often nodes are matched to the supervised processes that run them (cheap: only what changed).
+OWNERS_EVERY_S = 2.0
 # A stopping gateway's last words to Redis, each bounded: a supervisor (docker stop: 10 s)
 # would kill a gateway that waited out every Redis call's timeout and retries (over a minute).
 STOP_FLUSH_S = 4.0
@@ -75,6 +78,7 @@ class Gateway:
         self.runs = GroupRunner(core, self.driver)
         # The robots' launch profiles: processes this gateway runs for them (its facts: audit records).
         self.supervisor = Supervisor(lambda **fields: self.outbox.emit(protocol.PROCESS, **fields), self.logs.on_output)
+        self.owners = ProcessOwners(self.registry, self.processes, self.supervisor.pids, self._report_owner)
         self.commands = CommandHandler(Parts(self.relay, self.registry, self.domains, self.driver, self.params,
                                              self.runs, config.service_timeout, self.outbox, self.supervisor))
         # A state change is reported to the site first (self._report, its fact kept on the change);
@@ -102,6 +106,9 @@ class Gateway:
             fields["since"] = node.process_since.isoformat()  # the time the node's payload shows
         return self.outbox.emit(kind, robot=node.robot.name, node=node.name, **fields)
 
+    def _report_owner(self, node) -> None:
+        self.outbox.emit(protocol.NODE_PROCESS, robot=node.robot.name, node=node.name, process=node.process)
+
     def _push(self, change: StateChange) -> None:
         """The node's live update, after its previous one (so pages see them in order)."""
         node, previous = change.node, change.node.last_push
@@ -114,6 +121,9 @@ class Gateway:
 
         node.last_push = tasks.spawn(send())
 
+    async def _refresh_owners(self) -> None:
+        self.owners.refresh()
+
     # -- running ----------------------------------------------------------------------
     async def run(self) -> None:
         config = self.config
@@ -125,6 +135,7 @@ class Gateway:
             self._every(config.discovery_interval, self.discovery.discover, "discovery"),
             self._every(config.heartbeat_interval, self.heartbeat, "heartbeat"),
             self._every(RESYNC_EVERY_S, self.discovery.resync_states, "state resync"),
+            self._every(OWNERS_EVERY_S, self._refresh_owners, "process owners"),
             *([self._every(config.liveness_interval, self.liveness.probe, "liveness probe")]
               if self.liveness.enabled else []),
             self.logs.run(self._stopping),

@@ -22,7 +22,7 @@ from lifecycle_site.fleet import gateway_input as checks
 from lifecycle_site.fleet.absences import node_back, node_left
 from lifecycle_site.fleet.fact_context import Applied, FactRejected, Hints, KnownRecords, save_once
 from lifecycle_site.fleet.models import GroupRun, ManagedNode
-from lifecycle_site.fleet.process_facts import apply_process
+from lifecycle_site.fleet.process_facts import apply_node_process, apply_process
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 
@@ -382,4 +382,5 @@ HANDLERS = {
     protocol.RUN: _run,
     protocol.GATEWAY_STARTED: _gateway_started,
     protocol.PROCESS: apply_process,
+    protocol.NODE_PROCESS: apply_node_process,
 }

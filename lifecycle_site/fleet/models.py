@@ -155,6 +155,10 @@ class ManagedNode(models.Model):
         help_text="What was last seen of the node's process: lost, or restarted (a new instance).",
     )
     process_since = models.DateTimeField(null=True, blank=True, help_text="When that was seen.")
+    supervised_by = models.CharField(
+        max_length=64, blank=True, editable=False,
+        help_text="The launch profile whose process runs this node, as its gateway last saw ('' none known).",
+    )
     first_seen = models.DateTimeField(null=True, blank=True)
     last_seen = models.DateTimeField(null=True, blank=True)
     state_changed = models.DateTimeField(null=True, blank=True)

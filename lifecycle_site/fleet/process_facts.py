@@ -106,3 +106,13 @@ def _follow(profile: ProcessProfile, action: str, outcome: str, record: ProcessR
         changes.update(last_exit_code=record.exit_code, last_exit_signal=record.exit_signal, last_exit_at=at)
     ProcessProfile.objects.filter(pk=profile.pk).filter(Q(status_since__isnull=True) | Q(status_since__lte=at)) \
         .update(**changes)
+
+
+def apply_node_process(known: KnownRecords, fact: dict, at: datetime, applied: Applied) -> None:
+    """Which launch profile's process runs a node (ros_gateway/process_owners.py); "" for none."""
+    robot = known.robot(fact)
+    node = known.node(robot, checks.node_name(fact.get("node")))
+    name = fact.get("process")
+    name = "" if name in (None, "") else process_name(name)
+    if node is not None:
+        type(node).objects.filter(pk=node.pk).update(supervised_by=name)

@@ -118,6 +118,7 @@ PARAMETER = "parameter"  # one audit record of a parameter change (or attempt)
 RUN = "run"  # a group run's spec (for runs the gateway starts) and its progress or end
 GATEWAY_STARTED = "gateway.started"  # a new instance: runs it does not know are over
 PROCESS = "process"  # one audit record of a supervised process: an action on it, an exit, a respawn
+NODE_PROCESS = "node.process"  # robot, node, process: the launch profile whose process runs it ("" none)
 
 # A node's process: lost (it ended, or its node left the graph), or replaced by a new instance.
 # A node.gone reason, and, with PROCESS_RESTARTED, a transition record's outcome (which also

@@ -44,7 +44,9 @@
   setInterval(function () {
     document.querySelectorAll("[data-elapsed-from]").forEach(function (el) {
       var seconds = Math.max(0, Math.round((Date.now() - Date.parse(el.dataset.elapsedFrom)) / 1000));
-      el.textContent = seconds < 120 ? seconds + " s" : Math.floor(seconds / 60) + " min";
+      el.textContent = seconds < 120 ? seconds + " s" : seconds < 7200 ? Math.floor(seconds / 60) + " min"
+        : seconds < 172800 ? Math.floor(seconds / 3600) + " h " + Math.floor(seconds % 3600 / 60) + " min"
+        : Math.floor(seconds / 86400) + " days";
     });
   }, 1000);
 

@@ -47,10 +47,12 @@ def alive(pid: int) -> bool:
 def supervised(gateway):
     robot = register(ROBOT, stack.domain(35))
     Robot.objects.filter(pk=robot.pk).update(auto_recover=True)
+    # Through a shell, as a launch file starts its nodes: the node's process is a child of the supervised one.
+    nodes = f"{sys.executable} -m ros_gateway.demo.robot --domain {stack.domain(35)} --nodes lidar_driver"
     made = ProcessProfile.objects.create(
-        robot=robot, name=PROCESS, command=sys.executable, cwd=str(ROOT), respawn_delay_s=0.2, stop_grace_s=5.0,
-        args=["-m", "ros_gateway.demo.robot", "--domain", str(stack.domain(35)), "--nodes", "lidar_driver"],
-        env={"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}, secret_env={"DEMO_TOKEN": "not-shown"})
+        robot=robot, name=PROCESS, command="/bin/sh", args=["-c", f"{nodes}; exit $?"], cwd=str(ROOT),
+        respawn_delay_s=0.2, stop_grace_s=5.0, env={"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"},
+        secret_env={"DEMO_TOKEN": "not-shown"})
     Robot.objects.get(pk=robot.pk).save()  # (saving the robot publishes its gateway's config again)
     pid = running_pid()
     wait_node(None, NODE, timeout=40, alive=True)
@@ -76,6 +78,9 @@ def test_the_processes_are_listed_with_their_status_and_never_a_secret(api, supe
     (shown,) = listing.json()["processes"]
     assert shown["name"] == PROCESS and shown["status"] == "running" and shown["pid"] == running_pid()
     assert "ros_gateway.demo.robot" in shown["command"]
+    # The gateway tells which process runs the node (for the node page's "restart process").
+    stack.wait_for(lambda: ManagedNode.objects.filter(key=NODE, supervised_by=PROCESS).exists(), 20,
+                   "the node attributed to its launch profile")
     assert "not-shown" not in listing.content.decode() and "DEMO_TOKEN" not in listing.content.decode()
 
 

@@ -9,7 +9,8 @@ import pytest
 from django.test import Client
 
 from lifecycle_site.audit.models import ProcessRecord
-from lifecycle_site.fleet.models import ProcessProfile, Robot
+from lifecycle_site.fleet.models import ManagedNode, ProcessProfile, Robot
+from ros_gateway.shared import state_machine as sm
 
 
 @pytest.fixture
@@ -60,3 +61,19 @@ def test_viewers_see_the_processes_but_may_not_act(viewer_client, profile):
     assert listing.status_code == 200 and listing.json()["processes"][0]["status"] == "unknown"
     assert post(viewer_client, {"action": "restart"}).status_code == 403
     assert viewer_client.get("/api/v1/robots/nobody/processes").status_code == 404
+
+
+def test_the_node_page_offers_to_restart_the_process_that_runs_the_node(operator_client, viewer_client, profile,
+                                                                         redis_server):
+    node = ManagedNode.objects.create(robot=profile.robot, name="/lidar", alive=False, state_id=sm.FINALIZED,
+                                      state_label="finalized", supervised_by="drivers")
+    page = operator_client.get(f"/nodes/{node.key}/").content.decode()
+    assert "Restart process drivers" in page and "/robots/proc-offline/processes/drivers/restart" in page
+    assert "Restart process" not in viewer_client.get(f"/nodes/{node.key}/").content.decode()
+    answer = operator_client.post("/robots/proc-offline/processes/drivers/restart", {"from": "node"},
+                                  HTTP_HX_REQUEST="true")
+    assert answer.status_code == 200 and "Gateway local is offline (" in answer.content.decode()
+    assert "processes-live" not in answer.content.decode()  # the node page has none to update
+    assert ProcessRecord.objects.get().source == "dashboard"
+    ManagedNode.objects.filter(pk=node.pk).update(supervised_by="")
+    assert "Restart process" not in operator_client.get(f"/nodes/{node.key}/").content.decode()

@@ -178,13 +178,18 @@ def age(iso: str | None) -> str:
 
 @register.filter
 def elapsed(iso: str | None) -> str:
-    """'12 s', '3 min': how long since ``iso`` (live.js keeps it current in the page)."""
+    """'12 s', '3 min', '5 h 12 min', '3 days': how long since ``iso`` (live.js keeps it current in
+    the page, the same way)."""
     if not iso:
         return "0 s"
     from datetime import datetime, timezone
 
     seconds = max(0, int((datetime.now(timezone.utc) - datetime.fromisoformat(iso)).total_seconds()))
-    return f"{seconds} s" if seconds < 120 else f"{seconds // 60} min"
+    if seconds < 120:
+        return f"{seconds} s"
+    if seconds < 7200:
+        return f"{seconds // 60} min"
+    return f"{seconds // 3600} h {seconds % 3600 // 60} min" if seconds < 172800 else f"{seconds // 86400} days"
 
 
 OUTCOME_LABELS = dict(TransitionRecord.Outcome.choices)

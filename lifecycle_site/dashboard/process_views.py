@@ -1,0 +1,152 @@
+"""A robot's processes page: its launch profiles as its gateway (their supervisor) last reported
+them, the latest actions on them, and start, stop and restart for operators.
+
+The page asks for its rows every few seconds (POLL_SECONDS) rather than holding a socket: an
+exit or a respawn reaches the database as the gateway's facts, and the next poll shows it. A
+poll sends the digest of what the page shows; unchanged, the answer is an empty 204 (nothing
+swapped, the keyboard focus and an open question stay where they are)."""
+from __future__ import annotations
+
+import hashlib
+from functools import wraps
+
+from django.http import Http404, HttpRequest, HttpResponse
+from django.shortcuts import render
+from django.views.decorators.http import require_POST
+
+from lifecycle_site.audit.models import ProcessRecord
+from lifecycle_site.dashboard import snapshots
+from lifecycle_site.dashboard.access import VIEW_PERMISSION, operator_required, viewer_required
+from lifecycle_site.fleet.models import ProcessProfile, Robot
+from lifecycle_site.operations import processes
+from lifecycle_site.refusal import shown
+
+RECORDS_SHOWN = 20
+POLL_SECONDS = 3
+RUNNING = {ProcessProfile.Status.STARTING, ProcessProfile.Status.RUNNING, ProcessProfile.Status.STOPPING}
+# Not running, but waiting to be started again: a stop cancels that.
+STOPPABLE = RUNNING | {ProcessProfile.Status.BACKING_OFF}
+START, RESTART, STOP = ({"name": a, "label": a.capitalize()} for a in ("start", "restart", "stop"))
+# The words of a refusal's heading, by its code; others: "Refused".
+REFUSAL_HEADINGS = {"gateway_offline": "Gateway offline", "process_state": "Not possible", "process_failed": "Failed",
+                    "process_disabled": "Disabled", "timeout": "Timed out", "unknown_process": "No such process",
+                    "unknown_action": "No such action"}
+
+
+def _robot(name: str) -> Robot:
+    robot = Robot.objects.select_related("gateway").filter(name=name).first()
+    if robot is None:
+        raise Http404(f"There is no robot {shown(name)}.")
+    return robot
+
+
+def _row(profile: ProcessProfile, blocked: str) -> dict:
+    """A profile as its row shows it (never its environment: it may hold secrets), with the
+    buttons that fit its status and why none can act now (``blocked``), if so."""
+    status = profile.status
+    actions = [RESTART if status in RUNNING else START] + ([STOP] if status in STOPPABLE else [])
+    if not blocked and not profile.enabled:
+        blocked = f"The launch profile {profile.name} is disabled; an admin enables it."
+    return {
+        "id": profile.pk, "name": profile.name, "command": profile.command_line(), "enabled": profile.enabled,
+        "status": status, "status_label": profile.get_status_display(), "pid": profile.pid,
+        "since": profile.status_since.isoformat() if profile.status_since else None,
+        "restarts": profile.restarts,
+        "exit_code": profile.last_exit_code, "exit_signal": profile.last_exit_signal,
+        "exit_at": profile.last_exit_at.isoformat() if profile.last_exit_at else None,
+        "message": profile.last_message, "actions": actions, "blocked": blocked,
+    }
+
+
+def _record(record: ProcessRecord) -> dict:
+    return {"id": record.id, "at": record.at.isoformat(), "process": record.process_name,
+            "action": record.get_action_display(), "outcome": record.outcome, "source": record.get_source_display(),
+            "by": record.requested_by_name, "message": record.message}
+
+
+def _live(request: HttpRequest, robot: Robot) -> dict:
+    """What the polled part of the page shows, and its digest (``seen``)."""
+    gateway = snapshots.gateway_of(robot)
+    blocked = "" if gateway["online"] else f"The gateway {gateway['name']} is offline: no command can be sent."
+    if not robot.enabled:
+        blocked = f"{robot.name} is disabled: its gateway runs none of its processes."
+    rows = [_row(p, blocked) for p in robot.process_profiles.order_by("name")]
+    records = [_record(r) for r in ProcessRecord.objects.filter(robot_name=robot.name)[:RECORDS_SHOWN]]
+    user = request.user
+    context = {
+        "robot": robot, "rows": rows, "records": records, "gateway": gateway,
+        "can_operate": user.has_perm("fleet.operate_node"),
+        "can_register": user.is_staff and user.has_perm("fleet.add_processprofile"),
+    }
+    # What changes the rendered part; not the clock (the page counts uptimes and ages itself).
+    state = (rows, [r["id"] for r in records], gateway["online"], gateway["reason_plain"], gateway["reason_since"],
+             robot.enabled, context["can_operate"], context["can_register"])
+    context["seen"] = hashlib.blake2b(repr(state).encode(), digest_size=12).hexdigest()
+    return context
+
+
+def _refresh_page() -> HttpResponse:
+    """htmx reloads the page (which then says why: the login form, the no-role page, the 404)."""
+    response = HttpResponse(status=204)
+    response["HX-Refresh"] = "true"
+    return response
+
+
+def _polled(view):
+    """For the part the page polls: a session that has ended or lost its role reloads the page
+    instead of swapping the login page into the table (login_required would redirect there)."""
+
+    @wraps(view)
+    def wrapper(request: HttpRequest, *args, **kwargs) -> HttpResponse:
+        if not request.user.is_authenticated or not request.user.has_perm(VIEW_PERMISSION):
+            return _refresh_page()
+        return view(request, *args, **kwargs)
+
+    return wrapper
+
+
+@viewer_required
+def robot_processes(request: HttpRequest, robot: str) -> HttpResponse:
+    robot_obj = _robot(robot)
+    return render(request, "dashboard/processes.html", {**_live(request, robot_obj), "poll_seconds": POLL_SECONDS})
+
+
+@_polled
+def robot_processes_rows(request: HttpRequest, robot: str) -> HttpResponse:
+    """The polled part: 204 while it shows what the page has (``?seen=`` its digest)."""
+    robot_obj = Robot.objects.select_related("gateway").filter(name=robot).first()
+    if robot_obj is None:  # removed since the page was opened
+        return _refresh_page()
+    context = _live(request, robot_obj)
+    if request.GET.get("seen") == context["seen"]:
+        return HttpResponse(status=204)
+    return render(request, "dashboard/_process_live.html", context)
+
+
+@operator_required
+@require_POST
+def process_action(request: HttpRequest, robot: str, process: str, action: str) -> HttpResponse:
+    """A process's button: the outcome in words, with the page's rows and records out of band
+    (the keyboard focus then on the process's row: the button pressed may be gone).
+
+    htmx swaps only 2xx answers, so a refusal a button can meet (the gateway offline, the
+    process not in a state for it) is answered 200 with its message, as the project's other
+    pages do; what no button sends (an unknown process or action) gets the refusal's status."""
+    robot_obj = _robot(robot)
+    try:
+        profile = processes.profile_of(robot_obj, process)
+        record = processes.control(profile, action, request.user, "dashboard")
+    except processes.ProcessRefused as refused:
+        if refused.code in ("unknown_process", "unknown_action"):
+            context = {"ok": False, "heading": REFUSAL_HEADINGS[refused.code], "message": refused.message}
+            return render(request, "dashboard/_process_result.html", context, status=refused.status)
+        context = {"ok": False, "code": refused.code, "message": refused.message,
+                   "heading": REFUSAL_HEADINGS.get(refused.code, "Refused")}
+    else:
+        context = {"ok": True, "message": record.message}
+    if request.POST.get("from") == "node":  # the node page's button: only the outcome
+        return render(request, "dashboard/_process_result.html", {**context, "robot": robot_obj})
+    live = _live(request, robot_obj)
+    focus = next((row["id"] for row in live["rows"] if row["name"] == process), None)
+    return render(request, "dashboard/_process_result.html",
+                  {**context, **live, "focus": focus, "live": True})
