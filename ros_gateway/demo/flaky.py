@@ -8,13 +8,17 @@
   -> unconfigured;
 * ``error_in_error``: on_activate raises and on_error returns FAILURE -> finalized;
 * ``crash``: on_activate logs FATAL and kills the process with ``os._exit(3)``;
-* ``slow_configure``: on_configure sleeps ``slow_seconds`` then succeeds.
+* ``slow_configure``: on_configure sleeps ``slow_seconds`` then succeeds;
+* ``hang``: on_configure never returns (a driver that never answers): the node stays
+  ``configuring``, and its process does not even end on SIGINT (the stuck thread keeps it), so
+  only restarting the process helps, with SIGKILL after the stop signal's grace.
 """
 
 from __future__ import annotations
 
 import os
 import sys
+import threading
 import time
 from typing import Any
 
@@ -22,7 +26,7 @@ from rcl_interfaces.msg import SetParametersResult
 
 from .base import FAILURE, SUCCESS, DemoLifecycleNode, LifecycleState, TransitionCallbackReturn
 
-FAILURE_MODES = ("none", "fail_configure", "raise_activate", "error_in_error", "crash", "slow_configure")
+FAILURE_MODES = ("none", "fail_configure", "raise_activate", "error_in_error", "crash", "slow_configure", "hang")
 CRASH_EXIT_CODE = 3
 
 
@@ -66,6 +70,10 @@ class FlakyNode(DemoLifecycleNode):
                 "(failure_mode=fail_configure); staying unconfigured"
             )
             return FAILURE
+        if mode == "hang":
+            log.error("configure hangs: the simulated driver never answers (failure_mode=hang); only restarting "
+                      "the process helps")
+            threading.Event().wait()  # never set: this callback never returns
         if mode == "slow_configure":
             seconds = self.param("slow_seconds")
             log.info(f"configuring slowly: simulated firmware upload takes {seconds:.1f} s")

@@ -174,3 +174,44 @@ def test_the_command_line_lists_and_restarts_a_process(supervised):
     missing = cli("process", ROBOT, PROCESS, "--user", "carl-cli")
     assert missing.code == 2 and "Give an action: start, stop, restart." in missing.err
     wait_node(None, NODE, timeout=40, alive=True)
+
+
+HUNG = "hung-agv"
+
+
+@pytest.fixture
+def hanging(gateway):
+    """A robot whose flaky node hangs in on_configure (failure_mode=hang), run by a launch profile
+    that gives its stop signal 1 s."""
+    robot = register(HUNG, stack.domain(36))
+    made = ProcessProfile.objects.create(
+        robot=robot, name="flaky", command=sys.executable, cwd=str(ROOT), stop_grace_s=1.0,
+        args=["-m", "ros_gateway.demo.robot", "--domain", str(stack.domain(36)), "--nodes", "flaky_node",
+              "--param", "flaky_node.failure_mode:=hang"], env={"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"})
+    Robot.objects.get(pk=robot.pk).save()
+    wait_node(None, f"{HUNG}.flaky_node", timeout=40, alive=True, state="unconfigured")
+    yield made
+    pid = ProcessProfile.objects.filter(pk=made.pk).values_list("pid", flat=True).first()
+    made.delete()
+    Robot.objects.get(pk=robot.pk).save()
+    if pid:
+        stack.wait_for(lambda: not alive(pid), 30, "the gateway to stop the hung process")
+
+
+def test_a_hung_process_is_restarted_with_sigkill_after_its_grace(api, hanging):
+    key = f"{HUNG}.flaky_node"
+    stuck = api.post(f"/api/v1/nodes/{key}/transition", {"transition": "configure", "timeout": 1},
+                     content_type="application/json")
+    assert stuck.status_code == 504 and stuck.json()["error"]["code"] == "timeout", stuck.json()
+    before = ProcessProfile.objects.get(pk=hanging.pk).pid
+    answer = api.post(f"/api/v1/robots/{HUNG}/processes/flaky", {"action": "restart"},
+                      content_type="application/json")
+    assert answer.status_code == 200, answer.json()
+    record = answer.json()["record"]
+    assert record["old_pid"] == before and record["pid"] != before
+    assert "SIGINT, then SIGKILL after 1.0 s without ending" in record["message"]
+    assert not alive(before)
+    asked = ProcessRecord.objects.get(pk=record["id"]).at
+    stack.wait_for(lambda: TransitionRecord.objects.filter(node__key=key, outcome="process_restarted",
+                                                           completed_at__gte=asked).exists(), 40, "the new instance")
+    wait_node(None, key, alive=True, state="unconfigured")
