@@ -2,8 +2,8 @@
 
 Starts Redis (unless its own, or the one REDIS_URL names, answers already), migrates, makes sure an admin exists (its
 generated password is kept in the data dir and printed), registers two demo robots on the
-gateway "local", then supervises that gateway, the ingest process that stores what it
-reports, the demo robots' node processes and daphne until Ctrl-C.
+gateway "local" with their node processes as its launch profiles (the gateway runs those), then
+supervises that gateway, the ingest process that stores what it reports and daphne until Ctrl-C.
 """
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ from django.core.management import call_command
 from django.core.management.base import BaseCommand, CommandError
 
 from lifecycle_site import local_redis
-from lifecycle_site.fleet.models import Gateway, Robot
+from lifecycle_site.fleet.models import Gateway, ProcessProfile, Robot
 from lifecycle_site.supervisor import Child, Supervisor
 
 DEMO_ROBOTS = [
@@ -85,6 +85,7 @@ class Command(BaseCommand):
                 if robot.domain_id != domain or not robot.enabled or robot.gateway_id != local.id:
                     robot.domain_id, robot.enabled, robot.gateway = domain, True, local
                     robot.save()
+            self._demo_profiles(no_robots)
             port = free_port(port)
             self._start_children(supervisor, data, port, no_robots)
             url = f"http://127.0.0.1:{port}/"
@@ -93,7 +94,8 @@ class Command(BaseCommand):
             self.stdout.write(f"Log in as {user} with password {password}")
             self.stdout.write(
                 f"Demo robots: {', '.join(f'{n} (ROS domain {d})' for n, d, _ in DEMO_ROBOTS)}. "
-                f"Process logs: {data / 'logs'}. Ctrl-C stops everything.\n"
+                f"Their processes: the robots' Processes pages. Logs of the others: {data / 'logs'}. "
+                "Ctrl-C stops everything.\n"
             )
             self.stdout.flush()  # also when the output goes to a file or a pipe (block-buffered)
             if check:
@@ -169,19 +171,26 @@ class Command(BaseCommand):
             return "admin", secret.read_text().strip()
         return "admin", "(the password you set; reset it with 'manage.py changepassword admin')"
 
+    @staticmethod
+    def _demo_profiles(no_robots: bool) -> None:
+        """The demo robots' node processes are launch profiles of the gateway "local", which runs
+        them as their supervisor (docs/processes.md): their pages offer restart, stop and start,
+        a crash is respawned, and a hung or finalized node is brought back by restarting its process.
+        The node that can be made to crash or hang runs alone, so that takes only it down."""
+        for name, domain, autostart in DEMO_ROBOTS:
+            robot = Robot.objects.get(name=name)
+            common = ["-m", "ros_gateway.demo.robot", "--domain", str(domain)]
+            for process, args in (("nodes", [*common, "--nodes", MAIN_NODES, "--autostart", autostart]),
+                                  ("flaky_node", [*common, "--nodes", "flaky_node"])):
+                ProcessProfile.objects.update_or_create(robot=robot, name=process, defaults={
+                    "command": sys.executable, "args": args, "cwd": str(settings.BASE_DIR), "enabled": not no_robots,
+                    "env": {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}, "stop_grace_s": 3.0})
+
     def _start_children(self, supervisor: Supervisor, data: Path, port: int, no_robots: bool) -> None:
         python = sys.executable
         logs = data / "logs"
         supervisor.add(Child("ingest", [python, "manage.py", "ingest"], logs / "ingest.log"))
         supervisor.add(Child("ros_gateway", [python, "-m", "ros_gateway"], logs / "gateway.log"))
-        if not no_robots:
-            for name, domain, autostart in DEMO_ROBOTS:
-                robot = [python, "-m", "ros_gateway.demo.robot", "--domain", str(domain)]
-                main = robot + ["--nodes", MAIN_NODES, "--autostart", autostart]
-                supervisor.add(Child(f"{name} nodes", main, logs / f"{name}.log"))
-                # The node that can be made to crash runs alone, so a crash takes only it down.
-                flaky = robot + ["--nodes", "flaky_node"]
-                supervisor.add(Child(f"{name} flaky_node", flaky, logs / f"{name}-flaky.log"))
         supervisor.add(
             Child(
                 "daphne",
