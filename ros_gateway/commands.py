@@ -186,6 +186,8 @@ class CommandHandler:
             raise CommandError("unknown_process", f"Gateway {self.parts.relay.gateway} runs no process "
                                                   f"{command.get('process')!r} for {robot.name} (its launch profiles "
                                                   "may not have reached it yet).") from None
+        if action in ("start", "restart") and fact.get("outcome") == "succeeded":
+            self.parts.runs.forgive(robot.name, str(command.get("process")))
         return {"ok": True, "outcome": fact.get("outcome"), "message": fact.get("message"), "facts": [fact]}
 
     async def _node(self, command: dict, timeout: float) -> LiveNode:

@@ -114,12 +114,26 @@ class _Shard:
 
 
 def _spin(executor: SingleThreadedExecutor, domain_id: int) -> None:
-    try:
-        executor.spin()
-    except (ExternalShutdownException, rclpy.executors.ShutdownException):
-        pass
-    except Exception:  # the thread must not die silently
-        log.exception("an executor of ROS domain %d stopped", domain_id)
+    """Spin until the domain stops. A failure inside a spin does not end the thread: when many
+    nodes vanish at once (a process of 50 stopped), their subscriptions and clients are destroyed
+    from the gateway's loop while this thread waits on them, and rclpy raises InvalidHandle for
+    the destroyed one; the executor, spun again, waits on what is left. A thread that had ended
+    here left every node placed on its shard unanswered for good."""
+    failures: list[float] = []
+    while True:
+        try:
+            executor.spin()
+            return
+        except (ExternalShutdownException, rclpy.executors.ShutdownException):
+            return
+        except Exception:  # noqa: BLE001 - logged; the executor goes on
+            now = time.monotonic()
+            failures = [t for t in failures if now - t < 10.0] + [now]
+            log.warning("an executor of ROS domain %d failed (%d time(s) in 10 s); spinning on", domain_id,
+                        len(failures), exc_info=len(failures) == 1)
+            if not executor.context.ok():
+                return
+            time.sleep(min(1.0, 0.01 * 2 ** min(len(failures), 7)))  # a failure that repeats does not spin hot
 
 
 class RosDomain:

@@ -36,6 +36,9 @@ TIER_CONCURRENCY = 8
 PROGRESS_INTERVAL_S = 0.25
 # Crash-loop guard: at most this many recoveries of one node within the window.
 RECOVERY_LIMIT, RECOVERY_WINDOW_S = 3, 300.0
+# After someone (re)starts a launch profile's process, its nodes' recoveries for this long are
+# that restart's, not a crash loop's (the new process's nodes appear a second or more later).
+FORGIVE_S = 30.0
 MAX_NODE_TIMEOUT_S = 60.0
 
 
@@ -90,6 +93,23 @@ class GroupRunner:
         self.outbox, self.relay = core.outbox, core.relay
         self.recovering: set[str] = set()  # node keys with a recovery under way
         self.recent_recoveries: dict[str, list[float]] = {}
+        self.forgiven: dict[tuple[str, str], float] = {}  # (robot, process) -> until (monotonic)
+        self.recover_again: dict[str, str] = {}  # node key -> desired state, once its recovery under way ends
+
+    def forgive(self, robot: str, process: str) -> None:
+        """Someone restarted (or started) the launch profile's process: the recoveries of its
+        nodes so far, and for FORGIVE_S from now, are not a crash loop's and do not count towards
+        giving up on them. (A node not matched to its process yet counts as that process's.)"""
+        now = time.monotonic()
+        self.forgiven = {k: until for k, until in self.forgiven.items() if until > now}
+        self.forgiven[(robot, process)] = now + FORGIVE_S
+        for node in list(self.registry.nodes.values()):
+            if self._forgiven(node, now):
+                self.recent_recoveries.pop(node.key, None)
+
+    def _forgiven(self, node: LiveNode, now: float) -> bool:
+        return any(until > now and node.robot.name == robot and node.process in (process, "")
+                   for (robot, process), until in self.forgiven.items())
 
     def start(self, spec: object) -> dict:
         """Accept a run the site recorded and carry it out in the background."""
@@ -113,8 +133,11 @@ class GroupRunner:
             spawn(self.recover(node, desired))
 
     async def recover(self, node: LiveNode, desired: str) -> None:
-        """Drive a node that came back (after its process was restarted) to its desired state."""
+        """Drive a node that came back (after its process was restarted) to its desired state.
+        A node that comes back again while its recovery runs (restarted twice in a row) is
+        recovered again once that one ends: the first was for a process that is gone."""
         if node.key in self.recovering:
+            self.recover_again[node.key] = desired
             return
         now = time.monotonic()
         recent = [t for t in self.recent_recoveries.get(node.key, []) if now - t < RECOVERY_WINDOW_S]
@@ -127,7 +150,8 @@ class GroupRunner:
             log.error("not recovering %s:%s: %s", node.robot.name, node.name, message)
             self._report(run, "failed", message, [], finished=True, **spec)
             return
-        self.recent_recoveries[node.key] = [*recent, now]
+        if not self._forgiven(node, now):
+            self.recent_recoveries[node.key] = [*recent, now]
         self.recovering.add(node.key)
         try:
             log.info("recovering %s:%s to %s", node.robot.name, node.name, desired)
@@ -135,6 +159,9 @@ class GroupRunner:
             await self._execute(run, (Phase(DESIRED[desired]),))
         finally:
             self.recovering.discard(node.key)
+        again = self.recover_again.pop(node.key, None)
+        if again is not None and node.alive:
+            spawn(self.recover(node, again))
 
     def _report(self, run: Run, status: str, message: str, results: list[dict], *, started: str | None = None,
                 finished: bool = False, **spec) -> dict:

@@ -215,3 +215,4 @@ def test_a_hung_process_is_restarted_with_sigkill_after_its_grace(api, hanging):
     stack.wait_for(lambda: TransitionRecord.objects.filter(node__key=key, outcome="process_restarted",
                                                            completed_at__gte=asked).exists(), 40, "the new instance")
     wait_node(None, key, alive=True, state="unconfigured")
+

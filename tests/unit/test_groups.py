@@ -70,3 +70,86 @@ def test_a_node_over_two_phases_has_one_result_with_all_its_steps():
     left = groups.merged(down, stopped)
     assert left["outcome"] == "not_run" and left["state"]["label"] == "unconfigured" and left["node_id"] == "agv.a"
     assert left["message"] == "not run: the run stopped after /b failed; left unconfigured"
+
+
+class _Outbox:
+    def __init__(self) -> None:
+        self.facts: list[dict] = []
+
+    def emit(self, kind: str, **fields) -> dict:
+        self.facts.append({"type": kind, **fields})
+        return self.facts[-1]
+
+
+def _recovering_runner():
+    """A GroupRunner whose runs only count (the transitions themselves are the node driver's)."""
+    from ros_gateway.parts import Core
+    from ros_gateway.registry import LiveNode, NodeRegistry, RobotInfo, StateChanges
+
+    registry = NodeRegistry(StateChanges(report=lambda change: {}))
+    robot = RobotInfo(1, "agv", 21, "", auto_recover=True)
+    node = LiveNode(robot=robot, name="/lidar", alive=True, process="drivers")
+    registry.nodes[(21, "/lidar")] = node
+    outbox = _Outbox()
+    runner = groups.GroupRunner(Core(registry, {}, outbox, None, 5.0), driver=None)
+    executed: list[str] = []
+
+    async def execute(run, phases=None) -> None:
+        executed.append(run.id)
+
+    runner._execute = execute
+    return runner, node, outbox, executed
+
+
+def test_a_node_that_keeps_coming_back_is_given_up_after_three_recoveries():
+    runner, node, outbox, executed = _recovering_runner()
+
+    async def main() -> None:
+        for _ in range(4):
+            await runner.recover(node, "active")
+
+    asyncio.run(main())
+    assert len(executed) == 3
+    assert "gave up: 3 recoveries in the last 5 min" in outbox.facts[-1]["message"]
+
+
+def test_restarts_someone_asked_for_are_not_a_crash_loop():
+    runner, node, outbox, executed = _recovering_runner()
+
+    async def main() -> None:
+        for _ in range(2):  # two crashes
+            await runner.recover(node, "active")
+        for _ in range(4):  # then four restarts of its process by an operator, each recovered
+            runner.forgive("agv", "drivers")
+            await runner.recover(node, "active")
+        runner.forgiven.clear()  # and once that is long past, a crash counts again, from none
+        for _ in range(3):
+            await runner.recover(node, "active")
+
+    asyncio.run(main())
+    assert len(executed) == 2 + 4 + 3
+    assert not any("gave up" in fact.get("message", "") for fact in outbox.facts)
+
+
+def test_a_node_back_again_while_its_recovery_runs_is_recovered_again():
+    runner, node, outbox, executed = _recovering_runner()
+    release = asyncio.Event()
+
+    async def slow(run, phases=None) -> None:
+        executed.append(run.id)
+        if len(executed) == 1:
+            await release.wait()
+
+    runner._execute = slow
+
+    async def main() -> None:
+        first = asyncio.ensure_future(runner.recover(node, "active"))
+        await asyncio.sleep(0)
+        await runner.recover(node, "inactive")  # restarted again meanwhile: remembered
+        release.set()
+        await first
+        for _ in range(20):
+            await asyncio.sleep(0.01)
+
+    asyncio.run(main())
+    assert len(executed) == 2 and outbox.facts[-1]["message"] == "back to inactive"
