@@ -107,7 +107,13 @@ def requester(known: Any, fact: dict, robot: Any) -> tuple[str, int | None, str]
                 run_source = run["source"] if run["source"] in TransitionRecord.Source.values else "api"
                 return run_source, run["requested_by_id"], ""
             return "external", None, f" (the gateway said it was a step of run {run_id[:8]}, which it is not)"
-    if source in GATEWAY_SOURCES and user_id is None:
+    return _as_vouched(fact, source, user_id, GATEWAY_SOURCES)
+
+
+def _as_vouched(fact: dict, source: str, user_id: int | None, own: tuple[str, ...]) -> tuple[str, int | None, str]:
+    """The fact's source and user if the gateway may say them on its own (``own``, nobody's
+    name) or the site's grant vouches for them; else "external", and what the gateway claimed."""
+    if source in own and user_id is None:
         return source, None, ""
     if vouched(fact):
         return source, user_id, ""
@@ -123,13 +129,7 @@ def process_requester(known: Any, fact: dict) -> tuple[str, int | None, str]:
     from lifecycle_site.fleet import gateway_input as checks
 
     source = checks.choice(fact.get("source"), ProcessRecord.Source.values, "source")
-    user_id = checks.user_id(fact.get("user_id"))
-    if source in GATEWAY_PROCESS_SOURCES and user_id is None:
-        return source, None, ""
-    if vouched(fact):
-        return source, user_id, ""
-    claimed = f"source {source}" + (f", user #{user_id}" if user_id is not None else "")
-    return "external", None, f" (the gateway said {claimed}; the site sent it no such request)"
+    return _as_vouched(fact, source, checks.user_id(fact.get("user_id")), GATEWAY_PROCESS_SOURCES)
 
 
 RUN_SLACK = timedelta(seconds=5)

@@ -35,14 +35,6 @@ def running_pid() -> int:
     return int(found)
 
 
-def alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
-
-
 @pytest.fixture(scope="module")
 def supervised(gateway):
     robot = register(ROBOT, stack.domain(35))
@@ -59,7 +51,8 @@ def supervised(gateway):
     yield made
     ProcessProfile.objects.filter(pk=made.pk).delete()
     Robot.objects.get(pk=robot.pk).save()
-    stack.wait_for(lambda: not alive(pid) and not alive(profile_pid_or(pid)), 30, "the gateway to stop the process")
+    stack.wait_for(lambda: not stack.pid_alive(pid) and not stack.pid_alive(profile_pid_or(pid)), 30,
+                   "the gateway to stop the process")
 
 
 def profile_pid_or(pid: int) -> int:
@@ -98,7 +91,7 @@ def test_a_restart_gets_a_new_process_whose_node_is_driven_back_to_its_desired_s
     assert (record["action"], record["outcome"], record["source"], record["requested_by"]) == (
         "restart", "succeeded", "api", "ivan-operator")
     assert record["old_pid"] == before and record["pid"] not in (None, before)
-    assert not alive(before)
+    assert not stack.pid_alive(before)
     assert answer.json()["process"]["restarts"] >= 1
     # The new instance comes up unconfigured; recovery brings it back to its desired state.
     asked = ProcessRecord.objects.get(pk=record["id"]).at
@@ -128,7 +121,7 @@ def test_stop_then_start(api, supervised):
     before = running_pid()
     stopped = control(api, "stop")
     assert stopped.status_code == 200, stopped.json()
-    assert stopped.json()["process"]["status"] == "stopped" and not alive(before)
+    assert stopped.json()["process"]["status"] == "stopped" and not stack.pid_alive(before)
     again = control(api, "stop")
     assert again.status_code == 409 and again.json()["error"]["code"] == "process_state"
     assert ProcessRecord.objects.get(pk=again.json()["error"]["record_id"]).outcome == "rejected"
@@ -195,7 +188,7 @@ def hanging(gateway):
     made.delete()
     Robot.objects.get(pk=robot.pk).save()
     if pid:
-        stack.wait_for(lambda: not alive(pid), 30, "the gateway to stop the hung process")
+        stack.wait_for(lambda: not stack.pid_alive(pid), 30, "the gateway to stop the hung process")
 
 
 def test_a_hung_process_is_restarted_with_sigkill_after_its_grace(api, hanging):
@@ -210,7 +203,7 @@ def test_a_hung_process_is_restarted_with_sigkill_after_its_grace(api, hanging):
     record = answer.json()["record"]
     assert record["old_pid"] == before and record["pid"] != before
     assert "SIGINT, then SIGKILL after 1.0 s without ending" in record["message"]
-    assert not alive(before)
+    assert not stack.pid_alive(before)
     asked = ProcessRecord.objects.get(pk=record["id"]).at
     stack.wait_for(lambda: TransitionRecord.objects.filter(node__key=key, outcome="process_restarted",
                                                            completed_at__gte=asked).exists(), 40, "the new instance")

@@ -31,14 +31,6 @@ def children(pid: int) -> list[int]:
     return [int(p) for p in path.read_text().split()] if path.exists() else []
 
 
-def alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
-
-
 def call(base: str, path: str, token: str, body: dict | None = None) -> tuple[int, dict]:
     request = urllib.request.Request(
         base + path, data=json.dumps(body).encode() if body is not None else None,
@@ -68,7 +60,7 @@ def site(gateway):
     left = children(process.pid)
     process.stop()
     for pid in left:
-        stack.wait_for(lambda pid=pid: not alive(pid), 20, f"daphne {pid} to end")
+        stack.wait_for(lambda pid=pid: not stack.pid_alive(pid), 20, f"daphne {pid} to end")
 
 
 def test_requests_and_a_transition_through_them_are_answered_and_on_record(site, robot):
@@ -110,7 +102,7 @@ def test_a_killed_supervisor_takes_its_processes_with_it(gateway):
     os.kill(process.pid, signal.SIGKILL)  # only the supervisor: not its process group
     try:
         for pid in left:
-            stack.wait_for(lambda pid=pid: not alive(pid), 20, f"daphne {pid} to end with its supervisor")
+            stack.wait_for(lambda pid=pid: not stack.pid_alive(pid), 20, f"daphne {pid} to end with its supervisor")
     finally:
         process.stop(signal.SIGKILL)
 
