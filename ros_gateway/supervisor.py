@@ -241,7 +241,7 @@ class Supervisor:
 
     async def _launch(self, p: _Supervised) -> tuple[str | None, Process | None]:
         """(None, the running process), or why it did not start (and the process if it ended at once)."""
-        env = {**os.environ, "PYTHONUNBUFFERED": os.environ.get("PYTHONUNBUFFERED", "1"), **dict(p.profile.env)}
+        env = {**_inherited(), "PYTHONUNBUFFERED": os.environ.get("PYTHONUNBUFFERED", "1"), **dict(p.profile.env)}
         error, program = _program(profile := p.profile, env.get("PATH", os.defpath))
         if error is not None or self._closed:
             return error or "the gateway is stopping", None
@@ -375,6 +375,15 @@ def _gone(proc: Process) -> asyncio.Future:
     loop.add_reader(fd, lambda: gone.done() or gone.set_result(None))
     gone.add_done_callback(lambda _: (loop.remove_reader(fd), os.close(fd)))
     return gone
+
+
+# The gateway's own settings and credentials (its Redis URL holds its password): not the business
+# of the processes it runs, which get the rest of its environment (ROS_*, PATH, ...) and their profile's.
+PRIVATE_PREFIXES, PRIVATE_NAMES = ("LIFECYCLE_", "DJANGO_"), {"REDIS_URL", "DATABASE_URL"}
+
+
+def _inherited() -> dict[str, str]:
+    return {k: v for k, v in os.environ.items() if k not in PRIVATE_NAMES and not k.startswith(PRIVATE_PREFIXES)}
 
 
 def _signal_group(pid: int, sig: int) -> None:

@@ -371,3 +371,17 @@ def test_from_config_reads_the_site_json():
 def test_from_config_refuses_what_is_malformed_naming_the_field(data, field):
     with pytest.raises(ValueError, match=field):
         LaunchProfile.from_config(ROBOT, data)
+
+
+def test_the_gateways_own_settings_and_credentials_stay_out_of_its_processes(monkeypatch):
+    monkeypatch.setenv("REDIS_URL", "redis://gw-local:s3cret@127.0.0.1:6479/0")
+    monkeypatch.setenv("LIFECYCLE_GATEWAY_NAME", "local")
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    names = "('REDIS_URL', 'LIFECYCLE_GATEWAY_NAME', 'ROS_AUTOMATIC_DISCOVERY_RANGE', 'OWN')"
+    code = f"import os\nprint(sorted(k for k in {names} if k in os.environ))\nimport time\ntime.sleep(30)"
+
+    async def scenario(rig: Rig) -> None:
+        await rig.until(lambda: rig.lines)
+        assert rig.lines[0] == ("env", "stdout", "['OWN', 'ROS_AUTOMATIC_DISCOVERY_RANGE']")
+
+    run(scenario, python("env", code, env=(("OWN", "1"),)))
