@@ -40,7 +40,7 @@ def test_parameters_are_cards_that_fit_a_phone_with_selects_for_fixed_lists(phon
     expect(mode).to_be_visible(timeout=WAIT_MS)
     # The list comes from the descriptor's additional_constraints ("one of: none, fail_configure, ...").
     assert mode.locator("option").all_inner_texts() == [
-        "none", "fail_configure", "raise_activate", "error_in_error", "crash", "slow_configure"]
+        "none", "fail_configure", "raise_activate", "error_in_error", "crash", "slow_configure", "hang"]
     expect(mode).to_have_value("fail_configure")
     # A bool parameter is a true/false select, not a checkbox one cannot tell is a field.
     sim_time = page.locator('select[name="value:use_sim_time"]')
