@@ -8,19 +8,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Callable
 
-from ros_gateway.processes import LocalProcesses
+from ros_gateway.processes import LocalProcesses, parent_pid
 from ros_gateway.registry import LiveNode, NodeRegistry
 
 MAX_DEPTH = 16  # ancestors looked at (a launch file's nodes are its children or grandchildren)
-
-
-def parent(proc: Path, pid: int) -> int | None:
-    try:
-        text = (proc / str(pid) / "stat").read_text()
-    except OSError:
-        return None
-    fields = text[text.rindex(")") + 2:].split()  # the name in parentheses may hold spaces
-    return int(fields[1]) if len(fields) > 1 and fields[1].isdigit() else None
 
 
 class ProcessOwners:
@@ -57,5 +48,5 @@ class ProcessOwners:
                 if pid in owners:
                     robot, name = owners[pid]
                     return name if robot == node.robot.name else ""
-                pid = parent(self.proc, pid)
+                pid = parent_pid(self.proc, pid)
         return ""

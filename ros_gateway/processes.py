@@ -44,14 +44,25 @@ class OsProcess:
     started: str  # /proc/PID/stat start time (clock ticks since boot): tells a reused PID apart
 
 
-def _stat(proc: Path, pid: int) -> tuple[str, str] | None:
-    """(state letter, start time) of a process, or None if there is none."""
+def _stat_fields(proc: Path, pid: int) -> list[str] | None:
+    """/proc/PID/stat's fields after the name (state, ppid, ...), or None if there is no such process."""
     try:
         text = (proc / str(pid) / "stat").read_text()
     except OSError:
         return None
-    fields = text[text.rindex(")") + 2:].split()  # the name in parentheses may hold spaces
-    return fields[0], fields[19]
+    return text[text.rindex(")") + 2:].split()  # the name in parentheses may hold spaces
+
+
+def _stat(proc: Path, pid: int) -> tuple[str, str] | None:
+    """(state letter, start time) of a process, or None if there is none."""
+    fields = _stat_fields(proc, pid)
+    return None if fields is None else (fields[0], fields[19])
+
+
+def parent_pid(proc: Path, pid: int) -> int | None:
+    """The process's parent, or None if there is no such process."""
+    fields = _stat_fields(proc, pid)
+    return int(fields[1]) if fields and len(fields) > 1 and fields[1].isdigit() else None
 
 
 def _maps_domain_ports(proc: Path, pid: int, domain_id: int) -> bool:
