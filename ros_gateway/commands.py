@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 from ros_gateway.domain import COMMAND_DISCOVERY_WAIT_S, RosDomain
 from ros_gateway.groups import GroupRunner
+from ros_gateway.host_units import HostUnits
 from ros_gateway.lifecycle import NodeUnreachable, available_states, available_transitions, read_state
 from ros_gateway.node_driver import DELIVERY_WAIT_S, NodeDriver, NodeUnreachableRecorded
 from ros_gateway.outbox import Outbox
@@ -47,6 +48,7 @@ class Parts:
     service_timeout: float
     outbox: Outbox
     supervisor: Supervisor
+    units: HostUnits
 
 
 class CommandHandler:
@@ -167,27 +169,33 @@ class CommandHandler:
         raise CommandError("unknown_command", f"The gateway has no command {name!r}.")
 
     async def process_control(self, command: dict) -> dict:
-        """Start, stop or restart a process of one of the robot's launch profiles: only a profile
-        this gateway has for that robot, named by the profile's name (never a pid)."""
+        """Start, stop or restart a process of one of the robot's launch profiles, or a container
+        or systemd unit this gateway found running one of the robot's nodes: named by the profile's
+        name or that attribution ("docker:NAME"), never by a pid, container id or unit of a request's."""
         robot = self.parts.registry.robot_named(str(command.get("robot")))
         if robot is None:
             raise CommandError("robot_not_watched", f"Robot {command.get('robot')!r} is not watched (unknown or "
                                                     "disabled).")
-        action = command.get("action")
+        action, name = command.get("action"), str(command.get("process"))
         if action not in protocol.PROCESS_ACTIONS:
             raise CommandError("unknown_action", f"{action!r} is not a process action; use one of "
                                                  f"{', '.join(protocol.PROCESS_ACTIONS)}.")
-        supervisor = self.parts.supervisor
-        act = {"start": supervisor.start, "stop": supervisor.stop, "restart": supervisor.restart}[action]
+        who = {"source": str(command.get("source") or "api"), "user_id": _user(command),
+               "vouching": protocol.vouching(command)}
         try:
-            fact = await act(robot.name, str(command.get("process")), source=str(command.get("source") or "api"),
-                             user_id=_user(command), vouching=protocol.vouching(command))
-        except UnknownProcess:
+            if protocol.HOST_PROCESS_RE.match(name):
+                fact = await self.parts.units.control(robot.name, name, action, **who)
+            else:
+                supervisor = self.parts.supervisor
+                act = {"start": supervisor.start, "stop": supervisor.stop, "restart": supervisor.restart}[action]
+                fact = await act(robot.name, name, **who)
+        except (UnknownProcess, LookupError):
+            where = ("no node of it has been seen in that container or unit since the gateway started"
+                     if protocol.HOST_PROCESS_RE.match(name) else "its launch profiles may not have reached it yet")
             raise CommandError("unknown_process", f"Gateway {self.parts.relay.gateway} runs no process "
-                                                  f"{command.get('process')!r} for {robot.name} (its launch profiles "
-                                                  "may not have reached it yet).") from None
+                                                  f"{name!r} for {robot.name} ({where}).") from None
         if action in ("start", "restart") and fact.get("outcome") == "succeeded":
-            self.parts.runs.forgive(robot.name, str(command.get("process")))
+            self.parts.runs.forgive(robot.name, name)
         return {"ok": True, "outcome": fact.get("outcome"), "message": fact.get("message"), "facts": [fact]}
 
     async def _node(self, command: dict, timeout: float) -> LiveNode:

@@ -53,6 +53,10 @@ class GatewayConfig:
     liveness_interval: float
     liveness_timeout: float
     dds: dict = field(default_factory=dict)
+    # Supervisors of this host's containers and units that run nodes (host_units.py): the Docker
+    # Engine's socket ("" off) and whether to use systemd's systemctl (where systemd runs the host).
+    docker_socket: str = ""
+    systemd: bool = False
 
     @property
     def lease_ttl(self) -> float:
@@ -66,6 +70,7 @@ class GatewayConfig:
             raise ConfigError(f"Gateway name {name!r}: use lower-case letters, digits, '-' and '_' (e.g. cell-a).")
         try:
             agreed = environment.agreed(environ)
+            systemd = environment.flag("LIFECYCLE_SYSTEMD", True, environ)
         except environment.SettingError as exc:
             raise ConfigError(str(exc)) from None
         dds = {key: environ[key] for key in DDS_VARIABLES if environ.get(key)}
@@ -88,6 +93,8 @@ class GatewayConfig:
             liveness_interval=agreed["LIVENESS_INTERVAL"],
             liveness_timeout=agreed["LIVENESS_TIMEOUT"],
             dds=dds,
+            docker_socket=environment.text("LIFECYCLE_DOCKER_SOCKET", "/var/run/docker.sock", environ),
+            systemd=systemd,
         )
 
 

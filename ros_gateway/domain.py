@@ -28,13 +28,7 @@ from rcl_interfaces.msg import Log, ParameterEvent
 from rclpy.context import Context
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
-from rclpy.qos import (
-    DurabilityPolicy,
-    HistoryPolicy,
-    QoSProfile,
-    ReliabilityPolicy,
-    qos_profile_parameter_events,
-)
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_parameter_events
 
 log = logging.getLogger(__name__)
 
@@ -306,8 +300,13 @@ class RosDomain:
 
     def incarnation(self, fqn: str) -> frozenset:
         """Ids of the endpoints publishing the node's transition events: a process that
-        restarts under the same name gets new ones, even while the old are still listed."""
+        restarts under the same name gets new ones, even while the old are still listed. Before
+        that publisher is discovered, its /rosout publisher's (the same process: a restart seen)."""
         infos = self.node.get_publishers_info_by_topic(f"{fqn}/transition_event")
+        if not infos:  # not discovered yet: its /rosout publisher (made with the node) tells its process too
+            namespace, _, name = fqn.rpartition("/")
+            infos = [info for info in self.node.get_publishers_info_by_topic("/rosout")
+                     if info.node_name == name and info.node_namespace == (namespace or "/")]
         return frozenset(bytes(info.endpoint_gid) for info in infos)
 
     def own_gid(self) -> bytes | None:

@@ -7,7 +7,9 @@ kill -9). On the gateway's own host it need not wait. A Fast DDS participant's G
 carries its vendor (01 0f), its host id (bytes 2-3) and the low 16 bits of its process id
 (bytes 4-5): a participant of this host is matched once to the one process with those low
 bits that maps Fast DDS's shared-memory ports of the participant's ROS domain, and from then on
-a missing ``/proc`` entry, a zombie or another start time means it ended, at once. Anywhere
+a missing ``/proc`` entry, a zombie or another start time means it ended, at once. (A process in a
+container with the host's network has the host's id; its GUID has the pid it sees in its own PID
+namespace, which ``/proc/PID/status``'s NSpid tells.) Anywhere
 else the signs are the node leaving the graph and a new process publishing its
 ``~/transition_event`` (a restart).
 """
@@ -65,6 +67,19 @@ def parent_pid(proc: Path, pid: int) -> int | None:
     return int(fields[1]) if fields and len(fields) > 1 and fields[1].isdigit() else None
 
 
+def _inner_pid(proc: Path, pid: int) -> int:
+    """The pid the process sees in its own PID namespace (a container's), or -1 if it is in ours."""
+    try:
+        with open(proc / str(pid) / "status") as status:
+            for line in status:
+                if line.startswith("NSpid:"):
+                    ids = line.split()[1:]
+                    return int(ids[-1]) if len(ids) > 1 else -1
+    except (OSError, ValueError):
+        pass
+    return -1
+
+
 def _maps_domain_ports(proc: Path, pid: int, domain_id: int) -> bool:
     """Whether the process maps a Fast DDS shared-memory port of the ROS domain."""
     try:
@@ -93,11 +108,14 @@ class LocalProcesses:
             return None  # another vendor's or another host's participant: nothing to look up here
         low = int.from_bytes(prefix[4:6], "little")
         try:
-            pids = [int(name) for name in os.listdir(self.proc) if name.isdigit() and int(name) & 0xFFFF == low]
+            pids = [int(name) for name in os.listdir(self.proc) if name.isdigit()]
         except OSError:
             return None
-        matches = [pid for pid in pids if _maps_domain_ports(self.proc, pid, domain_id)]
-        if len(matches) != 1:  # none (another PID namespace, a container) or ambiguous: rely on DDS
+        matches = [pid for pid in pids if pid & 0xFFFF == low and _maps_domain_ports(self.proc, pid, domain_id)]
+        if not matches:  # a container's process (with the host's network: the same host id) knows its own pid
+            matches = [pid for pid in pids if _inner_pid(self.proc, pid) & 0xFFFF == low
+                       and _maps_domain_ports(self.proc, pid, domain_id)]
+        if len(matches) != 1:  # none or ambiguous: rely on DDS
             return None
         stat = _stat(self.proc, matches[0])
         if stat is None or stat[0] in "ZX":

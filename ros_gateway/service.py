@@ -27,6 +27,7 @@ from ros_gateway.config import GatewayConfig
 from ros_gateway.discovery import Discovery
 from ros_gateway.domain import RosDomain
 from ros_gateway.groups import GroupRunner
+from ros_gateway.host_units import DockerEngine, HostUnits, Systemd
 from ros_gateway.liveness import Liveness
 from ros_gateway.logs import LogPipeline
 from ros_gateway.node_driver import NodeDriver
@@ -78,9 +79,14 @@ class Gateway:
         self.runs = GroupRunner(core, self.driver)
         # The robots' launch profiles: processes this gateway runs for them (its facts: audit records).
         self.supervisor = Supervisor(lambda **fields: self.outbox.emit(protocol.PROCESS, **fields), self.logs.on_output)
-        self.owners = ProcessOwners(self.registry, self.processes, self.supervisor.pids, self._report_owner)
+        # Containers and systemd units of this host that run robots' nodes, and their supervisors.
+        self.units = HostUnits(lambda **fields: self.outbox.emit(protocol.PROCESS, **fields),
+                               DockerEngine(config.docker_socket), Systemd(config.systemd))
+        self.owners = ProcessOwners(self.registry, self.processes, self.supervisor.pids, self._report_owner,
+                                    self.units)
         self.commands = CommandHandler(Parts(self.relay, self.registry, self.domains, self.driver, self.params,
-                                             self.runs, config.service_timeout, self.outbox, self.supervisor))
+                                             self.runs, config.service_timeout, self.outbox, self.supervisor,
+                                             self.units))
         # A state change is reported to the site first (self._report, its fact kept on the change);
         # then, in this order: the pages (a push), the audit of a new process instance, its
         # parameters read again, the stuck-transition check, and automatic recovery.
@@ -122,7 +128,7 @@ class Gateway:
         node.last_push = tasks.spawn(send())
 
     async def _refresh_owners(self) -> None:
-        self.owners.refresh()
+        await self.owners.refresh()
 
     # -- running ----------------------------------------------------------------------
     async def run(self) -> None:

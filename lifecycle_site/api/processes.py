@@ -1,5 +1,6 @@
-"""JSON API for a robot's processes (its launch profiles, run by its gateway): their status,
-and start, stop, restart (docs/api.md, "Processes")."""
+"""JSON API for a robot's processes (its launch profiles, run by its gateway, and the Docker
+containers and systemd units its gateway found running its nodes): their status, and start,
+stop, restart (docs/api.md, "Processes")."""
 from __future__ import annotations
 
 from django.http import Http404, HttpRequest, JsonResponse
@@ -23,12 +24,14 @@ def _robot(name: str) -> Robot:
 
 @api_view()
 def robot_processes(request: HttpRequest, name: str) -> JsonResponse:
-    """The robot's launch profiles with what its gateway last reported of each process."""
+    """The robot's launch profiles with what its gateway last reported of each process, then its
+    containers and units."""
     robot = _robot(name)
     profiles = robot.process_profiles.order_by("name")
     records = ProcessRecord.objects.filter(robot_name=robot.name)[:RECORDS_SHOWN]
     return JsonResponse({"robot": robot.name, "gateway": robot.gateway.name,
-                         "processes": [{**p.as_dict(), "robot": robot.name} for p in profiles],
+                         "processes": [*({**p.as_dict(), "robot": robot.name} for p in profiles),
+                                       *(h.as_dict() for h in processes.host_processes(robot))],
                          "records": [r.as_dict() for r in records]})
 
 
@@ -39,7 +42,6 @@ def process_action(request: HttpRequest, name: str, process: str) -> JsonRespons
     body = json_body(request, shape=dict)
     if "action" not in body:
         raise Refusal("missing_field", 'Send {"action": "restart"} (start, stop or restart).')
-    profile = processes.profile_of(_robot(name), process)
-    record = processes.control(profile, body["action"], request.user, "api")
-    profile.refresh_from_db()
-    return JsonResponse({"record": record.as_dict(), "process": profile.as_dict()})
+    robot = _robot(name)
+    record = processes.control(processes.profile_of(robot, process), body["action"], request.user, "api")
+    return JsonResponse({"record": record.as_dict(), "process": processes.profile_of(robot, process).as_dict()})

@@ -1,5 +1,6 @@
 """A robot's processes page: its launch profiles as its gateway (their supervisor) last reported
-them, the latest actions on them, and start, stop and restart for operators.
+them, the containers and systemd units its gateway found running its nodes, the latest actions
+on them, and start, stop and restart for operators.
 
 The page asks for its rows every few seconds (POLL_SECONDS) rather than holding a socket: an
 exit or a respawn reaches the database as the gateway's facts, and the next poll shows it. A
@@ -8,6 +9,7 @@ swapped, the keyboard focus and an open question stay where they are)."""
 from __future__ import annotations
 
 import hashlib
+import re
 from functools import wraps
 
 from django.http import Http404, HttpRequest, HttpResponse
@@ -40,7 +42,7 @@ def _robot(name: str) -> Robot:
     return robot
 
 
-def _row(profile: ProcessProfile, blocked: str) -> dict:
+def _row(profile: ProcessProfile, blocked: str, nodes: list) -> dict:
     """A profile as its row shows it (never its environment: it may hold secrets), with the
     buttons that fit its status and why none can act now (``blocked``), if so."""
     status = profile.status
@@ -49,12 +51,28 @@ def _row(profile: ProcessProfile, blocked: str) -> dict:
         blocked = f"The launch profile {profile.name} is disabled; an admin enables it."
     return {
         "id": profile.pk, "name": profile.name, "command": profile.command_line(), "enabled": profile.enabled,
+        "supervisor": processes.SUPERVISORS["launch"], "nodes": [n.name for n in nodes],
+        "hung": processes.hung(nodes) if status in RUNNING else "",
         "status": status, "status_label": profile.get_status_display(), "pid": profile.pid,
         "since": profile.status_since.isoformat() if profile.status_since else None,
         "restarts": profile.restarts,
         "exit_code": profile.last_exit_code, "exit_signal": profile.last_exit_signal,
         "exit_at": profile.last_exit_at.isoformat() if profile.last_exit_at else None,
         "message": profile.last_message, "actions": actions, "blocked": blocked,
+    }
+
+
+def _host_row(host: processes.HostProcess, blocked: str) -> dict:
+    """A container's or unit's row: what the site knows of it (its nodes, the actions on record)."""
+    exit_ = host.last_exit or {}
+    return {
+        "id": "unit-" + re.sub(r"[^A-Za-z0-9_-]", "-", host.name), "name": host.name, "command": "", "enabled": True,
+        "supervisor": processes.SUPERVISORS[host.supervisor], "nodes": host.nodes, "hung": host.hung,
+        "status": host.status,
+        "status_label": host.get_status_display(), "pid": host.pid,
+        "since": host.since.isoformat() if host.since else None, "restarts": host.restarts,
+        "exit_code": exit_.get("code"), "exit_signal": exit_.get("signal"), "exit_at": exit_.get("at"),
+        "message": host.message, "actions": [RESTART, STOP] if host.running else [START], "blocked": blocked,
     }
 
 
@@ -70,7 +88,9 @@ def _live(request: HttpRequest, robot: Robot) -> dict:
     blocked = "" if gateway["online"] else f"The gateway {gateway['name']} is offline: no command can be sent."
     if not robot.enabled:
         blocked = f"{robot.name} is disabled: its gateway runs none of its processes."
-    rows = [_row(p, blocked) for p in robot.process_profiles.order_by("name")]
+    nodes = processes.nodes_by_process(robot)
+    rows = [_row(p, blocked, nodes.get(p.name, [])) for p in robot.process_profiles.order_by("name")]
+    rows += [_host_row(host, blocked) for host in processes.host_processes(robot, nodes)]
     records = [_record(r) for r in ProcessRecord.objects.filter(robot_name=robot.name)[:RECORDS_SHOWN]]
     user = request.user
     context = {

@@ -16,8 +16,10 @@ from lifecycle_site.fleet import attribution
 from lifecycle_site.fleet import gateway_input as checks
 from lifecycle_site.fleet.fact_context import Applied, FactRejected, KnownRecords, save_once
 from lifecycle_site.fleet.process_profiles import ProcessProfile
+from ros_gateway.shared import protocol
 
-PROCESS_NAME_RE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+PROCESS_NAME_RE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")  # a launch profile's
+HOST_PROCESS_RE, SUPERVISORS = protocol.HOST_PROCESS_RE, protocol.SUPERVISORS  # a container or unit (host_units.py)
 SIGNAL_RE = re.compile(r"^SIG[A-Z0-9+-]{1,12}$")
 MAX_PID = 4_194_304  # Linux's pid_max limit
 OUTCOMES = ("succeeded", "failed", "rejected")
@@ -60,8 +62,8 @@ def _took(value: Any) -> float | None:
 
 
 def process_name(value: Any) -> str:
-    if not isinstance(value, str) or not PROCESS_NAME_RE.match(value):
-        raise FactRejected("process must be a launch profile's name")
+    if not isinstance(value, str) or not (PROCESS_NAME_RE.match(value) or HOST_PROCESS_RE.match(value)):
+        raise FactRejected('process must be a launch profile\'s name, or "docker:NAME" or "systemd:UNIT"')
     return value
 
 
@@ -71,14 +73,18 @@ def apply_process(known: KnownRecords, fact: dict, at: datetime, applied: Applie
         return
     robot = known.robot(fact)
     name = process_name(fact.get("process"))
-    profile = ProcessProfile.objects.filter(robot=robot, name=name).first()
+    supervisor = checks.choice(fact.get("supervisor") or "launch", SUPERVISORS, "supervisor")
+    if not (PROCESS_NAME_RE.match(name) if supervisor == "launch" else name.startswith(f"{supervisor}:")):
+        raise FactRejected(f"process {name!r} is not one a {supervisor} supervisor has")
+    profile = ProcessProfile.objects.filter(robot=robot, name=name).first() if supervisor == "launch" else None
     action = checks.choice(fact.get("action"), ProcessRecord.Action.values, "action")
     outcome = checks.choice(fact.get("outcome"), OUTCOMES, "outcome")
     source, user_id, claimed = attribution.process_requester(known, fact)
     pid, old_pid = _pid(fact.get("pid"), "pid"), _pid(fact.get("old_pid"), "old_pid")
     exit_code, exit_signal = _exit_code(fact.get("exit_code")), _signal(fact.get("exit_signal"))
     record = ProcessRecord(
-        fact_id=fact_id, profile=profile, robot_name=robot.name, process_name=name, action=action, outcome=outcome,
+        fact_id=fact_id, profile=profile, robot_name=robot.name, process_name=name, supervisor=supervisor,
+        action=action, outcome=outcome,
         source=source, pid=pid, old_pid=old_pid, exit_code=exit_code, exit_signal=exit_signal,
         message=checks.text(fact.get("message")) + claimed, took_ms=_took(fact.get("took_ms")), at=at,
         **({} if user_id is None or known.username(user_id) is None else

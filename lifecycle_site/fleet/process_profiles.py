@@ -83,7 +83,8 @@ class ProcessProfile(models.Model):
 
     def as_dict(self) -> dict:
         return {
-            "robot": self.robot.name, "name": self.name, "command": self.command_line(), "enabled": self.enabled,
+            "robot": self.robot.name, "name": self.name, "supervisor": "launch", "command": self.command_line(),
+            "enabled": self.enabled,
             "respawn": self.respawn, "status": self.status, "pid": self.pid,
             "since": self.status_since.isoformat() if self.status_since else None, "restarts": self.restarts,
             "last_exit": None if self.last_exit_at is None else {

@@ -258,13 +258,17 @@ def unknown_node(ref: str, robot: str | None, known: list[str], same_name: list[
 
 
 def process_line(profile: Any) -> str:
-    """``drivers: running, pid 4242, 2 restarts`` (and the last exit, when there was one)."""
+    """``drivers: running, pid 4242, 2 restarts`` (and the last exit, when there was one); a
+    launch profile, or a container or unit (operations.processes.HostProcess)."""
     parts = [profile.get_status_display()]
     if profile.pid:
         parts.append(f"pid {profile.pid}")
     if profile.restarts:
         parts.append(f"{profile.restarts} restart{'s' * (profile.restarts != 1)}")
-    if profile.last_exit_at is not None:
-        how = profile.last_exit_signal or f"status {profile.last_exit_code}"
-        parts.append(f"last exit: {how} at {profile.last_exit_at:%Y-%m-%d %H:%M:%S} UTC")
+    exit_ = profile.as_dict()["last_exit"]
+    if exit_ is not None:
+        how = exit_["signal"] or f"status {exit_['code']}"
+        parts.append(f"last exit: {how} at {exit_['at'][:19].replace('T', ' ')} UTC")
+    if getattr(profile, "nodes", None):  # a container or unit: what runs in it
+        parts.append(f"nodes: {', '.join(profile.nodes)}")
     return f"{profile.name}: {', '.join(parts)}{'' if profile.enabled else ' (disabled)'}"

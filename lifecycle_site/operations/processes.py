@@ -1,13 +1,19 @@
-"""Starting, stopping and restarting a robot's process through its supervisor (the robot's
-gateway, which runs the processes of the robot's launch profiles: ros_gateway/supervisor.py),
-for the API, the pages and the CLI alike.
+"""Starting, stopping and restarting a robot's process through its supervisor, for the API, the
+pages and the CLI alike. The supervisor is the robot's gateway for the processes of the robot's
+launch profiles (ros_gateway/supervisor.py), or, for a Docker container or systemd unit the
+gateway found running one of the robot's nodes on its host, the Docker Engine or systemd
+(ros_gateway/host_units.py; such a process is named "docker:NAME" or "systemd:UNIT").
 
-The gateway acts only on a process of a profile it has for that robot: a request names the
-robot and the profile, never a pid. Every attempt is on record: the gateway reports what it did
-with its answer (applied here before the answer); what is refused before it reaches the
-gateway is recorded here.
+The gateway acts only on a process of a profile it has for that robot, or on a container or unit
+it attributed to one of the robot's nodes itself: a request names the robot and the profile or
+that attribution, never a pid. Every attempt is on record: the gateway reports what it did with
+its answer (applied here before the answer); what is refused before it reaches the gateway is
+recorded here.
 """
 from __future__ import annotations
+
+from dataclasses import dataclass, field
+from datetime import datetime
 
 from django.utils import timezone
 
@@ -15,7 +21,7 @@ from lifecycle_site.audit.models import ProcessRecord
 from lifecycle_site.fleet.facts import apply_facts
 from lifecycle_site.fleet.gateway_client import MAX_SERVICE_TIMEOUT, GatewayError, call_gateway
 from lifecycle_site.fleet.live_updates import AUDIT_STORED, push
-from lifecycle_site.fleet.models import ProcessProfile, Robot
+from lifecycle_site.fleet.models import ManagedNode, ProcessProfile, Robot
 from lifecycle_site.refusal import Refusal, shown
 from ros_gateway.shared import protocol
 
@@ -24,23 +30,117 @@ NOT_SENT = {"gateway_offline", "robot_not_watched", "unknown_process"}
 STATUS_BY_CODE = {"unknown_process": 404, "robot_not_watched": 409}
 
 
+HOST_PROCESS_RE = protocol.HOST_PROCESS_RE  # a container or unit: "docker:NAME", "systemd:UNIT"
+SUPERVISORS = {"launch": "launch profile", "docker": "Docker container", "systemd": "systemd unit"}
+HOST_GRACE_S = 30.0  # a container's or unit's own stop time is its supervisor's; the call waits this much more
+
+
 class ProcessRefused(Refusal):
     """A process action not carried out (or not as asked); ``details`` has the record's id."""
 
 
-def profile_of(robot: Robot, name: object) -> ProcessProfile:
+@dataclass
+class HostProcess:
+    """A container or systemd unit that the robot's gateway found running some of its nodes, as
+    the site knows it: its nodes (``ManagedNode.supervised_by``) and the records of its actions."""
+
+    robot: Robot
+    name: str  # "docker:NAME" or "systemd:UNIT"
+    nodes: list[str] = field(default_factory=list)
+    running: bool = False  # one of its nodes is alive
+    pid: int | None = None
+    since: datetime | None = None
+    restarts: int = 0
+    last_exit: dict | None = None
+    message: str = ""
+    hung: str = ""  # why it looks hung (hung()), if it does
+    enabled = True
+
+    @property
+    def supervisor(self) -> str:
+        return self.name.split(":", 1)[0]
+
+    @property
+    def status(self) -> str:
+        return ProcessProfile.Status.RUNNING if self.running else ProcessProfile.Status.STOPPED
+
+    def get_status_display(self) -> str:
+        return "running" if self.running else "not running"
+
+    def as_dict(self) -> dict:
+        return {"robot": self.robot.name, "name": self.name, "supervisor": self.supervisor, "nodes": self.nodes,
+                "status": self.status, "pid": self.pid, "since": self.since.isoformat() if self.since else None,
+                "restarts": self.restarts, "last_exit": self.last_exit, "message": self.message}
+
+
+STUCK_S = 30.0  # a node in a transition state this long (its callback has not returned) counts as hung
+
+
+def hung(nodes: list[ManagedNode]) -> str:
+    """Why a process looks hung, in words, from its nodes ("" if it does not): one stopped answering
+    the gateway's probes (GetState), or is stuck in a transition state."""
+    now = timezone.now()
+    for node in nodes:
+        if not node.alive and node.gone_reason == "unreachable":
+            return f"hung: {node.name} stopped answering its gateway's probes (GetState)"
+        if node.alive and node.state_id >= 10 and node.state_changed is not None and \
+                (stuck := (now - node.state_changed).total_seconds()) >= STUCK_S:
+            return f"hung: {node.name} stuck in {node.state_label} for {stuck:.0f} s"
+    return ""
+
+
+def nodes_by_process(robot: Robot) -> dict[str, list[ManagedNode]]:
+    """The robot's nodes by the process (launch profile, container or unit) that runs them."""
+    found: dict[str, list[ManagedNode]] = {}
+    for node in robot.nodes.exclude(supervised_by="").order_by("name").only(
+            "name", "supervised_by", "alive", "gone_reason", "state_id", "state_label", "state_changed"):
+        found.setdefault(node.supervised_by, []).append(node)
+    return found
+
+
+def host_processes(robot: Robot, nodes: dict[str, list[ManagedNode]] | None = None) -> list[HostProcess]:
+    """The robot's containers and units, from its nodes' ``supervised_by`` and the process records."""
+    found: dict[str, HostProcess] = {}
+    for name, its_nodes in (nodes_by_process(robot) if nodes is None else nodes).items():
+        if HOST_PROCESS_RE.match(name):
+            found[name] = HostProcess(robot, name, [n.name for n in its_nodes], any(n.alive for n in its_nodes),
+                                      hung=hung(its_nodes))
+    for host in found.values():
+        records = ProcessRecord.objects.filter(robot_name=robot.name, process_name=host.name).exclude(
+            outcome="rejected")
+        host.restarts = records.filter(action="restart", outcome="succeeded").count()
+        latest = records.first()
+        if latest is not None:
+            host.message = latest.message
+        started = records.filter(action__in=("start", "restart"), outcome="succeeded").first()
+        if host.running and started is not None:  # its uptime and pid as of its last start through us
+            host.since, host.pid = started.at, started.pid
+        ended = records.filter(old_pid__isnull=False).exclude(exit_code=None, exit_signal="").first()
+        if ended is not None:
+            host.last_exit = {"code": ended.exit_code, "signal": ended.exit_signal or None, "at": ended.at.isoformat()}
+    return list(found.values())
+
+
+def profile_of(robot: Robot, name: object) -> ProcessProfile | HostProcess:
+    """The launch profile, or the container or unit, that ``name`` names on the robot."""
+    if isinstance(name, str) and HOST_PROCESS_RE.match(name):
+        host = next((h for h in host_processes(robot) if h.name == name), None)
+        if host is not None:
+            return host
     profile = ProcessProfile.objects.select_related("robot__gateway").filter(robot=robot, name=name).first() \
         if isinstance(name, str) else None
     if profile is None:
-        names = ", ".join(robot.process_profiles.order_by("name").values_list("name", flat=True)) or "none yet"
-        raise ProcessRefused("unknown_process", f"Robot {robot.name} has no process {shown(name)} (its launch "
-                             f"profiles: {names}; an admin registers them).", 404)
+        names = [*robot.process_profiles.order_by("name").values_list("name", flat=True),
+                 *(h.name for h in host_processes(robot))]
+        raise ProcessRefused("unknown_process", f"Robot {robot.name} has no process {shown(name)} (its processes: "
+                             f"{', '.join(names) or 'none known yet'}; an admin registers launch profiles, the "
+                             "gateway finds containers and systemd units running the robot's nodes).", 404)
     return profile
 
 
-def control(profile: ProcessProfile, action: object, user, source: str) -> ProcessRecord:
-    """Carry out ``action`` (start, stop, restart) on the profile's process; returns its record,
-    or raises ProcessRefused (the record exists before either)."""
+def control(profile: ProcessProfile | HostProcess, action: object, user, source: str) -> ProcessRecord:
+    """Carry out ``action`` (start, stop, restart) on the profile's process (or the container or
+    unit); returns its record, or raises ProcessRefused (the record exists before either)."""
     if action not in protocol.PROCESS_ACTIONS:
         raise ProcessRefused("unknown_action", f"{shown(action)} is not a process action; use one of "
                              f"{', '.join(protocol.PROCESS_ACTIONS)}.", 400)
@@ -50,9 +150,9 @@ def control(profile: ProcessProfile, action: object, user, source: str) -> Proce
                f"The launch profile {profile.name} of {robot.name} is disabled; an admin enables it.")
         raise ProcessRefused("process_disabled", why, 409, record_id=refused(profile, action, user, source, why).id)
     gateway = robot.gateway.name
+    grace = HOST_GRACE_S if isinstance(profile, HostProcess) else profile.stop_grace_s
     try:
-        reply = call_gateway(gateway, protocol.PROCESS_CONTROL, timeout=min(MAX_SERVICE_TIMEOUT,
-                                                                              profile.stop_grace_s + 5.0),
+        reply = call_gateway(gateway, protocol.PROCESS_CONTROL, timeout=min(MAX_SERVICE_TIMEOUT, grace + 5.0),
                              robot=robot.name, process=profile.name, action=action, user_id=user.pk, source=source)
     except GatewayError as exc:
         record = _store(gateway, exc.facts)
@@ -84,10 +184,11 @@ def _store(gateway: str, facts: list) -> ProcessRecord | None:
     return ProcessRecord.objects.filter(fact_id__in=ids).first()  # stored by the ingest process first
 
 
-def refused(profile: ProcessProfile, action: object, user, source: str, message: str) -> ProcessRecord:
-    record = ProcessRecord(profile=profile, robot_name=profile.robot.name, process_name=profile.name,
-                           action=str(action), outcome="rejected", source=source, requested_by=user, message=message,
-                           at=timezone.now())
+def refused(profile: ProcessProfile | HostProcess, action: object, user, source: str, message: str) -> ProcessRecord:
+    host = isinstance(profile, HostProcess)
+    record = ProcessRecord(profile=None if host else profile, robot_name=profile.robot.name, process_name=profile.name,
+                           supervisor=profile.supervisor if host else "launch", action=str(action), outcome="rejected",
+                           source=source, requested_by=user, message=message, at=timezone.now())
     record.save()
     push([AUDIT_STORED])
     return record

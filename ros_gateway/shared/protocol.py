@@ -106,6 +106,10 @@ PING = "ping"
 # A process of a robot's launch profile (ros_gateway/supervisor.py): robot, process, action.
 PROCESS_CONTROL = "process_control"
 PROCESS_ACTIONS = ("start", "stop", "restart")
+# A process is a launch profile's (its name), or a Docker container or systemd unit the gateway
+# found running a robot's node (ros_gateway/host_units.py), named so: "docker:NAME", "systemd:UNIT".
+SUPERVISORS = ("launch", "docker", "systemd")
+HOST_PROCESS_RE = re.compile(r"^(docker|systemd):[A-Za-z0-9_.@:\\-]{1,56}$")
 
 # Facts a gateway reports (the ``type`` of each; fields as in the docstrings of the
 # builders below and in docs/architecture.md).

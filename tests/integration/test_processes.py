@@ -135,7 +135,7 @@ def test_stop_then_start(api, supervised):
 def test_what_cannot_be_done_is_refused_plainly(api, supervised):
     unknown = control(api, "restart", "no-such-process")
     assert unknown.status_code == 404 and unknown.json()["error"]["code"] == "unknown_process"
-    assert "Robot proc-agv has no process 'no-such-process' (its launch profiles: drivers" in \
+    assert "Robot proc-agv has no process 'no-such-process' (its processes: drivers" in \
         unknown.json()["error"]["message"]
     action = control(api, "reboot")
     assert action.status_code == 400 and action.json()["error"]["code"] == "unknown_action"

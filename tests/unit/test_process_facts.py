@@ -108,3 +108,32 @@ def test_a_fact_about_a_removed_profile_is_still_recorded(cell):
     apply_facts(GATEWAY, [process_fact(part, "stop", source="config", old_pid=5)])
     record = ProcessRecord.objects.get()
     assert (record.profile, record.process_name, record.message) == (None, "drivers", "stop succeeded")
+
+
+def test_a_container_or_unit_fact_is_recorded_with_its_supervisor_and_leaves_profiles_alone(cell):
+    part, profile = cell
+    apply_facts(GATEWAY, [process_fact(part, "restart", process="docker:agv-sensors", supervisor="docker", pid=20,
+                                       old_pid=10, exit_signal="SIGTERM"),
+                          process_fact(part, "stop", process="systemd:agv-drivers.service", supervisor="systemd",
+                                       old_pid=30, exit_code=0)])
+    docker, systemd = ProcessRecord.objects.order_by("id")
+    assert (docker.supervisor, docker.process_name, docker.profile, docker.exit_signal) == (
+        "docker", "docker:agv-sensors", None, "SIGTERM")
+    assert (systemd.supervisor, systemd.process_name, systemd.exit_code) == ("systemd", "systemd:agv-drivers.service", 0)
+    profile.refresh_from_db()
+    assert profile.restarts == 0 and profile.status != "running"
+
+
+@pytest.mark.parametrize(("fields", "why"), [
+    ({"process": "docker:agv-sensors", "supervisor": "launch"}, "is not one a launch supervisor has"),
+    ({"process": "drivers", "supervisor": "docker"}, "is not one a docker supervisor has"),
+    ({"process": "systemd:x.service", "supervisor": "docker"}, "is not one a docker supervisor has"),
+    ({"process": "docker:a b", "supervisor": "docker"}, "process must be"),
+    ({"process": "kubernetes:pod", "supervisor": "kubernetes"}, "process must be"),
+    ({"process": "drivers", "supervisor": "kubernetes"}, "supervisor"),
+])
+def test_a_process_fact_whose_name_and_supervisor_do_not_agree_is_refused(cell, fields, why, caplog):
+    part, _ = cell
+    applied = apply_facts(GATEWAY, [process_fact(part, "start", **fields)])
+    assert applied.rejected == 1 and not ProcessRecord.objects.exists()
+    assert why in caplog.text

@@ -136,7 +136,7 @@ def test_an_unknown_action_or_process_is_refused_plainly(operator_client, driver
         in action.content.decode()
     process = operator_client.post(action_url("stop", "sshd"))
     assert process.status_code == 404
-    assert f"Robot {ROBOT} has no process &#x27;sshd&#x27; (its launch profiles: drivers" in process.content.decode()
+    assert f"Robot {ROBOT} has no process &#x27;sshd&#x27; (its processes: drivers" in process.content.decode()
     assert not ProcessRecord.objects.filter(source="dashboard").exists()
     assert operator_client.get(action_url("stop")).status_code == 405  # POST only
 
@@ -184,3 +184,35 @@ def test_a_robot_without_profiles_says_who_registers_them(viewer_client, robot):
 
 def test_the_fleet_page_links_each_robot_to_its_processes(viewer_client, robot):
     assert f'href="{PAGE}">Processes</a>' in page_of(viewer_client, "/")
+
+
+def test_a_container_running_nodes_is_a_row_with_its_nodes_and_a_hung_one_says_why(operator_client, drivers):
+    from lifecycle_site.fleet.models import ManagedNode
+    robot = drivers.robot
+    now = timezone.now()
+    ManagedNode.objects.create(robot=robot, name="/lidar", key=f"{ROBOT}.lidar", alive=True, state_id=13,
+                               state_label="activating", state_changed=now - timedelta(seconds=95),
+                               supervised_by="docker:agv-sensors")
+    ManagedNode.objects.create(robot=robot, name="/camera", key=f"{ROBOT}.camera", alive=True, state_id=3,
+                               state_label="active", supervised_by="docker:agv-sensors")
+    ManagedNode.objects.create(robot=robot, name="/planner", key=f"{ROBOT}.planner", alive=True, state_id=3,
+                               state_label="active", supervised_by="drivers")
+    ProcessRecord(robot_name=ROBOT, process_name="docker:agv-sensors", supervisor="docker", action="restart",
+                  outcome="succeeded", source="api", pid=5150, old_pid=5100, exit_signal="SIGKILL",
+                  message="Container agv-sensors of proc-page-agv restarted as pid 5150.",
+                  at=now - timedelta(minutes=2)).save()
+    text = page_of(operator_client)
+    row = text.split('id="process-unit-docker-agv-sensors"')[1].split("</tr>")[0]
+    assert "Docker container" in row and "nodes: /camera, /lidar" in row
+    assert "hung: /lidar stuck in activating for 95 s" in row
+    assert ">5150<" in row and "SIGKILL" in row and 'data-transition="restart"' in row
+    assert 'data-confirm-detail="Its nodes stop with it: /camera, /lidar.' in row
+    profile_row = text.split(f'id="process-{drivers.pk}"')[1].split("</tr>")[0]
+    assert "launch profile" in profile_row and "nodes: /planner" in profile_row and "hung" not in profile_row
+
+
+def test_a_container_nobody_attributed_is_not_acted_on(operator_client, drivers):
+    response = operator_client.post(action_url("stop", "docker:bystander"))
+    assert response.status_code == 404
+    assert "has no process &#x27;docker:bystander&#x27;" in response.content.decode()
+    assert not ProcessRecord.objects.filter(process_name="docker:bystander").exists()

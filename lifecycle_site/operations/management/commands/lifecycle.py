@@ -166,9 +166,11 @@ class Command(BaseCommand):
         """A robot's supervised processes, or one action on one of them."""
         robot = self.robot(opts.robot_name)
         if not opts.process:
-            profiles = list(robot.process_profiles.order_by("name"))
-            lines = [out.process_line(p) for p in profiles] or [f"{robot.name} has no launch profiles."]
-            self.emit(opts, {"robot": robot.name, "processes": [p.as_dict() for p in profiles]}, lines)
+            found = [*robot.process_profiles.order_by("name"), *processes.host_processes(robot)]
+            lines = [out.process_line(p) for p in found] or [
+                f"{robot.name} has no launch profiles, and its gateway has found none of its nodes in a container "
+                "or systemd unit it can reach."]
+            self.emit(opts, {"robot": robot.name, "processes": [p.as_dict() for p in found]}, lines)
             return EXIT_OK
         if not opts.action:
             raise CliExit(EXIT_USAGE, f"What should happen to {opts.process}? Give an action: "
