@@ -13,7 +13,7 @@ from django.db.models import F, Q
 
 from lifecycle_site.alerts.models import Rule
 from lifecycle_site.fleet import gateways
-from lifecycle_site.fleet.models import Gateway, ManagedNode
+from lifecycle_site.fleet.models import Gateway, ManagedNode, ProcessProfile
 from lifecycle_site.fleet.observations import GONE, Observation
 from ros_gateway.shared import protocol
 
@@ -98,7 +98,26 @@ def gateway_conditions(rule: Rule, now: datetime) -> dict[str, Condition]:
     return found
 
 
+def process_conditions(rule: Rule, now: datetime) -> dict[str, Condition]:
+    """Launch profiles whose supervisor stopped respawning them (max failures within the window)."""
+    rows = ProcessProfile.objects.filter(robot__enabled=True, enabled=True, status=ProcessProfile.Status.GIVEN_UP)
+    if rule.robot_id:
+        rows = rows.filter(robot_id=rule.robot_id)
+    if rule.gateway_id:
+        rows = rows.filter(robot__gateway_id=rule.gateway_id)
+    found = {}
+    for name, robot, gateway, since in rows.values_list("name", "robot__name", "robot__gateway__name",
+                                                        "status_since"):
+        subject = f"{robot}:{name}"
+        summary = (f"Process {name} of robot {robot} kept ending and is no longer started again by its gateway; "
+                   "start it from the robot's Processes page once the cause is fixed.")
+        found[subject] = Condition(subject, since or now, summary, gateway, robot)
+    return found
+
+
 def current(rule: Rule, now: datetime) -> dict[str, Condition]:
+    if rule.kind == Rule.Kind.PROCESS_GIVEN_UP:
+        return process_conditions(rule, now)
     return node_conditions(rule, now) if rule.watches_nodes else gateway_conditions(rule, now)
 
 

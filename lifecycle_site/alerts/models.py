@@ -101,6 +101,7 @@ class Rule(models.Model):
         GONE = "gone", "node vanished from the ROS graph"
         NOT_DESIRED = "not_desired", "node is not in its desired state"
         GATEWAY_OFFLINE = "gateway_offline", "gateway is offline or quarantined"
+        PROCESS_GIVEN_UP = "process_given_up", "a launch profile's process was given up (kept failing)"
 
     STATE_CHOICES = [(label, label) for state_id, label in sorted(sm.STATE_LABELS.items()) if state_id]
 
@@ -148,6 +149,9 @@ class Rule(models.Model):
             raise ValidationError({"state": "Only 'node is in a state' rules take a state."})
         if self.kind == self.Kind.GATEWAY_OFFLINE and self.node_pattern:
             raise ValidationError({"node_pattern": "A gateway rule has no node pattern."})
+        if self.kind == self.Kind.PROCESS_GIVEN_UP and self.node_pattern:
+            raise ValidationError({"node_pattern": "A process rule has no node pattern (it watches every launch "
+                                                   "profile of its robot or gateway)."})
 
     @property
     def watches_nodes(self) -> bool:

@@ -203,6 +203,25 @@ def test_a_gateway_offline_for_n_seconds(fleet, redis_server):
     assert not active(rule)
 
 
+def test_a_launch_profile_given_up_is_alerted_until_it_runs_again(fleet):
+    from lifecycle_site.fleet.models import ProcessProfile
+    agv, arm = fleet
+    rule = Rule.objects.create(name="given up", kind=Rule.Kind.PROCESS_GIVEN_UP, robot=agv)
+    drivers = ProcessProfile.objects.create(robot=agv, name="drivers", command="/bin/false")
+    ProcessProfile.objects.create(robot=arm, name="drivers", command="/bin/false", status="given_up")  # not its robot
+    evaluator = Evaluator()
+    evaluator.evaluate()
+    assert not active(rule)
+    ProcessProfile.objects.filter(pk=drivers.pk).update(status="given_up", status_since=timezone.now())
+    evaluator.evaluate()
+    alert = active(rule)["al-agv:drivers"]
+    assert (alert.robot_name, alert.gateway_name) == ("al-agv", "al-cell")
+    assert alert.summary.startswith("Process drivers of robot al-agv kept ending and is no longer started again")
+    ProcessProfile.objects.filter(pk=drivers.pk).update(status="running")
+    evaluator.evaluate()
+    assert not active(rule)
+
+
 def test_rule_validation():
     from django.core.exceptions import ValidationError
 
@@ -210,6 +229,8 @@ def test_rule_validation():
         Rule(name="x", kind=Rule.Kind.STATE).clean()
     with pytest.raises(ValidationError, match="no node pattern"):
         Rule(name="x", kind=Rule.Kind.GATEWAY_OFFLINE, node_pattern="/a*").clean()
+    with pytest.raises(ValidationError, match="A process rule has no node pattern"):
+        Rule(name="x", kind=Rule.Kind.PROCESS_GIVEN_UP, node_pattern="/a*").clean()
 
 
 @pytest.fixture
