@@ -119,7 +119,8 @@ def test_a_container_or_unit_fact_is_recorded_with_its_supervisor_and_leaves_pro
     docker, systemd = ProcessRecord.objects.order_by("id")
     assert (docker.supervisor, docker.process_name, docker.profile, docker.exit_signal) == (
         "docker", "docker:agv-sensors", None, "SIGTERM")
-    assert (systemd.supervisor, systemd.process_name, systemd.exit_code) == ("systemd", "systemd:agv-drivers.service", 0)
+    assert (systemd.supervisor, systemd.process_name, systemd.exit_code) == (
+        "systemd", "systemd:agv-drivers.service", 0)
     profile.refresh_from_db()
     assert profile.restarts == 0 and profile.status != "running"
 
