@@ -154,3 +154,23 @@ def viewer_client(db) -> Client:
     client = Client()
     client.force_login(make_user("victor-viewer", "viewer"))
     return client
+
+
+@pytest.fixture(scope="module")
+def gateway(redis_server, live_db, ingest):
+    """The gateway "local" on this run's Redis, one per test module (integration and deploy tests)."""
+    from lifecycle_site.fleet import gateways
+
+    process = stack.start_gateway()
+    stack.wait_for(lambda: gateways.status("local").online or not process.alive(), 30, "the gateway heartbeat")
+    assert process.alive(), process.output()
+    yield process
+    process.stop()
+
+
+@pytest.fixture(scope="module")
+def api(live_db) -> Client:
+    """A logged-in operator's test client of the site (this test process)."""
+    client = Client()
+    client.force_login(make_user("ivan-operator", "operator"))
+    return client

@@ -16,7 +16,7 @@ from playwright.sync_api import expect
 from lifecycle_site.fleet.models import ManagedNode
 from tests import stack
 from tests.conftest import make_user
-from tests.integration.conftest import api, gateway, register, wait_node  # noqa: F401 (fixtures)
+from tests.integration.conftest import register, wait_node  # noqa: F401 (fixtures)
 
 # Playwright's sync API keeps an event loop running in this thread; the ORM calls the tests
 # make are plain blocking calls from it, which Django would otherwise refuse.

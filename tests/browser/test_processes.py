@@ -122,6 +122,7 @@ def test_stop_asks_first_and_start_runs_it_again(page: Page, site, supervised):
     expect(row.locator("td[data-label=PID]")).to_have_text(str(pid))
     expect(row.locator("th")).to_contain_text("ros_gateway.demo.robot --domain")
     expect(button(row, "Start")).to_have_count(0)
+    expect(row.locator(".process-nodes")).to_have_text("nodes: /lidar_driver", timeout=WAIT_MS)  # attributed
     page.screenshot(path=ARTIFACTS / "processes-running.png", full_page=True)
 
     # Stop, cancelled: nothing is sent, nothing is on record.
@@ -130,7 +131,7 @@ def test_stop_asks_first_and_start_runs_it_again(page: Page, site, supervised):
     button(row, "Stop").click()
     expect(dialog).to_be_visible()
     expect(dialog).to_contain_text(f"Stop {PROCESS} on {ROBOT}?")
-    expect(dialog).to_contain_text("Its nodes stop with it")
+    expect(dialog).to_contain_text("Its nodes stop with it: /lidar_driver.")
     expect(dialog).to_contain_text("stays stopped until someone starts it again")
     page.screenshot(path=ARTIFACTS / "processes-confirm-stop.png")
     dialog.get_by_role("button", name="Cancel", exact=True).click()

@@ -12,10 +12,8 @@ import pytest
 from django.test import Client
 
 from lifecycle_site.audit.models import ProcessRecord, TransitionRecord
-from lifecycle_site.fleet import gateways
 from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
 from tests import stack
-from tests.conftest import make_user
 from tests.deploy import engine
 
 ROBOT = "docker-agv"
@@ -40,25 +38,7 @@ def container(image, docker_engine):
 
 
 @pytest.fixture(scope="module")
-def gateway(redis_server, live_db, ingest, docker_engine):
-    """The robot's gateway on the host (as root: it reads the container's processes in /proc, and
-    the engine's socket)."""
-    process = stack.start_gateway()
-    stack.wait_for(lambda: gateways.status("local").online or not process.alive(), 30, "the gateway heartbeat")
-    assert process.alive(), process.output()
-    yield process
-    process.stop()
-
-
-@pytest.fixture(scope="module")
-def api(live_db) -> Client:
-    client = Client()
-    client.force_login(make_user("dora-operator", "operator"))
-    return client
-
-
-@pytest.fixture(scope="module")
-def robot(gateway, container):
+def robot(gateway, container):  # (the gateway on the host, as root: it reads /proc and the socket)
     owner, _ = Gateway.objects.get_or_create(name="local")
     made, _ = Robot.objects.update_or_create(name=ROBOT, defaults={
         "domain_id": stack.domain(37), "enabled": True, "gateway": owner, "auto_recover": True})
@@ -84,25 +64,30 @@ def node(**fields) -> ManagedNode:
                           f"{NODE} with {fields}")
 
 
+def activate_as_desired(api: Client, robot: str, key: str) -> None:
+    """The node made active, its desired state active (which a restart's recovery brings it back to)."""
+    for transition in ("configure", "activate"):
+        answer = api.post(f"/api/v1/nodes/{key}/transition", {"transition": transition},
+                          content_type="application/json")
+        assert answer.status_code == 200, answer.json()
+    ManagedNode.objects.filter(key=key).update(desired_state="active")
+    Robot.objects.get(name=robot).save()  # the gateway learns the desired state
+    stack.wait_for(lambda: ManagedNode.objects.filter(key=key, state_label="active").exists(), 30, f"{key} active")
+
+
 def test_a_container_restart_brings_its_node_back_to_its_desired_state(api, robot, container):
     process = f"docker:{container}"
     listing = api.get(f"/api/v1/robots/{ROBOT}/processes").json()["processes"]
     (shown,) = [p for p in listing if p["name"] == process]
     assert (shown["supervisor"], shown["nodes"], shown["status"]) == ("docker", ["/lidar_driver"], "running")
-    for transition in ("configure", "activate"):
-        answer = api.post(f"/api/v1/nodes/{NODE}/transition", {"transition": transition},
-                          content_type="application/json")
-        assert answer.status_code == 200, answer.json()
-    ManagedNode.objects.filter(key=NODE).update(desired_state="active")
-    Robot.objects.get(name=ROBOT).save()  # the gateway learns the desired state
-    node(state_label="active")
+    activate_as_desired(api, ROBOT, NODE)
     before = container_pid(container)
 
     answer = control(api, process, "restart")
     assert answer.status_code == 200, answer.json()
     record = answer.json()["record"]
     assert (record["supervisor"], record["action"], record["outcome"], record["requested_by"]) == (
-        "docker", "restart", "succeeded", "dora-operator")
+        "docker", "restart", "succeeded", "ivan-operator")
     assert record["process"] == process and container in record["message"]
     assert record["old_pid"] == before and record["pid"] == container_pid(container) != before
     # The demo robot ends on SIGTERM: the old process's end is on record.

@@ -17,8 +17,8 @@ from lifecycle_site.audit.models import ProcessRecord, TransitionRecord
 from lifecycle_site.fleet import gateways
 from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
 from tests import stack
-from tests.conftest import make_user
 from tests.deploy import engine
+from tests.deploy.test_host_units import activate_as_desired
 
 ROBOT, GATEWAY, UNIT = "sd-agv", "robot-sd", "demo-node.service"
 NODE, PROCESS = f"{ROBOT}.lidar_driver", f"systemd:{UNIT}"
@@ -68,13 +68,6 @@ def robot_host(image, docker_engine, scratch, redis_server, live_db, ingest):
         assert not left, f"container {name} was left"
 
 
-@pytest.fixture(scope="module")
-def api(live_db) -> Client:
-    client = Client()
-    client.force_login(make_user("sven-operator", "operator"))
-    return client
-
-
 def control(api: Client, action: str, process: str = PROCESS):
     return api.post(f"/api/v1/robots/{ROBOT}/processes/{process}", {"action": action},
                     content_type="application/json")
@@ -92,12 +85,7 @@ def node(**fields) -> ManagedNode:
 
 def test_a_unit_restart_brings_its_node_back_to_its_desired_state(api, robot_host):
     node(alive=True, supervised_by=PROCESS)
-    for transition in ("configure", "activate"):
-        answer = api.post(f"/api/v1/nodes/{NODE}/transition", {"transition": transition},
-                          content_type="application/json")
-        assert answer.status_code == 200, answer.json()
-    ManagedNode.objects.filter(key=NODE).update(desired_state="active")
-    Robot.objects.get(name=ROBOT).save()  # the gateway learns the desired state
+    activate_as_desired(api, ROBOT, NODE)
     before = main_pid(robot_host)
 
     answer = control(api, "restart")

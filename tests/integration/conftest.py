@@ -5,32 +5,14 @@ from __future__ import annotations
 import pytest
 from django.test import Client
 
-from lifecycle_site.fleet import gateways
 from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
 from tests import stack
-from tests.conftest import make_user
 
 
 def pytest_collection_modifyitems(items):
     for item in items:
         if "/integration/" in str(item.fspath):
             item.add_marker(pytest.mark.integration)
-
-
-@pytest.fixture(scope="module")
-def gateway(redis_server, live_db, ingest):
-    process = stack.start_gateway()
-    stack.wait_for(lambda: gateways.status("local").online or not process.alive(), 30, "the gateway heartbeat")
-    assert process.alive(), process.output()
-    yield process
-    process.stop()
-
-
-@pytest.fixture(scope="module")
-def api(live_db) -> Client:
-    client = Client()
-    client.force_login(make_user("ivan-operator", "operator"))
-    return client
 
 
 def register(name: str, domain_id: int, namespace: str = "", gateway: str = "local") -> Robot:
