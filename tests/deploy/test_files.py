@@ -26,6 +26,7 @@ COMPOSE_FILES = {
     "edge+demo": [EDGE_DIR / "docker-compose.yml", EDGE_DIR / "docker-compose.demo.yml"],
     "edge-no-layer2+demo": [EDGE_DIR / "docker-compose.no-layer2.yml", EDGE_DIR / "docker-compose.demo.yml"],
     "cell": [CELL_DIR / "docker-compose.yml"],
+    "cell-host-supervisor": [CELL_DIR / "docker-compose.host-supervisor.yml"],
     "edge-cell": [EDGE_CELL_DIR / "docker-compose.yml"],
 }
 # What is handed to the Industrial Edge Publisher (an override is checked merged into its app).
@@ -52,7 +53,7 @@ def test_compose_file_validates(name, docker_engine, tmp_path):
     copy of its folder (the cell's needs its env file: env.example stands in)."""
     folder = tmp_path / name
     shutil.copytree(COMPOSE_FILES[name][0].parent, folder, ignore=shutil.ignore_patterns("build", ".env"))
-    if name == "cell":
+    if name.startswith("cell"):
         shutil.copy(CELL_DIR / "env.example", folder / "cell.env")
     argv = ["docker-compose"]
     for path in COMPOSE_FILES[name]:
@@ -206,6 +207,21 @@ def test_cell_compose_is_a_gateway_only():
     example = env_lines(CELL_DIR / "env.example")
     assert {"LIFECYCLE_GATEWAY_NAME", "REDIS_URL", "LIFECYCLE_CHANNEL_PREFIX", "ROS_AUTOMATIC_DISCOVERY_RANGE",
             "ROS_STATIC_PEERS"} <= set(example)
+
+
+def test_only_the_opt_in_file_gives_a_gateway_the_docker_socket():
+    """The Docker Engine's socket (control of every container of the host) is mounted by the cell's
+    opt-in file only, with the host's PID namespace, network and IPC it needs to find the nodes'
+    containers; never by an Industrial Edge app (its rules allow bind mounts under ./ only)."""
+    opt_in = "docker-compose.host-supervisor.yml"
+    for path in ALL_COMPOSE:
+        mounts = [v for service in (load(path).get("services") or {}).values() for v in service.get("volumes", [])
+                  if "docker.sock" in str(v)]
+        assert bool(mounts) == (path.name == opt_in), f"{path}: {mounts}"
+    gateway = load(CELL_DIR / opt_in)["services"]["gateway"]
+    assert (gateway["pid"], gateway["network_mode"], gateway["ipc"]) == ("host", "host", "host")
+    assert gateway["environment"]["LIFECYCLE_DOCKER_SOCKET"] == "/var/run/docker.sock"
+    assert gateway["env_file"] == ["cell.env"] and gateway["image"] == IMAGE
 
 
 def test_redis_public_override():
