@@ -14,6 +14,7 @@ from ros_gateway.lifecycle import NodeUnreachable, available_states, available_t
 from ros_gateway.node_driver import DELIVERY_WAIT_S, NodeDriver, NodeUnreachableRecorded
 from ros_gateway.outbox import Outbox
 from ros_gateway.param_keeper import ParameterKeeper
+from ros_gateway.recovery import Recovery
 from ros_gateway.registry import LiveNode, NodeRegistry
 from ros_gateway.relay import Relay
 from ros_gateway.shared import protocol
@@ -49,6 +50,7 @@ class Parts:
     outbox: Outbox
     supervisor: Supervisor
     units: HostUnits
+    recovery: Recovery
 
 
 class CommandHandler:
@@ -195,7 +197,7 @@ class CommandHandler:
             raise CommandError("unknown_process", f"Gateway {self.parts.relay.gateway} runs no process "
                                                   f"{name!r} for {robot.name} ({where}).") from None
         if action in ("start", "restart") and fact.get("outcome") == "succeeded":
-            self.parts.runs.forgive(robot.name, name)
+            self.parts.recovery.forgive(robot.name, name)
         return {"ok": True, "outcome": fact.get("outcome"), "message": fact.get("message"), "facts": [fact]}
 
     async def _node(self, command: dict, timeout: float) -> LiveNode:

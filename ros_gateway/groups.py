@@ -1,4 +1,5 @@
-"""Ordered group operations on a robot's nodes, soft restart and automatic recovery.
+"""Ordered group operations on a robot's nodes and soft restart (automatic recovery, which
+runs its own through this module: recovery.py).
 
 What Nav2's lifecycle manager does, without its surprises: nodes already where they should
 be are skipped, not failed; after a timeout the real state is read again before a node is
@@ -34,11 +35,6 @@ SETTLE_TIMEOUTS = 3
 TIER_CONCURRENCY = 8
 # A run's progress goes out (push and fact) at most this often, and at its end.
 PROGRESS_INTERVAL_S = 0.25
-# Crash-loop guard: at most this many recoveries of one node within the window.
-RECOVERY_LIMIT, RECOVERY_WINDOW_S = 3, 300.0
-# After someone (re)starts a launch profile's process, its nodes' recoveries for this long are
-# that restart's, not a crash loop's (the new process's nodes appear a second or more later).
-FORGIVE_S = 30.0
 MAX_NODE_TIMEOUT_S = 60.0
 
 
@@ -91,25 +87,6 @@ class GroupRunner:
     def __init__(self, core: Core, driver: NodeDriver) -> None:
         self.domains, self.registry, self.driver = core.domains, core.registry, driver
         self.outbox, self.relay = core.outbox, core.relay
-        self.recovering: set[str] = set()  # node keys with a recovery under way
-        self.recent_recoveries: dict[str, list[float]] = {}
-        self.forgiven: dict[tuple[str, str], float] = {}  # (robot, process) -> until (monotonic)
-        self.recover_again: dict[str, str] = {}  # node key -> desired state, once its recovery under way ends
-
-    def forgive(self, robot: str, process: str) -> None:
-        """Someone restarted (or started) the launch profile's process: the recoveries of its
-        nodes so far, and for FORGIVE_S from now, are not a crash loop's and do not count towards
-        giving up on them. (A node not matched to its process yet counts as that process's.)"""
-        now = time.monotonic()
-        self.forgiven = {k: until for k, until in self.forgiven.items() if until > now}
-        self.forgiven[(robot, process)] = now + FORGIVE_S
-        for node in list(self.registry.nodes.values()):
-            if self._forgiven(node, now):
-                self.recent_recoveries.pop(node.key, None)
-
-    def _forgiven(self, node: LiveNode, now: float) -> bool:
-        return any(until > now and node.robot.name == robot and node.process in (process, "")
-                   for (robot, process), until in self.forgiven.items())
 
     def start(self, spec: object) -> dict:
         """Accept a run the site recorded and carry it out in the background."""
@@ -117,53 +94,10 @@ class GroupRunner:
             run = Run.from_spec(spec, self.registry)
         except BadRun as exc:
             return {"ok": False, "error": {"code": "bad_run", "message": str(exc)}}
-        spawn(self._execute(run))
+        spawn(self.execute(run))
         return {"ok": True, "run_id": run.id}
 
-    def on_change(self, change) -> None:
-        """State-change listener: a node whose process was restarted comes back unconfigured;
-        if its robot wants it, bring it back to the state an operator asked for."""
-        node = change.node
-        if not change.respawned or not node.robot.auto_recover:
-            return
-        desired = self.registry.node_settings(node.robot.id, node.name).desired_state
-        state_id = change.state_id
-        wanted = desired in DESIRED and sm.state_label(state_id) != desired
-        if wanted and sm.is_primary(state_id) and state_id != sm.FINALIZED:
-            spawn(self.recover(node, desired))
-
-    async def recover(self, node: LiveNode, desired: str) -> None:
-        """Drive a node that came back (after its process was restarted) to its desired state.
-        A node that comes back again while its recovery runs (restarted twice in a row) is
-        recovered again once that one ends: the first was for a process that is gone."""
-        if node.key in self.recovering:
-            self.recover_again[node.key] = desired
-            return
-        now = time.monotonic()
-        recent = [t for t in self.recent_recoveries.get(node.key, []) if now - t < RECOVERY_WINDOW_S]
-        run = Run(id=protocol.new_id(), robot=node.robot, operation="recover", tiers=[[node.name]], source="recovery")
-        spec = {"operation": "recover", "only_nodes": [node.name], "source": "recovery", "policy": "stop",
-                "node_timeout": run.node_timeout}
-        if len(recent) >= RECOVERY_LIMIT:
-            message = (f"gave up: {len(recent)} recoveries in the last {RECOVERY_WINDOW_S / 60:.0f} min "
-                       "(the node keeps dying); bring it up by hand once the cause is fixed")
-            log.error("not recovering %s:%s: %s", node.robot.name, node.name, message)
-            self._report(run, "failed", message, [], finished=True, **spec)
-            return
-        if not self._forgiven(node, now):
-            self.recent_recoveries[node.key] = [*recent, now]
-        self.recovering.add(node.key)
-        try:
-            log.info("recovering %s:%s to %s", node.robot.name, node.name, desired)
-            self._report(run, "queued", f"back to {desired}", [], **spec)
-            await self._execute(run, (Phase(DESIRED[desired]),))
-        finally:
-            self.recovering.discard(node.key)
-        again = self.recover_again.pop(node.key, None)
-        if again is not None and node.alive:
-            spawn(self.recover(node, again))
-
-    def _report(self, run: Run, status: str, message: str, results: list[dict], *, started: str | None = None,
+    def report(self, run: Run, status: str, message: str, results: list[dict], *, started: str | None = None,
                 finished: bool = False, **spec) -> dict:
         """A run fact for the site (``spec`` for runs the gateway starts itself)."""
         return self.outbox.emit(
@@ -171,12 +105,12 @@ class GroupRunner:
             started=started, finished=datetime.now(timezone.utc).isoformat() if finished else None, **spec,
         )
 
-    async def _execute(self, run: Run, phases: tuple[Phase, ...] | None = None) -> None:
+    async def execute(self, run: Run, phases: tuple[Phase, ...] | None = None) -> None:
         """Drive the run's nodes through its operation's phases (``phases`` for a recovery, whose
         target is the node's desired state): each phase goes through every tier, in the robot's
         order or in reverse, before the next phase begins."""
         started = datetime.now(timezone.utc).isoformat()
-        self._report(run, "running", "", [], started=started)
+        self.report(run, "running", "", [], started=started)
         if phases is None:
             phases = operations.BY_NAME[run.operation].phases
         # Results in the order of the last phase (the one that leaves the nodes where they end).
@@ -232,7 +166,7 @@ class GroupRunner:
         if verdict.ended:
             summary = f"stopped: {verdict.ended}; {summary}"
         await progress.close()
-        self._report(run, status, summary, results, started=started, finished=True)
+        self.report(run, status, summary, results, started=started, finished=True)
         await progress.push(status=status, message=summary)
         log.info("run %s (%s of %s): %s", run.id, run.operation, run.robot.name, summary)
 
@@ -363,7 +297,7 @@ class _Progress:
                 self.waiting = True
                 await asyncio.sleep(max(0.0, self.last_push + PROGRESS_INTERVAL_S - time.monotonic()))
                 self.waiting, self.changed = False, False
-                self.runner._report(self.run, "running", "", self.results(), started=self.started)
+                self.runner.report(self.run, "running", "", self.results(), started=self.started)
                 await self.push()
         finally:
             self.waiting = False

@@ -35,6 +35,7 @@ from ros_gateway.outbox import Outbox
 from ros_gateway.param_keeper import ParameterKeeper
 from ros_gateway.parts import Core
 from ros_gateway.process_owners import ProcessOwners
+from ros_gateway.recovery import Recovery
 from ros_gateway.registry import NodeRegistry, StateChange, StateChanges
 from ros_gateway.relay import Relay
 from ros_gateway.shared import protocol
@@ -77,6 +78,7 @@ class Gateway:
                                    self.liveness.suspect)
         self.driver = NodeDriver(core, self.logs)
         self.runs = GroupRunner(core, self.driver)
+        self.recovery = Recovery(self.runs)
         # The robots' launch profiles: processes this gateway runs for them (its facts: audit records).
         self.supervisor = Supervisor(lambda **fields: self.outbox.emit(protocol.PROCESS, **fields), self.logs.on_output)
         # Containers and systemd units of this host that run robots' nodes, and their supervisors.
@@ -86,7 +88,7 @@ class Gateway:
                                     self.units)
         self.commands = CommandHandler(Parts(self.relay, self.registry, self.domains, self.driver, self.params,
                                              self.runs, config.service_timeout, self.outbox, self.supervisor,
-                                             self.units))
+                                             self.units, self.recovery))
         # A state change is reported to the site first (self._report, its fact kept on the change);
         # then, in this order: the pages (a push), the audit of a new process instance, its
         # parameters read again, the stuck-transition check, and automatic recovery.
@@ -94,7 +96,7 @@ class Gateway:
         self.changes.subscribe("restarts", self.discovery.records.on_change)
         self.changes.subscribe("parameters", self.params.on_change)
         self.changes.subscribe("settle", self.discovery.on_change)
-        self.changes.subscribe("recover", self.runs.on_change)
+        self.changes.subscribe("recover", self.recovery.on_change)
 
     def _new_domain(self, domain_id: int) -> RosDomain:
         return RosDomain(domain_id, asyncio.get_running_loop(), self.discovery.on_transition_event,

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 from django.test import Client
+from django.utils import timezone
 
 from lifecycle_site.audit.models import ProcessRecord, TransitionRecord
 from lifecycle_site.fleet.gateway_client import GatewayError, call_gateway
@@ -85,6 +86,7 @@ def test_a_restart_gets_a_new_process_whose_node_is_driven_back_to_its_desired_s
     Robot.objects.get(name=ROBOT).save()  # the gateway learns the desired state
     wait_node(None, NODE, state="inactive")
     before = running_pid()
+    asked = timezone.now()  # (the new instance may be seen before the restart's record is made)
     answer = control(api, "restart")
     assert answer.status_code == 200, answer.json()
     record = answer.json()["record"]
@@ -94,7 +96,6 @@ def test_a_restart_gets_a_new_process_whose_node_is_driven_back_to_its_desired_s
     assert not stack.pid_alive(before)
     assert answer.json()["process"]["restarts"] >= 1
     # The new instance comes up unconfigured; recovery brings it back to its desired state.
-    asked = ProcessRecord.objects.get(pk=record["id"]).at
     stack.wait_for(lambda: TransitionRecord.objects.filter(node__key=NODE, outcome="process_restarted",
                                                            completed_at__gte=asked).exists(), 40, "the new instance")
     recovered = stack.wait_for(lambda: TransitionRecord.objects.filter(
@@ -197,6 +198,7 @@ def test_a_hung_process_is_restarted_with_sigkill_after_its_grace(api, hanging):
                      content_type="application/json")
     assert stuck.status_code == 504 and stuck.json()["error"]["code"] == "timeout", stuck.json()
     before = ProcessProfile.objects.get(pk=hanging.pk).pid
+    asked = timezone.now()  # (the new instance may be seen before the restart's record is made)
     answer = api.post(f"/api/v1/robots/{HUNG}/processes/flaky", {"action": "restart"},
                       content_type="application/json")
     assert answer.status_code == 200, answer.json()
@@ -204,7 +206,6 @@ def test_a_hung_process_is_restarted_with_sigkill_after_its_grace(api, hanging):
     assert record["old_pid"] == before and record["pid"] != before
     assert "SIGINT, then SIGKILL after 1.0 s without ending" in record["message"]
     assert not stack.pid_alive(before)
-    asked = ProcessRecord.objects.get(pk=record["id"]).at
     stack.wait_for(lambda: TransitionRecord.objects.filter(node__key=key, outcome="process_restarted",
                                                            completed_at__gte=asked).exists(), 40, "the new instance")
     wait_node(None, key, alive=True, state="unconfigured")
