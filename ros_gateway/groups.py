@@ -27,7 +27,6 @@ from ros_gateway.verdicts import RunVerdict
 
 log = logging.getLogger(__name__)
 
-DESIRED = {"unconfigured": sm.UNCONFIGURED, "inactive": sm.INACTIVE, "active": sm.ACTIVE}
 # After a step timed out with the node still inside the transition, how many more timeouts
 # to give it to finish before calling it failed.
 SETTLE_TIMEOUTS = 3

@@ -9,7 +9,7 @@ import asyncio
 import logging
 import time
 
-from ros_gateway.groups import DESIRED, GroupRunner, Run
+from ros_gateway.groups import GroupRunner, Run
 from ros_gateway.registry import LiveNode, RobotInfo
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
@@ -62,7 +62,7 @@ class Recovery:
             return
         desired = self.registry.node_settings(node.robot.id, node.name).desired_state
         state_id = change.state_id
-        wanted = desired in DESIRED and sm.state_label(state_id) != desired
+        wanted = desired in sm.DESIRED_STATES and sm.state_label(state_id) != desired
         if wanted and sm.is_primary(state_id) and state_id != sm.FINALIZED:
             batch = self.gathering.setdefault((node.robot.id, desired), [])
             if node not in batch:
@@ -109,7 +109,7 @@ class Recovery:
         try:
             log.info("recovering %d node(s) of %s to %s", len(taken), robot.name, desired)
             self.runner.report(run, "queued", f"back to {desired}", [], **spec)
-            await self.runner.execute(run, (Phase(DESIRED[desired]),))
+            await self.runner.execute(run, (Phase(sm.DESIRED_STATES[desired]),))
         finally:
             self.recovering -= keys
         for node in taken:

@@ -314,16 +314,18 @@ def _run(known: KnownRecords, fact: dict, at: datetime, applied: Applied) -> Non
     # deadlocked the request path applying a reply's facts against the ingest process.
     run = GroupRun.objects.select_for_update(of=("self",)).select_related("robot").filter(pk=run_id).first()
     if run is None:
-        # The one run a gateway starts on its own: the automatic recovery of one node.
+        # The one run a gateway starts on its own: the automatic recovery of the nodes of a
+        # restarted process (no more than a run's results may hold).
         if fact.get("operation") != "recover" or fact.get("source", "recovery") != "recovery":
             raise FactRejected(f"there is no run {run_id}, and a gateway may start only recoveries")
         robot = known.robot(fact)
         only = fact.get("only_nodes") or []
-        if not isinstance(only, list) or len(only) != 1:
-            raise FactRejected("a recovery is of one node")
+        if not isinstance(only, list) or not 1 <= len(only) <= checks.RUN_RESULTS:
+            raise FactRejected(f"a recovery is of 1 to {checks.RUN_RESULTS} nodes")
         timeout = fact.get("node_timeout")
         GroupRun.objects.create(
-            id=run_id, robot=robot, operation="recover", only_nodes=[checks.node_name(only[0])],
+            id=run_id, robot=robot, operation="recover",
+            only_nodes=list(dict.fromkeys(checks.node_name(name) for name in only)),
             source="recovery", policy=checks.choice(fact.get("policy") or "stop", GroupRun.Policy.values, "policy"),
             node_timeout=min(max(float(timeout), 0.1), 60.0) if isinstance(timeout, (int, float))
             and not isinstance(timeout, bool) and timeout == timeout else 5.0, **changes,

@@ -176,7 +176,7 @@ class ManagedNode(models.Model):
     desired_state = models.CharField(
         max_length=16,
         blank=True,
-        choices=[("", "none"), ("unconfigured", "unconfigured"), ("inactive", "inactive"), ("active", "active")],
+        choices=[("", "none"), *((label, label) for label in sm.DESIRED_STATES)],
         help_text="The state automatic recovery brings this node back to after a restart of its process.",
     )
 

@@ -36,6 +36,8 @@ STATE_LABELS: dict[int, str] = {
     ERRORPROCESSING: "errorprocessing",
 }
 PRIMARY_STATES = (UNCONFIGURED, INACTIVE, ACTIVE, FINALIZED)
+# The states a node may be kept in (its desired state: recovery drives it back there).
+DESIRED_STATES = {"unconfigured": UNCONFIGURED, "inactive": INACTIVE, "active": ACTIVE}
 
 
 @dataclass(frozen=True)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import os
 import signal
 import sys
@@ -53,6 +54,9 @@ async def report(gateway, path: Path) -> None:
 
 def main(name: str, stats_path: str) -> None:
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    # As ``python -m ros_gateway`` logs (its level from LIFECYCLE_LOG_LEVEL), with times.
+    logging.basicConfig(level=os.environ.get("LIFECYCLE_LOG_LEVEL", "INFO").upper(),
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     from ros_gateway import tasks
     from ros_gateway.config import GatewayConfig
     from ros_gateway.service import Gateway

@@ -134,6 +134,19 @@ def test_runs_follow_their_facts_but_never_come_back_from_done(cell):
     made = GroupRun.objects.get(pk=recovery["run_id"])
     assert (made.operation, made.only_nodes, made.source, made.status) == ("recover", ["/lidar"], "recovery", "queued")
 
+    # The nodes of one restarted process come back as one recovery; a bounded one.
+    several = part.fact(protocol.RUN, run_id=protocol.new_id(), robot=robot.name, status="queued", message="",
+                        results=[], started=None, finished=None, operation="recover",
+                        only_nodes=["/base", "/lidar", "/base"], source="recovery", policy="continue", node_timeout=5.0)
+    too_many = part.fact(protocol.RUN, run_id=protocol.new_id(), robot=robot.name, status="queued", message="",
+                         results=[], started=None, finished=None, operation="recover",
+                         only_nodes=[f"/n{i}" for i in range(2001)], source="recovery", node_timeout=5.0)
+    none = part.fact(protocol.RUN, run_id=protocol.new_id(), robot=robot.name, status="queued", message="",
+                     results=[], started=None, finished=None, operation="recover", only_nodes=[], source="recovery")
+    assert apply_facts("cell-f", [several, too_many, none]).rejected == 2
+    made = GroupRun.objects.get(pk=several["run_id"])
+    assert (made.only_nodes, made.policy) == (["/base", "/lidar"], "continue")
+
 
 def test_an_end_reported_after_the_sites_verdict_leaves_the_run_as_the_site_ended_it(cell):
     part, robot = cell
