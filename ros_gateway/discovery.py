@@ -196,7 +196,9 @@ class Discovery:
             log.warning("%d processes publish the transition events of %s on %s: a second node under the same "
                         "name, or a killed process whose DDS lease has not run out yet; its state may be misread",
                         len(now - node.departed), node.name, node.robot.name)
-        node.incarnation = current
+        # Kept while none is listed (its endpoints gone before its name left the graph): that it was
+        # seen with some is what tells its next appearance a new instance (registry.appeared).
+        node.incarnation = current or node.incarnation
         if node.live & now:
             node.live &= now  # a process that stopped publishing is not the one it runs in
         new = now - node.live - node.departed
