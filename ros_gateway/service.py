@@ -21,7 +21,7 @@ import os
 import socket
 from datetime import datetime, timezone
 
-from ros_gateway import budget, tasks
+from ros_gateway import budget, leftovers, tasks
 from ros_gateway.commands import CommandHandler, Parts
 from ros_gateway.config import GatewayConfig
 from ros_gateway.discovery import Discovery
@@ -80,7 +80,8 @@ class Gateway:
         self.runs = GroupRunner(core, self.driver)
         self.recovery = Recovery(self.runs)
         # The robots' launch profiles: processes this gateway runs for them (its facts: audit records).
-        self.supervisor = Supervisor(lambda **fields: self.outbox.emit(protocol.PROCESS, **fields), self.logs.on_output)
+        self.supervisor = Supervisor(lambda **fields: self.outbox.emit(protocol.PROCESS, **fields), self.logs.on_output,
+                                     config.name)
         # Containers and systemd units of this host that run robots' nodes, and their supervisors.
         self.units = HostUnits(lambda **fields: self.outbox.emit(protocol.PROCESS, **fields),
                                DockerEngine(config.docker_socket), Systemd(config.systemd))
@@ -129,6 +130,18 @@ class Gateway:
 
         node.last_push = tasks.spawn(send())
 
+    async def _end_leftovers(self) -> None:
+        """End what a killed predecessor's launch profiles left running (leftovers.py), each on record."""
+        for found, pids in (await leftovers.end(self.config.name)).items():
+            _, robot, name = found.split("/", 2) if found.count("/") >= 2 else ("", "", found)
+            log.warning("ended %d process(es) of %s on %s left running by this gateway's previous instance: %s",
+                        len(pids), name, robot, pids)
+            self.outbox.emit(protocol.PROCESS, robot=robot, process=name, supervisor="launch", action="stop",
+                             outcome="succeeded", source="supervisor", user_id=None, pid=None, old_pid=pids[0],
+                             exit_code=None, exit_signal=None, took_ms=None,
+                             message=f"{name} on {robot}: {len(pids)} process(es) left running by the gateway's "
+                                     f"previous instance (it was killed) ended: pid {', '.join(map(str, pids))}.")
+
     async def _refresh_owners(self) -> None:
         await self.owners.refresh()
 
@@ -137,6 +150,7 @@ class Gateway:
         config = self.config
         await self._take_lease()
         self.outbox.emit(protocol.GATEWAY_STARTED)
+        await self._end_leftovers()
         loops = [
             self.outbox.run(self._stopping),
             self._every(config.robot_refresh_interval, self.refresh_robots, "robot refresh"),

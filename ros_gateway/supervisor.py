@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from typing import Callable
 
-from ros_gateway import tasks
+from ros_gateway import leftovers, tasks
 from ros_gateway.shared.child_process import die_with_parent
 
 log = logging.getLogger(__name__)
@@ -125,9 +125,11 @@ class _Supervised:
 
 
 class Supervisor:
-    def __init__(self, report: Callable[..., dict], on_output: Callable[[str, str, str, str], None]) -> None:
-        """report(**fields) emits one fact and returns it; on_output(robot, name, stream, line) gets each line."""
-        self._report, self._on_output = report, on_output
+    def __init__(self, report: Callable[..., dict], on_output: Callable[[str, str, str, str], None],
+                 gateway: str = "") -> None:
+        """report(**fields) emits one fact and returns it; on_output(robot, name, stream, line) gets each line;
+        ``gateway``: its name, marked on every process it starts (leftovers.py)."""
+        self._report, self._on_output, self.gateway = report, on_output, gateway
         self._procs: dict[tuple[str, str], _Supervised] = {}
         self._applying, self._closed = asyncio.Lock(), False
 
@@ -241,7 +243,8 @@ class Supervisor:
 
     async def _launch(self, p: _Supervised) -> tuple[str | None, Process | None]:
         """(None, the running process), or why it did not start (and the process if it ended at once)."""
-        env = {**_inherited(), "PYTHONUNBUFFERED": os.environ.get("PYTHONUNBUFFERED", "1"), **dict(p.profile.env)}
+        env = {**_inherited(), "PYTHONUNBUFFERED": os.environ.get("PYTHONUNBUFFERED", "1"), **dict(p.profile.env),
+               leftovers.MARK: leftovers.mark(self.gateway, p.profile.robot, p.profile.name)}
         error, program = _program(profile := p.profile, env.get("PATH", os.defpath))
         if error is not None or self._closed:
             return error or "the gateway is stopping", None

@@ -210,3 +210,26 @@ def test_a_hung_process_is_restarted_with_sigkill_after_its_grace(api, hanging):
                                                            completed_at__gte=asked).exists(), 40, "the new instance")
     wait_node(None, key, alive=True, state="unconfigured")
 
+
+
+def test_what_a_killed_gateway_left_running_is_ended_by_its_next_instance(supervised, gateway, request):
+    """The profile runs its nodes through a shell: the kernel ends the shell with the gateway
+    (PR_SET_PDEATHSIG), not the shell's child. The gateway's next instance ends that orphan (it
+    carries the gateway's mark in its environment) before it starts the profile again."""
+    shell = running_pid()
+    (orphan,) = (int(pid) for pid in Path(f"/proc/{shell}/task/{shell}/children").read_text().split())
+    killed_at = timezone.now()
+    gateway.kill()
+    stack.wait_for(lambda: not stack.pid_alive(shell), 10, "the shell to end with its gateway")
+    assert stack.pid_alive(orphan), "the shell's child outlives a killed gateway (what this test is about)"
+    successor = stack.start_gateway()
+    request.addfinalizer(successor.stop)
+    stack.wait_for(lambda: not stack.pid_alive(orphan), 20, "the orphan ended by the gateway's next instance")
+    ended = stack.wait_for(lambda: ProcessRecord.objects.filter(
+        process_name=PROCESS, action="stop", source="supervisor", at__gte=killed_at).first(), 30, "its record")
+    assert ended.old_pid == orphan and "left running by the gateway's previous instance" in ended.message
+    started = stack.wait_for(lambda: ProcessRecord.objects.filter(
+        process_name=PROCESS, action="start", outcome="succeeded", at__gte=killed_at).first(), 30, "the new start")
+    assert started.pid not in (shell, orphan) and running_pid() == started.pid
+    assert started.at >= ended.at  # ended first, then started: never two instances side by side
+    wait_node(None, NODE, timeout=40, alive=True)
