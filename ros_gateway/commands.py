@@ -14,6 +14,7 @@ from ros_gateway.lifecycle import NodeUnreachable, available_states, available_t
 from ros_gateway.node_driver import DELIVERY_WAIT_S, NodeDriver, NodeUnreachableRecorded
 from ros_gateway.outbox import Outbox
 from ros_gateway.param_keeper import ParameterKeeper
+from ros_gateway.process_usage import ProcessUsage
 from ros_gateway.recovery import Recovery
 from ros_gateway.registry import LiveNode, NodeRegistry
 from ros_gateway.relay import Relay
@@ -51,6 +52,7 @@ class Parts:
     supervisor: Supervisor
     units: HostUnits
     recovery: Recovery
+    usage: ProcessUsage
 
 
 class CommandHandler:
@@ -139,6 +141,8 @@ class CommandHandler:
             return parts.runs.start(command.get("run"))
         if name == protocol.PROCESS_CONTROL:
             return await self.process_control(command)
+        if name == protocol.PROCESS_USAGE:
+            return await self.process_usage(command)
         node = await self._node(command, timeout)
         domain = parts.domains[node.robot.domain_id]
         first_call = self._first_call_timeout(command, domain, timeout)
@@ -199,6 +203,16 @@ class CommandHandler:
         if action in ("start", "restart") and fact.get("outcome") == "succeeded":
             self.parts.recovery.forgive(robot.name, name)
         return {"ok": True, "outcome": fact.get("outcome"), "message": fact.get("message"), "facts": [fact]}
+
+    async def process_usage(self, command: dict) -> dict:
+        """CPU and memory of the robot's launch profiles' processes and of its containers and units."""
+        robot = self.parts.registry.robot_named(str(command.get("robot")))
+        if robot is None:
+            raise CommandError("robot_not_watched", f"Robot {command.get('robot')!r} is not watched (unknown or "
+                                                    "disabled).")
+        groups = {name: pid for pid, (owner, name) in self.parts.supervisor.pids().items() if owner == robot.name}
+        usage = await self.parts.usage.measure(groups, self.parts.units.cgroups(robot.name))
+        return {"ok": True, "usage": usage}
 
     async def _node(self, command: dict, timeout: float) -> LiveNode:
         robot_name, name = command.get("robot"), command.get("node")

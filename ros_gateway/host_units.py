@@ -231,6 +231,11 @@ class HostUnits:
     def known(self, robot: str, name: str) -> HostUnit | None:
         return self._units.get((robot, name))
 
+    def cgroups(self, robot: str) -> dict[str, set[str]]:
+        """The robot's containers and units: name -> the cgroups its processes were found in."""
+        return {name: {path for path, found in self._cgroups.items() if found == unit}
+                for (owner, name), unit in self._units.items() if owner == robot}
+
     async def control(self, robot: str, name: str, action: str, *, source: str, user_id: int | None = None,
                       vouching: dict | None = None) -> dict:
         """start, stop or restart the unit attributed to one of the robot's nodes; one fact of it.

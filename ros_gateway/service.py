@@ -35,6 +35,7 @@ from ros_gateway.outbox import Outbox
 from ros_gateway.param_keeper import ParameterKeeper
 from ros_gateway.parts import Core
 from ros_gateway.process_owners import ProcessOwners
+from ros_gateway.process_usage import ProcessUsage
 from ros_gateway.recovery import Recovery
 from ros_gateway.registry import NodeRegistry, StateChange, StateChanges
 from ros_gateway.relay import Relay
@@ -89,7 +90,7 @@ class Gateway:
                                     self.units)
         self.commands = CommandHandler(Parts(self.relay, self.registry, self.domains, self.driver, self.params,
                                              self.runs, config.service_timeout, self.outbox, self.supervisor,
-                                             self.units, self.recovery))
+                                             self.units, self.recovery, ProcessUsage()))
         # A state change is reported to the site first (self._report, its fact kept on the change);
         # then, in this order: the pages (a push), the audit of a new process instance, its
         # parameters read again, the stuck-transition check, and automatic recovery.

@@ -143,6 +143,23 @@ def robot_processes_rows(request: HttpRequest, robot: str) -> HttpResponse:
     return render(request, "dashboard/_process_live.html", context)
 
 
+@_polled
+def robot_processes_usage(request: HttpRequest, robot: str) -> HttpResponse:
+    """CPU and memory of each running process, as its gateway measures them now: cells swapped out
+    of band (the rows are not redrawn: the keyboard focus and an open question stay). 204 when
+    nothing runs or the gateway cannot tell."""
+    robot_obj = Robot.objects.select_related("gateway").filter(name=robot).first()
+    if robot_obj is None or not robot_obj.enabled or not snapshots.gateway_of(robot_obj)["online"]:
+        return HttpResponse(status=204)
+    rows = [_row(p, "", []) for p in robot_obj.process_profiles.filter(status__in=RUNNING).order_by("name")]
+    rows += [_host_row(h, "") for h in processes.host_processes(robot_obj) if h.running]
+    found = processes.usage(robot_obj, {row["name"] for row in rows}) if rows else {}
+    cells = [{"id": row["id"], **found[row["name"]]} for row in rows if row["name"] in found]
+    if not cells:
+        return HttpResponse(status=204)
+    return render(request, "dashboard/_process_usage.html", {"cells": cells})
+
+
 @operator_required
 @require_POST
 def process_action(request: HttpRequest, robot: str, process: str, action: str) -> HttpResponse:

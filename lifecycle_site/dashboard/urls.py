@@ -24,6 +24,7 @@ urlpatterns = [
     path("robots/<str:robot>/operations", operation_views.robot_operation, name="robot-operation"),
     path("robots/<str:robot>/processes/", process_views.robot_processes, name="robot-processes"),
     path("robots/<str:robot>/processes/rows", process_views.robot_processes_rows, name="robot-processes-rows"),
+    path("robots/<str:robot>/processes/usage", process_views.robot_processes_usage, name="robot-processes-usage"),
     path("robots/<str:robot>/processes/<str:process>/<str:action>", process_views.process_action,
          name="process-action"),
     path("nodes/<str:key>/restart", operation_views.node_restart, name="node-restart"),

@@ -12,6 +12,7 @@ recorded here.
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from datetime import datetime
 
@@ -119,6 +120,43 @@ def host_processes(robot: Robot, nodes: dict[str, list[ManagedNode]] | None = No
         if ended is not None:
             host.last_exit = {"code": ended.exit_code, "signal": ended.exit_signal or None, "at": ended.at.isoformat()}
     return list(found.values())
+
+
+USAGE_FRESH_S = 2.0  # one measurement serves every page open on the robot for this long
+USAGE_LIMIT, MAX_CPU, MAX_RSS, MAX_COUNT = 512, 100.0 * 1024, 1 << 50, 1_000_000
+_usage_seen: dict[str, tuple[float, dict]] = {}  # robot -> (monotonic, its usage)
+
+
+def usage(robot: Robot, names: set[str]) -> dict[str, dict]:
+    """CPU and memory of the robot's processes (``names``), measured by its gateway now (or within
+    USAGE_FRESH_S); {} when it cannot tell (offline, no answer within a second). What the gateway
+    answers is checked: known names only, bounded numbers."""
+    seen = _usage_seen.get(robot.name)
+    if seen is not None and time.monotonic() - seen[0] < USAGE_FRESH_S:
+        return {name: value for name, value in seen[1].items() if name in names}
+    try:
+        reply = call_gateway(robot.gateway.name, protocol.PROCESS_USAGE, timeout=1.0, robot=robot.name)
+    except GatewayError:
+        return {}
+    found = reply.get("usage") if isinstance(reply.get("usage"), dict) else {}
+    checked = {name: good for name, value in list(found.items())[:USAGE_LIMIT]
+               if name in names and (good := _usage_value(value)) is not None}
+    if len(_usage_seen) > 1000:
+        _usage_seen.clear()
+    _usage_seen[robot.name] = (time.monotonic(), checked)
+    return checked
+
+
+def _usage_value(value: object) -> dict | None:
+    if not isinstance(value, dict):
+        return None
+    cpu, rss, count = value.get("cpu_percent"), value.get("rss_bytes"), value.get("processes")
+    if cpu is not None and (not isinstance(cpu, (int, float)) or isinstance(cpu, bool) or not 0 <= cpu <= MAX_CPU):
+        return None
+    if any(not isinstance(v, int) or isinstance(v, bool) or not 0 <= v <= most
+           for v, most in ((rss, MAX_RSS), (count, MAX_COUNT))):
+        return None
+    return {"cpu_percent": cpu, "rss_mb": round(rss / 2**20, 1), "processes": count}
 
 
 def profile_of(robot: Robot, name: object) -> ProcessProfile | HostProcess:

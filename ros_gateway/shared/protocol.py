@@ -106,6 +106,7 @@ PING = "ping"
 # A process of a robot's launch profile (ros_gateway/supervisor.py): robot, process, action.
 PROCESS_CONTROL = "process_control"
 PROCESS_ACTIONS = ("start", "stop", "restart")
+PROCESS_USAGE = "process_usage"  # robot -> the CPU and memory of its processes, measured when asked
 # A process is a launch profile's (its name), or a Docker container or systemd unit the gateway
 # found running a robot's node (ros_gateway/host_units.py), named so: "docker:NAME", "systemd:UNIT".
 SUPERVISORS = ("launch", "docker", "systemd")

@@ -212,8 +212,24 @@ def test_a_hung_process_is_restarted_with_sigkill_after_its_grace(api, hanging):
 
 
 
+def test_the_page_shows_each_running_process_cpu_and_memory_as_its_gateway_measures_them(supervised, gateway):
+    from django.test import Client
+
+    client = Client()
+    client.force_login(make_user("ivan-viewer", "viewer"))
+    profile_id = profile().pk
+    answer = client.get(f"/robots/{ROBOT}/processes/usage")  # the first ask measures over 0.3 s
+    assert answer.status_code == 200, answer.status_code
+    text = answer.content.decode()
+    cell = text.split(f'id="usage-{profile_id}"')[1].split("</span>")[0]
+    assert 'hx-swap-oob="true"' in cell and " MB" in cell and " %" in cell, cell
+    megabytes = float(cell.split("·")[1].split("MB")[0])
+    assert 10 < megabytes < 2000  # a shell and a Python process with rclpy
+    assert "(2 processes)" in text  # the shell and its child, one process group
+
+
 def test_what_a_killed_gateway_left_running_is_ended_by_its_next_instance(supervised, gateway, request):
-    """The profile runs its nodes through a shell: the kernel ends the shell with the gateway
+    """(Last in this module: it kills the module's gateway.) The profile runs its nodes through a shell: the kernel ends the shell with the gateway
     (PR_SET_PDEATHSIG), not the shell's child. The gateway's next instance ends that orphan (it
     carries the gateway's mark in its environment) before it starts the profile again."""
     shell = running_pid()

@@ -216,3 +216,33 @@ def test_a_container_nobody_attributed_is_not_acted_on(operator_client, drivers)
     assert response.status_code == 404
     assert "has no process &#x27;docker:bystander&#x27;" in response.content.decode()
     assert not ProcessRecord.objects.filter(process_name="docker:bystander").exists()
+
+
+def test_cpu_and_memory_are_asked_of_the_gateway_and_checked(viewer_client, drivers, online, monkeypatch):
+    """The usage poll: the gateway's answer (played here) checked, cells swapped into their rows."""
+    from lifecycle_site.operations import processes as ops
+
+    ops._usage_seen.clear()
+    answers = []
+
+    def gateway(name, command, timeout=None, **arguments):
+        answers.append((name, command, arguments))
+        return {"ok": True, "usage": {
+            "drivers": {"cpu_percent": 12.5, "rss_bytes": 90 * 2**20, "processes": 3},
+            "someone-elses": {"cpu_percent": 1.0, "rss_bytes": 1, "processes": 1},  # not the robot's: dropped
+        }}
+
+    monkeypatch.setattr(ops, "call_gateway", gateway)
+    page = viewer_client.get(PAGE).content.decode()
+    assert f'id="usage-{drivers.pk}"' in page and f'hx-get="/robots/{ROBOT}/processes/usage"' in page
+    answer = viewer_client.get(f"/robots/{ROBOT}/processes/usage")
+    text = answer.content.decode()
+    assert answer.status_code == 200 and answers == [("local", "process_usage", {"robot": ROBOT})]
+    assert f'<span id="usage-{drivers.pk}" class="usage" hx-swap-oob="true">12.5 % · 90 MB' in text
+    assert "(3 processes)" in text and "someone-elses" not in text
+    viewer_client.get(f"/robots/{ROBOT}/processes/usage")
+    assert len(answers) == 1  # one measurement serves the pages open within 2 s
+
+    for bad in ({"cpu_percent": -1, "rss_bytes": 1, "processes": 1}, {"cpu_percent": 1, "rss_bytes": "x"},
+                {"cpu_percent": True, "rss_bytes": 1, "processes": 1}, "many"):
+        assert ops._usage_value(bad) is None
