@@ -59,7 +59,9 @@ class ProcessUsage:
         name -> {"cpu_percent", "rss_bytes", "processes"} (cpu_percent None if not known)."""
         totals = await asyncio.to_thread(self._totals, groups, cgroups)  # (a pass over /proc: off the loop)
         now = time.monotonic()
-        if any(name not in self._last or now - self._last[name][1] > FORGET_S for name in totals):
+        # Nothing to compare with: not asked about before, long ago, or since restarted (less CPU time).
+        if any(name not in self._last or now - self._last[name][1] > FORGET_S or cpu < self._last[name][0]
+               for name, (cpu, _, _) in totals.items()):
             self._last.update({name: (cpu, now) for name, (cpu, _, _) in totals.items()})
             await asyncio.sleep(MEASURE_S)
             totals = await asyncio.to_thread(self._totals, groups, cgroups)

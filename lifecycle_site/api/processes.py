@@ -25,13 +25,17 @@ def _robot(name: str) -> Robot:
 @api_view()
 def robot_processes(request: HttpRequest, name: str) -> JsonResponse:
     """The robot's launch profiles with what its gateway last reported of each process, then its
-    containers and units."""
+    containers and units; with ``?usage=1`` each one's CPU and memory as its gateway measures them
+    now (null for one not running, or when the gateway cannot tell)."""
     robot = _robot(name)
     profiles = robot.process_profiles.order_by("name")
     records = ProcessRecord.objects.filter(robot_name=robot.name)[:RECORDS_SHOWN]
-    return JsonResponse({"robot": robot.name, "gateway": robot.gateway.name,
-                         "processes": [*({**p.as_dict(), "robot": robot.name} for p in profiles),
-                                       *(h.as_dict() for h in processes.host_processes(robot))],
+    found = [*({**p.as_dict(), "robot": robot.name} for p in profiles),
+             *(h.as_dict() for h in processes.host_processes(robot))]
+    if request.GET.get("usage") in ("1", "true"):  # CPU and memory, measured by the gateway now
+        measured = processes.usage(robot, {p["name"] for p in found})
+        found = [{**p, "usage": measured.get(p["name"])} for p in found]
+    return JsonResponse({"robot": robot.name, "gateway": robot.gateway.name, "processes": found,
                          "records": [r.as_dict() for r in records]})
 
 

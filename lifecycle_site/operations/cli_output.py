@@ -257,7 +257,7 @@ def unknown_node(ref: str, robot: str | None, known: list[str], same_name: list[
     return f"There is no node {ref!r}. Node ids look like ROBOT.NAME; known: {sample(known, 'lifecycle nodes -a')}."
 
 
-def process_line(profile: Any) -> str:
+def process_line(profile: Any, usage: dict | None = None) -> str:
     """``drivers: running, pid 4242, 2 restarts`` (and the last exit, when there was one); a
     launch profile, or a container or unit (operations.processes.HostProcess)."""
     parts = [profile.get_status_display()]
@@ -269,6 +269,9 @@ def process_line(profile: Any) -> str:
     if exit_ is not None:
         how = exit_["signal"] or f"status {exit_['code']}"
         parts.append(f"last exit: {how} at {exit_['at'][:19].replace('T', ' ')} UTC")
+    if usage:  # measured by the gateway just now
+        cpu = "-" if usage["cpu_percent"] is None else f"{usage['cpu_percent']:.1f} %"
+        parts.append(f"CPU {cpu}, {usage['rss_mb']:.0f} MB")
     if getattr(profile, "nodes", None):  # a container or unit: what runs in it
         parts.append(f"nodes: {', '.join(profile.nodes)}")
     return f"{profile.name}: {', '.join(parts)}{'' if profile.enabled else ' (disabled)'}"

@@ -167,10 +167,12 @@ class Command(BaseCommand):
         robot = self.robot(opts.robot_name)
         if not opts.process:
             found = [*robot.process_profiles.order_by("name"), *processes.host_processes(robot)]
-            lines = [out.process_line(p) for p in found] or [
+            measured = processes.usage(robot, {p.name for p in found}) if found else {}
+            lines = [out.process_line(p, measured.get(p.name)) for p in found] or [
                 f"{robot.name} has no launch profiles, and its gateway has found none of its nodes in a container "
                 "or systemd unit it can reach."]
-            self.emit(opts, {"robot": robot.name, "processes": [p.as_dict() for p in found]}, lines)
+            self.emit(opts, {"robot": robot.name, "processes": [{**p.as_dict(), "usage": measured.get(p.name)}
+                                                                for p in found]}, lines)
             return EXIT_OK
         if not opts.action:
             raise CliExit(EXIT_USAGE, f"What should happen to {opts.process}? Give an action: "
