@@ -16,7 +16,7 @@ from ros_gateway.outbox import Outbox
 from ros_gateway.param_keeper import ParameterKeeper
 from ros_gateway.process_usage import ProcessUsage
 from ros_gateway.recovery import Recovery
-from ros_gateway.registry import LiveNode, NodeRegistry
+from ros_gateway.registry import LiveNode, NodeRegistry, RobotInfo
 from ros_gateway.relay import Relay
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
@@ -178,10 +178,7 @@ class CommandHandler:
         """Start, stop or restart a process of one of the robot's launch profiles, or a container
         or systemd unit this gateway found running one of the robot's nodes: named by the profile's
         name or that attribution ("docker:NAME"), never by a pid, container id or unit of a request's."""
-        robot = self.parts.registry.robot_named(str(command.get("robot")))
-        if robot is None:
-            raise CommandError("robot_not_watched", f"Robot {command.get('robot')!r} is not watched (unknown or "
-                                                    "disabled).")
+        robot = self._robot(command)
         action, name = command.get("action"), str(command.get("process"))
         if action not in protocol.PROCESS_ACTIONS:
             raise CommandError("unknown_action", f"{action!r} is not a process action; use one of "
@@ -206,19 +203,20 @@ class CommandHandler:
 
     async def process_usage(self, command: dict) -> dict:
         """CPU and memory of the robot's launch profiles' processes and of its containers and units."""
-        robot = self.parts.registry.robot_named(str(command.get("robot")))
-        if robot is None:
-            raise CommandError("robot_not_watched", f"Robot {command.get('robot')!r} is not watched (unknown or "
-                                                    "disabled).")
+        robot = self._robot(command)
         groups = {name: pid for pid, (owner, name) in self.parts.supervisor.pids().items() if owner == robot.name}
         usage = await self.parts.usage.measure(groups, self.parts.units.cgroups(robot.name))
         return {"ok": True, "usage": usage}
 
-    async def _node(self, command: dict, timeout: float) -> LiveNode:
-        robot_name, name = command.get("robot"), command.get("node")
-        robot = self.parts.registry.robot_named(str(robot_name))
+    def _robot(self, command: dict) -> RobotInfo:
+        robot = self.parts.registry.robot_named(str(command.get("robot")))
         if robot is None:
-            raise CommandError("robot_not_watched", f"Robot {robot_name!r} is not watched (unknown or disabled).")
+            raise CommandError("robot_not_watched", f"Robot {command.get('robot')!r} is not watched (unknown or "
+                                                    "disabled).")
+        return robot
+
+    async def _node(self, command: dict, timeout: float) -> LiveNode:
+        robot, name = self._robot(command), command.get("node")
         node = self.parts.registry.find(robot.name, name)
         # Just after this gateway (or the robot's domain) started, discovery has not had its
         # chance yet: wait for it rather than call a running node "not running", bounded by the
@@ -231,7 +229,7 @@ class CommandHandler:
             await asyncio.sleep(0.1)
             node = self.parts.registry.find(robot.name, name)
         if node is None or not node.alive:
-            raise CommandError("node_offline", f"{name} is not running on {robot_name} (not in its ROS graph).")
+            raise CommandError("node_offline", f"{name} is not running on {robot.name} (not in its ROS graph).")
         return node
 
     @staticmethod
