@@ -228,10 +228,31 @@ def test_the_page_shows_each_running_process_cpu_and_memory_as_its_gateway_measu
     assert "(2 processes)" in text  # the shell and its child, one process group
 
 
+
+def test_a_finalized_node_comes_back_by_restarting_its_process(api, supervised):
+    """After shutdown only a new process brings a node back: its page offers the restart, and the
+    new instance is driven to its desired state."""
+    ManagedNode.objects.filter(key=NODE).update(desired_state="inactive")
+    Robot.objects.get(name=ROBOT).save()  # the gateway learns the desired state
+    wait_node(None, NODE, alive=True)
+    for transition in ("configure", "shutdown"):
+        api.post(f"/api/v1/nodes/{NODE}/transition", {"transition": transition}, content_type="application/json")
+    wait_node(None, NODE, alive=True, state="finalized")
+    page = api.get(f"/nodes/{NODE}/").content.decode()
+    assert f"Restart process {PROCESS}" in page
+    asked = timezone.now()
+    answer = api.post(f"/robots/{ROBOT}/processes/{PROCESS}/restart", {"from": "node"})  # the node page's button
+    assert answer.status_code == 200 and "restarted as pid" in answer.content.decode()
+    stack.wait_for(lambda: TransitionRecord.objects.filter(node__key=NODE, outcome="process_restarted",
+                                                           completed_at__gte=asked).exists(), 40, "the new instance")
+    wait_node(None, NODE, timeout=40, alive=True, state="inactive")
+
+
 def test_what_a_killed_gateway_left_running_is_ended_by_its_next_instance(supervised, gateway, request):
-    """(Last in this module: it kills the module's gateway.) The profile runs its nodes through a shell: the kernel ends the shell with the gateway
-    (PR_SET_PDEATHSIG), not the shell's child. The gateway's next instance ends that orphan (it
-    carries the gateway's mark in its environment) before it starts the profile again."""
+    """(Last in this module: it kills the module's gateway.) The profile runs its nodes through a
+    shell: the kernel ends the shell with the gateway (PR_SET_PDEATHSIG), not the shell's child.
+    The gateway's next instance ends that orphan (it carries the gateway's mark in its
+    environment) before it starts the profile again."""
     shell = running_pid()
     (orphan,) = (int(pid) for pid in Path(f"/proc/{shell}/task/{shell}/children").read_text().split())
     killed_at = timezone.now()
