@@ -3,8 +3,8 @@
 The supervisor's child gets SIGTERM from the kernel when the gateway dies (PR_SET_PDEATHSIG), but
 only that child: a profile run through a shell or a script leaves its own children running
 (orphans the next instance would start again beside). So every supervised process is started
-with a mark in its environment, ``LIFECYCLE_SUPERVISED_BY=GATEWAY/ROBOT/PROFILE``, which its
-children inherit; the next instance of that gateway, once it holds the gateway's lease (so its
+with a mark in its environment, ``LIFECYCLE_SUPERVISED_BY=GATEWAY@SITE/ROBOT/PROFILE``, which its
+children inherit; the next instance of that gateway (of that site), once it holds the gateway's lease (so its
 predecessor is gone), ends every process of this host that carries its name: SIGTERM, then
 SIGKILL after GRACE_S. It reads the environments it may read (its own user's, or all as root).
 """
@@ -12,13 +12,24 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import hashlib
 import os
 import signal
 import time
 from pathlib import Path
+from urllib.parse import urlsplit
 
 MARK = "LIFECYCLE_SUPERVISED_BY"
 GRACE_S, POLL_S = 3.0, 0.1
+
+
+def owner(gateway: str, redis_url: str, prefix: str) -> str:
+    """Who runs the processes: the gateway's name and a digest of its site (Redis server and
+    channel prefix, not the password): ``make demo`` and a test run on one host may both have a
+    gateway "local", and neither may end the other's processes."""
+    parts = urlsplit(redis_url)
+    site = f"{parts.hostname}:{parts.port}{parts.path}#{prefix}"
+    return f"{gateway}@{hashlib.blake2b(site.encode(), digest_size=5).hexdigest()}"
 
 
 def mark(gateway: str, robot: str, profile: str) -> str:

@@ -81,8 +81,9 @@ class Gateway:
         self.runs = GroupRunner(core, self.driver)
         self.recovery = Recovery(self.runs)
         # The robots' launch profiles: processes this gateway runs for them (its facts: audit records).
+        self.owner = leftovers.owner(config.name, config.redis_url, config.prefix)  # (its processes' mark)
         self.supervisor = Supervisor(lambda **fields: self.outbox.emit(protocol.PROCESS, **fields), self.logs.on_output,
-                                     config.name)
+                                     self.owner)
         # Containers and systemd units of this host that run robots' nodes, and their supervisors.
         self.units = HostUnits(lambda **fields: self.outbox.emit(protocol.PROCESS, **fields),
                                DockerEngine(config.docker_socket), Systemd(config.systemd))
@@ -133,7 +134,7 @@ class Gateway:
 
     async def _end_leftovers(self) -> None:
         """End what a killed predecessor's launch profiles left running (leftovers.py), each on record."""
-        for found, pids in (await leftovers.end(self.config.name)).items():
+        for found, pids in (await leftovers.end(self.owner)).items():
             _, robot, name = found.split("/", 2) if found.count("/") >= 2 else ("", "", found)
             log.warning("ended %d process(es) of %s on %s left running by this gateway's previous instance: %s",
                         len(pids), name, robot, pids)

@@ -26,6 +26,7 @@ def test_only_the_gateways_own_leftovers_are_found_and_ended(monkeypatch):
     other = marked(leftovers.mark("cell-xy", "agv-1", "drivers"))  # another gateway's (a longer name)
     try:
         found = leftovers.find("cell-x")
+        assert other.pid not in found
         assert found == {ours.pid: "cell-x/agv-1/drivers", stubborn.pid: "cell-x/agv-1/planner"}
         ended = asyncio.run(leftovers.end("cell-x"))
         assert ended == {"cell-x/agv-1/drivers": [ours.pid], "cell-x/agv-1/planner": [stubborn.pid]}
@@ -35,3 +36,10 @@ def test_only_the_gateways_own_leftovers_are_found_and_ended(monkeypatch):
         for child in (ours, stubborn, other):
             child.kill()
             child.wait()
+
+
+def test_the_same_gateway_name_of_another_site_is_another_owner():
+    demo = leftovers.owner("local", "redis://127.0.0.1:6479/0", "lifecycle")
+    tests = leftovers.owner("local", "redis://127.0.0.1:41234/0", "lifecycle-test")
+    assert demo.startswith("local@") and demo != tests
+    assert demo == leftovers.owner("local", "redis://:s3cret@127.0.0.1:6479/0", "lifecycle")  # not the password
