@@ -18,7 +18,6 @@ import logging
 import os
 import re
 import shutil
-import signal
 import socket
 import time
 from collections import OrderedDict
@@ -28,6 +27,7 @@ from typing import Callable
 from urllib.parse import quote
 
 from ros_gateway.shared import protocol
+from ros_gateway.supervisor import SIGNAL_NAMES
 
 log = logging.getLogger(__name__)
 
@@ -35,7 +35,6 @@ CONTAINER_IN_CGROUP = re.compile(r"(?:^|/)(?:docker[-/])([0-9a-f]{64})(?:\.scope
 LIMIT = 256  # units remembered per gateway; cgroups looked up
 REPLY_LIMIT = 1 << 20  # bytes of one Docker Engine answer
 CALL_S, MARGIN_S, MAX_GRACE_S = 5.0, 10.0, 120.0  # one quick call; over a stop's grace; a unit's stop time at most
-SIGNAL_NAMES = {int(sig): sig.name for sig in signal.Signals}
 
 
 @dataclass(frozen=True)

@@ -19,6 +19,8 @@ import time
 from pathlib import Path
 from urllib.parse import urlsplit
 
+from ros_gateway.processes import stat_fields
+
 MARK = "LIFECYCLE_SUPERVISED_BY"
 GRACE_S, POLL_S = 3.0, 0.1
 
@@ -78,8 +80,5 @@ async def end(gateway: str, proc: Path = Path("/proc")) -> dict[str, list[int]]:
 
 
 def _alive(proc: Path, pid: int) -> bool:
-    try:
-        state = (proc / str(pid) / "stat").read_text().rsplit(")", 1)[1].split()[0]
-    except (OSError, IndexError):
-        return False
-    return state not in ("Z", "X")
+    fields = stat_fields(proc, pid)
+    return bool(fields) and fields[0] not in ("Z", "X")

@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 from ros_gateway.host_units import cgroup_path
+from ros_gateway.processes import stat_fields
 
 MEASURE_S = 0.3  # the first ask (nothing to compare with) measures over this long
 FORGET_S = 60.0  # a sample older than this is not compared with (a page opened much later)
@@ -24,14 +25,14 @@ def _scan(proc: Path, cgroups: bool) -> list[tuple[int, int, float, int, str]]:
     for name in os.listdir(proc):
         if not name.isdigit():
             continue
+        fields = stat_fields(proc, int(name))  # after the name: state, ppid, pgrp, ... utime, stime, ... rss
         try:
-            text = (proc / name / "stat").read_text()
             group = cgroup_path((proc / name / "cgroup").read_text()) if cgroups else ""
         except OSError:
             continue
-        fields = text[text.rindex(")") + 2:].split()
-        found.append((int(name), int(fields[2]), (int(fields[11]) + int(fields[12])) / TICKS,
-                      int(fields[21]) * PAGE, group))
+        if fields is not None:
+            found.append((int(name), int(fields[2]), (int(fields[11]) + int(fields[12])) / TICKS,
+                          int(fields[21]) * PAGE, group))
     return found
 
 

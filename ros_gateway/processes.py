@@ -46,7 +46,7 @@ class OsProcess:
     started: str  # /proc/PID/stat start time (clock ticks since boot): tells a reused PID apart
 
 
-def _stat_fields(proc: Path, pid: int) -> list[str] | None:
+def stat_fields(proc: Path, pid: int) -> list[str] | None:
     """/proc/PID/stat's fields after the name (state, ppid, ...), or None if there is no such process."""
     try:
         text = (proc / str(pid) / "stat").read_text()
@@ -57,13 +57,13 @@ def _stat_fields(proc: Path, pid: int) -> list[str] | None:
 
 def _stat(proc: Path, pid: int) -> tuple[str, str] | None:
     """(state letter, start time) of a process, or None if there is none."""
-    fields = _stat_fields(proc, pid)
+    fields = stat_fields(proc, pid)
     return None if fields is None else (fields[0], fields[19])
 
 
 def parent_pid(proc: Path, pid: int) -> int | None:
     """The process's parent, or None if there is no such process."""
-    fields = _stat_fields(proc, pid)
+    fields = stat_fields(proc, pid)
     return int(fields[1]) if fields and len(fields) > 1 and fields[1].isdigit() else None
 
 
