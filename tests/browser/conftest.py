@@ -89,6 +89,14 @@ def logged_in_page(browser, site: str, username: str = "bruno-operator", **conte
         yield page
 
 
+def live_page(page, url: str, timeout_ms: int = 30_000) -> None:
+    """Open ``url`` (on a page with COUNT_LIVE) and wait for its socket's snapshot, which
+    redraws it (the fleet's robots, forms included; the node page's state panel): an element
+    found before may be gone after."""
+    page.goto(url)
+    expect(page.locator("html[data-live]")).to_have_count(1, timeout=timeout_ms)
+
+
 def pytest_collection_modifyitems(items):
     for item in items:
         if "/browser/" in str(item.fspath):

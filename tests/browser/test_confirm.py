@@ -12,7 +12,7 @@ from playwright.sync_api import Page, expect
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.fleet.models import GroupRun, ManagedNode
 from tests import stack
-from tests.browser.conftest import ARTIFACTS, COUNT_LIVE, ROBOT, logged_in_page
+from tests.browser.conftest import ARTIFACTS, COUNT_LIVE, ROBOT, live_page, logged_in_page
 
 WAIT_MS = 30_000
 PHONE = {"width": 390, "height": 844}
@@ -24,21 +24,16 @@ def dom(key: str) -> str:
 
 
 def on_record() -> tuple[int, int]:
-    """What the audit log and the run list hold for the robot: unchanged if nothing was sent."""
-    return (TransitionRecord.objects.filter(robot_name=ROBOT).count(),
+    """What was sent to the robot, by the audit log and the run list: unchanged if nothing was
+    sent (a change the site only observed, say one an earlier module made, does not count)."""
+    sent = TransitionRecord.objects.filter(robot_name=ROBOT).exclude(outcome=TransitionRecord.Outcome.OBSERVED)
+    return (sent.count(),
             GroupRun.objects.filter(robot__name=ROBOT).count())
 
 
 def states() -> dict[str, str]:
     return dict(ManagedNode.objects.filter(robot__name=ROBOT, name__in=[f"/{n}" for n in NODES])
                 .values_list("name", "state_label"))
-
-
-def live_page(page: Page, url: str) -> None:
-    """A page, once its socket's snapshot has redrawn it (the fleet's robots, forms included;
-    the node page's state panel): a button found before may be gone after."""
-    page.goto(url)
-    expect(page.locator("html[data-live]")).to_have_count(1, timeout=WAIT_MS)
 
 
 def live_fleet(page: Page, site: str) -> None:

@@ -11,7 +11,7 @@ from lifecycle_site.alerts.models import Alert, Rule
 from lifecycle_site.api.models import ApiToken
 from lifecycle_site.fleet.models import Robot
 from tests import stack
-from tests.browser.conftest import ARTIFACTS, ROBOT, logged_in_page
+from tests.browser.conftest import ARTIFACTS, ROBOT, live_page, logged_in_page
 from tests.integration.conftest import transition, wait_node
 
 WAIT_MS = 30_000
@@ -150,11 +150,12 @@ def test_the_fleet_on_a_phone_fits_with_every_node_cell_shown(phone: Page, site)
     """The fleet's rows on a phone: name and state, then the buttons, then when it was seen
     (hidden before, with the 4th heading of every other table)."""
     page = phone
-    page.goto(site)
+    live_page(page, site)  # the socket's snapshot redraws the rows: a row found before is gone after
     rows = page.locator("tr.node-row")
     expect(rows.first).to_be_visible(timeout=WAIT_MS)
     assert page.evaluate("document.documentElement.scrollWidth") <= PHONE["width"]
-    cells = rows.first.evaluate("""(tr) => Array.from(tr.children).map((td) => {
+    # Found and measured in one go: a live update may redraw the row at any time.
+    cells = page.evaluate("""() => Array.from(document.querySelector('tr.node-row').children).map((td) => {
       const box = td.getBoundingClientRect(); return [td.getClientRects().length > 0, box.left, box.right]; })""")
     assert all(shown and left >= 0 and right <= PHONE["width"] for shown, left, right in cells), cells
     expect(rows.first.locator("td.seen")).to_be_visible()
