@@ -4,10 +4,10 @@ Everything rclpy touches lives here. Callbacks run on executor threads and are h
 the gateway's asyncio loop with ``call_soon_threadsafe``; service calls return asyncio
 results with a hard timeout.
 
-Threads per domain: one executor for the graph and /parameter_events, one drain loop for
-/rosout, and one executor per *shard* of watched nodes. An rclpy executor rebuilds its wait
-set over all its entities for every message it takes, so one executor holding every node's
-event subscription and service clients gets slower with each node the domain has (a
+Threads per domain: one executor for the graph and /parameter_events, one reader of /rosout
+(rosout_reader.py), and one executor per *shard* of watched nodes. An rclpy executor rebuilds
+its wait set over all its entities for every message it takes, so one executor holding every
+node's event subscription and service clients gets slower with each node the domain has (a
 ChangeState call took 12.6 ms at 100 nodes against 2.7 ms at one). Shards keep that cost
 flat: each holds the entities of at most NODES_PER_SHARD watched nodes.
 """
@@ -24,11 +24,13 @@ from typing import Any, Callable, Iterable
 
 import rclpy
 from lifecycle_msgs.msg import TransitionEvent
-from rcl_interfaces.msg import Log, ParameterEvent
+from rcl_interfaces.msg import ParameterEvent
 from rclpy.context import Context
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_parameter_events
+from rclpy.qos import qos_profile_parameter_events
+
+from ros_gateway.rosout_reader import RosoutReader
 
 log = logging.getLogger(__name__)
 
@@ -64,16 +66,6 @@ READ_ONLY_SERVICES = frozenset({
 # restarted after a kill is not answered for 1.0-3.4 s (docs/networks.md); with pauses that
 # doubled, the last request of a 3 s call left at 1 s and its answer was lost.
 RESEND_AFTER_S = 0.5
-# /rosout messages taken per wake-up at most, so a flood cannot starve the thread's stop check.
-ROSOUT_BATCH = 1000
-
-ROSOUT_QOS = QoSProfile(
-    history=HistoryPolicy.KEEP_LAST,
-    depth=200,
-    reliability=ReliabilityPolicy.RELIABLE,
-    # Transient local: records a node logged just before we subscribed still arrive.
-    durability=DurabilityPolicy.TRANSIENT_LOCAL,
-)
 
 
 class ServiceTimeout(Exception):
@@ -155,8 +147,7 @@ class RosDomain:
         self._clients: dict[tuple[str, str], Any] = {}
         self._event_subscriptions: dict[str, Any] = {}
         self._log_node: rclpy.node.Node | None = None
-        self._log_thread: threading.Thread | None = None
-        self._stopping = threading.Event()
+        self._rosout: RosoutReader | None = None
         self.started_at = 0.0
         self._running: set[str] = set()  # running nodes at the last discovery pass
         self._lifecycle: set[str] = set()  # of those, the ones offering GetState at the last scan
@@ -169,14 +160,8 @@ class RosDomain:
         os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(FASTDDS_PROFILES))
         rclpy.init(context=self.context, domain_id=self.domain_id)
         self.node = _gateway_node(self.context, f"lifecycle_gateway_{os.getpid()}")
-        # /rosout is drained by a thread of its own from a node outside the executor: a
-        # flooding logger must not slow transition events and service replies (the executor
-        # rebuilds its wait set over every entity for each message it takes).
         self._log_node = _gateway_node(self.context, f"lifecycle_gateway_logs_{os.getpid()}")
-        self._rosout = self._log_node.create_subscription(Log, "/rosout", lambda _msg: None, ROSOUT_QOS)
-        self._log_thread = threading.Thread(
-            target=self._drain_rosout, name=f"ros-rosout-{self.domain_id}", daemon=True
-        )
+        self._rosout = RosoutReader(self._log_node, self.domain_id, self._on_log)  # its own thread
         if self._on_parameter_event is not None:
             self.node.create_subscription(
                 ParameterEvent,
@@ -190,36 +175,14 @@ class RosDomain:
             target=_spin, args=(self.executor, self.domain_id), name=f"ros-domain-{self.domain_id}", daemon=True
         )
         self._thread.start()
-        self._log_thread.start()
+        self._rosout.start()
         self.started_at = time.monotonic()
         log.info("watching ROS domain %d", self.domain_id)
 
-    def _drain_rosout(self) -> None:
-        """Wait on /rosout alone and take every waiting message per wake-up (bounded waits,
-        so a stopping domain is noticed within 0.1 s)."""
-        wait_set = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, self.context.handle)
-        handle = self._rosout.handle
-        try:
-            while not self._stopping.is_set() and self.context.ok():
-                wait_set.clear_entities()
-                wait_set.add_subscription(handle)
-                wait_set.wait(100_000_000)
-                if handle.pointer not in wait_set.get_ready_entities("subscription"):
-                    continue
-                for _ in range(ROSOUT_BATCH):
-                    taken = handle.take_message(Log, False)
-                    if taken is None:
-                        break
-                    self._on_log(self.domain_id, taken[0])
-        except Exception:  # shutting down (invalid handle, context gone) or a bug: say so once
-            if not self._stopping.is_set():
-                log.exception("reading /rosout of ROS domain %d stopped", self.domain_id)
-
     def stop(self) -> None:
-        self._stopping.set()
         try:
-            if self._log_thread is not None:
-                self._log_thread.join(timeout=2.0)
+            if self._rosout is not None:
+                self._rosout.stop()
             for shard in self._shards:
                 shard.stop()
             if self.executor is not None:

@@ -4,6 +4,7 @@ ERROR/FATAL lines of each node stay here too: they are the "why" of a failed tra
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 from collections import deque
 from datetime import datetime, timedelta, timezone
@@ -15,7 +16,9 @@ from ros_gateway.topic_messages import LogBuffer, LogEntry, logger_to_node_name,
 
 log = logging.getLogger(__name__)
 
+# After a record arrives, the others arriving this long after it go in the same batch.
 COLLECT_INTERVAL_S = 0.1
+IDLE_BOUND_S = 5.0  # a safeguard: records wake the collector (_wake)
 ERROR_LEVEL = 40
 LEVELS = (10, 20, 30, 40, 50)
 INFO = 20
@@ -32,6 +35,12 @@ class LogPipeline:
         self.recent_errors: dict[str, deque[LogEntry]] = {}
         self.collected = 0
         self._reported_drops = 0
+        # Quiet logs cost nothing: the collector sleeps until a record comes. ``_asleep`` is
+        # set before it looks at the buffers one last time, and a thread that appended looks at
+        # it after: one of the two sees the other's record (no wake-up lost, none per record).
+        self._wake = asyncio.Event()
+        self._asleep = False
+        self._loop: asyncio.AbstractEventLoop | None = None
 
     def on_log(self, domain_id: int, msg) -> None:
         """Called on an executor thread for every /rosout message: copy and hand over."""
@@ -39,6 +48,13 @@ class LogPipeline:
             self.buffer.append(LogEntry.from_msg(domain_id, msg))
         except Exception:
             log.exception("ignored a malformed /rosout message")
+            return
+        if self._asleep and self._loop is not None:
+            self._asleep = False
+            try:
+                self._loop.call_soon_threadsafe(self._wake.set)
+            except RuntimeError:  # the loop has closed: the gateway is stopping
+                pass
 
     def on_output(self, robot: str, process: str, stream: str, line: str) -> None:
         """A line a supervised process wrote (supervisor.py): a record of its robot's log, under
@@ -47,14 +63,22 @@ class LogPipeline:
             self.output_dropped += 1
         self.output.append([robot, "", f"{process}/{stream}"[:255], datetime.now(timezone.utc).isoformat(), INFO,
                             line, "", "", 0])
+        self._wake.set()  # on the gateway's loop (supervisor.py reads the output there)
 
     async def run(self, stopping: asyncio.Event) -> None:
+        self._loop = asyncio.get_running_loop()
         while not stopping.is_set():
             try:
                 self.collect()
             except Exception:
                 log.exception("collecting log records failed; continuing")
             await asyncio.sleep(COLLECT_INTERVAL_S)
+            self._wake.clear()
+            self._asleep = True
+            if not self.output and not len(self.buffer):
+                with contextlib.suppress(asyncio.TimeoutError):
+                    await asyncio.wait_for(self._wake.wait(), IDLE_BOUND_S)
+            self._asleep = False
 
     def collect(self) -> None:
         """Move what the buffer holds into log batches for the site (never blocks)."""

@@ -72,9 +72,10 @@ class Gateway:
         self.domains: dict[int, RosDomain] = {}
         self.logs = LogPipeline(self.registry, self.outbox, config.log_buffer)
         self.params = ParameterKeeper(self.domains, self.registry, self.outbox, self.relay, config.service_timeout)
-        self.liveness = Liveness(self.registry, self.domains, config.liveness_interval, config.liveness_timeout)
         core = Core(self.registry, self.domains, self.outbox, self.relay, config.service_timeout)
         self.processes = core.processes
+        self.liveness = Liveness(self.registry, self.domains, config.liveness_interval, config.liveness_timeout,
+                                 local=self._of_this_host)
         self.discovery = Discovery(core, self._new_domain, self.params.forget, self.liveness.holds_back,
                                    self.liveness.suspect)
         self.driver = NodeDriver(core, self.logs)
@@ -143,6 +144,10 @@ class Gateway:
                              exit_code=None, exit_signal=None, took_ms=None,
                              message=f"{name} on {robot}: {len(pids)} process(es) left running by the gateway's "
                                      f"previous instance (it was killed) ended: pid {', '.join(map(str, pids))}.")
+
+    def _of_this_host(self, domain_id: int, participant: bytes) -> bool:
+        """Whether the participant is a process of this host (its end is then seen in /proc by discovery)."""
+        return self.processes.process(domain_id, participant) is not None
 
     async def _refresh_owners(self) -> None:
         await self.owners.refresh()
