@@ -12,7 +12,7 @@
 2. The gateway at rest with 20 supervised processes: 20 profiles of one demo robot process with
    one generic node each (real ROS processes, all of them), all running and their nodes read;
    after a settle, the CPU of the gateway process itself (not its children: those are the
-   supervised processes) over 10 s, and its resident memory; the same before any profile, and
+   supervised processes) over 30 s, and its resident memory; the same before any profile, and
    with 20 ``sleep`` processes instead (supervision alone: no node to watch).
 
 At the end the profiles are deleted (the gateway stops their processes) and the stack stops;
@@ -305,7 +305,8 @@ def at_rest(stack: Stack, label: str, profiles: list[dict], seconds: float, sett
 
 
 def measure_rest(stack: Stack, quick: bool, result: ScenarioResult, pids: set[int]) -> None:
-    seconds, settle = (5.0, 3.0) if quick else (10.0, 10.0)
+    # 30 s: the gateway's longest periodic job (a re-read of every node's state) falls in the window once.
+    seconds, settle = (5.0, 3.0) if quick else (30.0, 10.0)
     time.sleep(settle)
     idle, _ = cpu_share(stack.gateway.pid, seconds)
     result.figure(f"no supervised process: gateway CPU at rest (over {seconds:g} s)", idle, "% of a core")
