@@ -1,8 +1,8 @@
 """One ROS domain: its own rclpy Context, the gateway's nodes in it, and their threads.
 
-Everything rclpy touches lives here. Callbacks run on executor threads and are handed to
-the gateway's asyncio loop with ``call_soon_threadsafe``; service calls return asyncio
-results with a hard timeout.
+Everything rclpy touches lives here and in rosout_reader.py (which a domain starts). Callbacks
+run on executor threads and are handed to the gateway's asyncio loop with
+``call_soon_threadsafe``; service calls return asyncio results with a hard timeout.
 
 Threads per domain: one executor for the graph and /parameter_events, one reader of /rosout
 (rosout_reader.py), and one executor per *shard* of watched nodes. An rclpy executor rebuilds
