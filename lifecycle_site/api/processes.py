@@ -28,10 +28,8 @@ def robot_processes(request: HttpRequest, name: str) -> JsonResponse:
     containers and units; with ``?usage=1`` each one's CPU and memory as its gateway measures them
     now (null for one not running, or when the gateway cannot tell)."""
     robot = _robot(name)
-    profiles = robot.process_profiles.order_by("name")
     records = ProcessRecord.objects.filter(robot_name=robot.name)[:RECORDS_SHOWN]
-    found = [*({**p.as_dict(), "robot": robot.name} for p in profiles),
-             *(h.as_dict() for h in processes.host_processes(robot))]
+    found = [p.as_dict() for p in processes.robot_processes(robot)]
     if request.GET.get("usage") in ("1", "true"):  # CPU and memory, measured by the gateway now
         measured = processes.usage(robot, {p["name"] for p in found})
         found = [{**p, "usage": measured.get(p["name"])} for p in found]

@@ -122,6 +122,11 @@ def host_processes(robot: Robot, nodes: dict[str, list[ManagedNode]] | None = No
     return list(found.values())
 
 
+def robot_processes(robot: Robot) -> list[ProcessProfile | HostProcess]:
+    """Every process the robot has: its launch profiles by name, then its containers and units."""
+    return [*robot.process_profiles.order_by("name"), *host_processes(robot)]
+
+
 USAGE_FRESH_S = 2.0  # one measurement serves every page open on the robot for this long
 USAGE_LIMIT, MAX_CPU, MAX_RSS, MAX_COUNT = 512, 100.0 * 1024, 1 << 50, 1_000_000
 _usage_seen: dict[str, tuple[float, dict]] = {}  # robot -> (monotonic, its usage)
@@ -168,8 +173,7 @@ def profile_of(robot: Robot, name: object) -> ProcessProfile | HostProcess:
     profile = ProcessProfile.objects.select_related("robot__gateway").filter(robot=robot, name=name).first() \
         if isinstance(name, str) else None
     if profile is None:
-        names = [*robot.process_profiles.order_by("name").values_list("name", flat=True),
-                 *(h.name for h in host_processes(robot))]
+        names = [p.name for p in robot_processes(robot)]
         raise ProcessRefused("unknown_process", f"Robot {robot.name} has no process {shown(name)} (its processes: "
                              f"{', '.join(names) or 'none known yet'}; an admin registers launch profiles, the "
                              "gateway finds containers and systemd units running the robot's nodes).", 404)

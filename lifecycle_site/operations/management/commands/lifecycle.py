@@ -166,7 +166,7 @@ class Command(BaseCommand):
         """A robot's supervised processes, or one action on one of them."""
         robot = self.robot(opts.robot_name)
         if not opts.process:
-            found = [*robot.process_profiles.order_by("name"), *processes.host_processes(robot)]
+            found = processes.robot_processes(robot)
             measured = processes.usage(robot, {p.name for p in found}) if found else {}
             lines = [out.process_line(p, measured.get(p.name)) for p in found] or [
                 f"{robot.name} has no launch profiles, and its gateway has found none of its nodes in a container "
