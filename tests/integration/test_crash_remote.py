@@ -2,8 +2,8 @@
 nothing in the gateway's /proc, only the pid they see themselves (NSpid) ties them to their DDS
 participants. A process replaced by a new instance during a transition ends the call as soon as
 the gateway sees the old one exit (on this host) or the new one publish the node's transition
-events (DDS), not at the timeout; a node whose process shuts down leaves the graph and
-is recorded lost; its new instance is recorded as such, and a frozen process that answers again
+events (DDS), not at the timeout; a node whose process shuts down leaves the graph (or is seen
+exiting) and is recorded lost, once; its new instance is recorded as such, and a frozen process that answers again
 is not taken for a new one."""
 from __future__ import annotations
 
@@ -115,7 +115,10 @@ def test_a_node_that_leaves_the_graph_is_recorded_lost(api, domain):
         print(f"[crash-far] a stopped process shown lost after {time.monotonic() - stopped:.2f} s")
         lost = stack.wait_for(lambda: list(TransitionRecord.objects.filter(
             node__key=KEY, outcome="process_lost", requested_at__gte=since)), 10, "the loss's record")
-        assert len(lost) == 1 and "left the ROS graph" in lost[0].error and lost[0].source == "external"
+        # Two signs race (seen in CI): its node leaves the graph, and its process exits, which the
+        # gateway sees in /proc too (NSpid ties it to its participant). Either is the truth; once.
+        assert len(lost) == 1 and lost[0].source == "external", lost
+        assert "left the ROS graph" in lost[0].error or "exited (seen on this host)" in lost[0].error, lost[0].error
         node = api.get(f"/api/v1/nodes/{KEY}").json()
         assert (node["gone_reason"], node["process"]["status"]) == ("process_lost", "lost"), node
     finally:
