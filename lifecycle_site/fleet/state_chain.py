@@ -32,15 +32,21 @@ RUN_CONTEXT = timedelta(minutes=10)  # a run that ended this long before still n
 def seen_in(state_id: int) -> dict:
     """The fields of a node's state update that keep its chain: a first state is where its chain
     may begin (``audited_at`` stays empty until a record says so); another primary state than
-    its records' is unexplained from now (unless already so); the records' own state explains
-    what was unexplained."""
+    its records' is unexplained from now (unless already so). Seeing the records' own state
+    again does not clear the mark: the next request's reply shows its new state before its
+    record, and that record may start where the node went unrecorded (bridge). A record
+    ending in the state seen, or the settle, clears it; a node that leaves its records' state
+    again is unexplained from then. (``state_id`` on the right is the row's state before this
+    update, as SQL evaluates an UPDATE.)"""
     if not sm.is_primary(state_id):
         return {}
+    now = Value(timezone.now())
     return {
         "audited_state_id": Coalesce(F("audited_state_id"), Value(state_id)),
         "unexplained_since": Case(
-            When(Q(audited_state_id__isnull=True) | Q(audited_state_id=state_id), then=Value(None)),
-            When(unexplained_since__isnull=True, then=Value(timezone.now())),
+            When(audited_state_id__isnull=True, then=Value(None)),
+            When(audited_state_id=state_id, then=F("unexplained_since")),
+            When(Q(unexplained_since__isnull=True) | Q(state_id=F("audited_state_id")), then=now),
             default=F("unexplained_since"),
         ),
     }

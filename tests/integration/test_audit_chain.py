@@ -79,6 +79,17 @@ def gaps(node: ManagedNode, real: int) -> list[str]:
     return found
 
 
+def history() -> str:
+    """Every node's records, to tell from a failure how the chain broke."""
+    lines = []
+    for record in TransitionRecord.objects.filter(robot_name=ROBOT).order_by("node_name", "requested_at", "id"):
+        done = f"{record.completed_at:%H:%M:%S.%f}" if record.completed_at else "-"
+        lines.append(f"{record.node_name} #{record.pk} {record.requested_at:%H:%M:%S.%f} {done} "
+                     f"{record.transition_label or '?'} {record.start_state_label}->{record.result_state_label} "
+                     f"{record.outcome} {record.source} {record.error[:120]}")
+    return "\n".join(lines)
+
+
 def test_killed_at_random_points_in_200_transitions_the_chain_of_every_node_has_no_gap(api, cell):
     rng = random.Random(25)
     kills = set(rng.sample(range(10, 200), 10))
@@ -112,6 +123,6 @@ def test_killed_at_random_points_in_200_transitions_the_chain_of_every_node_has_
     try:
         stack.wait_for(lambda: not complete(), 30, "every node's chain complete")
     except AssertionError:
-        raise AssertionError(f"answers {answers}; gaps:\n" + "\n".join(complete())) from None
+        raise AssertionError(f"answers {answers}; gaps:\n" + "\n".join(complete()) + "\n" + history()) from None
     observed = TransitionRecord.objects.filter(robot_name=ROBOT, outcome="observed")
     assert all("cause is not known" in r.error or r.source == "external" for r in observed)
