@@ -31,6 +31,9 @@ LEFT_GRAPH = "ended: its node left the ROS graph (or was shut down)"
 # a few nodes are all checked every pass; a thousand are checked in turn, a slice per pass, so
 # a pass never stalls the event loop that also reads the nodes' logs.
 INCARNATION_BUDGET_S = 0.004
+# After this gateway (re)started a process, its nodes appear within moments: the passes come this
+# often for a while, so that they are found (and recovered) without waiting for the next pass.
+HURRIED_INTERVAL_S, HURRY_FOR_S = 0.1, 5.0
 
 DomainFactory = Callable[[int], RosDomain]
 # (domain, node name, processes known ended) -> whether the node's process is known not to answer
@@ -72,6 +75,15 @@ class Discovery:
         self.config_version: str | None = None
         self._incarnation_cursor: dict[int, str] = {}  # domain id -> name of the last node checked
         self._snapshot_at: dict[int, float] = {}  # robot id -> when its node list was last reported
+        self._hurried_until = 0.0  # (monotonic)
+
+    def hurry(self) -> None:
+        """A process was (re)started on this host: look for its nodes often for HURRY_FOR_S."""
+        self._hurried_until = time.monotonic() + HURRY_FOR_S
+
+    def pause(self, interval: float) -> float:
+        """The time until the next pass: ``interval``, shorter while hurried."""
+        return min(interval, HURRIED_INTERVAL_S) if time.monotonic() < self._hurried_until else interval
 
     # -- robots and domains -------------------------------------------------------------
     async def apply_config(self, config: dict) -> None:

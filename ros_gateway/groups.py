@@ -31,7 +31,7 @@ log = logging.getLogger(__name__)
 # to give it to finish before calling it failed.
 SETTLE_TIMEOUTS = 3
 # Nodes of one tier driven at the same time, at most.
-TIER_CONCURRENCY = 8
+TIER_CONCURRENCY = 16
 # A run's progress goes out (push and fact) at most this often, and at its end.
 PROGRESS_INTERVAL_S = 0.25
 MAX_NODE_TIMEOUT_S = 60.0

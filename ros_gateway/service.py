@@ -20,6 +20,7 @@ import logging
 import os
 import socket
 from datetime import datetime, timezone
+from typing import Callable
 
 from ros_gateway import budget, leftovers, tasks
 from ros_gateway.commands import CommandHandler, Parts
@@ -83,8 +84,7 @@ class Gateway:
         self.recovery = Recovery(self.runs)
         # The robots' launch profiles: processes this gateway runs for them (its facts: audit records).
         self.owner = leftovers.owner(config.name, config.redis_url, config.prefix)  # (its processes' mark)
-        self.supervisor = Supervisor(lambda **fields: self.outbox.emit(protocol.PROCESS, **fields), self.logs.on_output,
-                                     self.owner)
+        self.supervisor = Supervisor(self._report_process, self.logs.on_output, self.owner)
         # Containers and systemd units of this host that run robots' nodes, and their supervisors.
         self.units = HostUnits(lambda **fields: self.outbox.emit(protocol.PROCESS, **fields),
                                DockerEngine(config.docker_socket), Systemd(config.systemd))
@@ -117,6 +117,12 @@ class Gateway:
         if change.reason == protocol.PROCESS_LOST and node.process_since is not None:
             fields["since"] = node.process_since.isoformat()  # the time the node's payload shows
         return self.outbox.emit(kind, robot=node.robot.name, node=node.name, **fields)
+
+    def _report_process(self, **fields) -> dict:
+        """A launch profile's fact; a process (re)started: its nodes are looked for often for a while."""
+        if fields.get("action") in ("start", "restart", "respawn") and fields.get("outcome") == "succeeded":
+            self.discovery.hurry()
+        return self.outbox.emit(protocol.PROCESS, **fields)
 
     def _report_owner(self, node) -> None:
         self.outbox.emit(protocol.NODE_PROCESS, robot=node.robot.name, node=node.name, process=node.process)
@@ -161,7 +167,8 @@ class Gateway:
         loops = [
             self.outbox.run(self._stopping),
             self._every(config.robot_refresh_interval, self.refresh_robots, "robot refresh"),
-            self._every(config.discovery_interval, self.discovery.discover, "discovery"),
+            self._every(lambda: self.discovery.pause(config.discovery_interval), self.discovery.discover,
+                        "discovery"),
             self._every(config.heartbeat_interval, self.heartbeat, "heartbeat"),
             self._every(RESYNC_EVERY_S, self.discovery.resync_states, "state resync"),
             self._every(OWNERS_EVERY_S, self._refresh_owners, "process owners"),
@@ -207,14 +214,16 @@ class Gateway:
     def stop(self) -> None:
         self._stopping.set()
 
-    async def _every(self, interval: float, job, what: str) -> None:
+    async def _every(self, interval: float | Callable[[], float], job, what: str) -> None:
+        """``job`` again and again, ``interval`` seconds (or what it returns, asked each time) apart."""
         while not self._stopping.is_set():
             try:
                 await job()
             except Exception:
-                log.exception("%s failed; trying again in %.1f s", what, interval)
+                log.exception("%s failed; trying again soon", what)
+            pause = interval() if callable(interval) else interval
             try:
-                await asyncio.wait_for(self._stopping.wait(), interval)
+                await asyncio.wait_for(self._stopping.wait(), pause)
             except asyncio.TimeoutError:
                 pass
 

@@ -73,3 +73,16 @@ def test_a_process_whose_endpoints_went_before_its_name_is_followed_by_a_new_ins
     domain.endpoints["/lidar"] = frozenset({gid(P2)})
     discovery._check_incarnation(domain, node)
     assert node.live == {P2} and not node.respawned  # its endpoints, once listed: nothing more to announce
+
+
+def test_after_a_process_is_started_here_its_nodes_are_looked_for_more_often_for_a_while(monkeypatch):
+    discovery = disc.Discovery(Core(NodeRegistry(StateChanges()), {}, outbox=None, relay=None, service_timeout=1.0),
+                               lambda domain_id: None, forget_parameters=lambda key: None)
+    now = [100.0]
+    monkeypatch.setattr(disc.time, "monotonic", lambda: now[0])
+    assert discovery.pause(0.5) == 0.5
+    discovery.hurry()
+    assert discovery.pause(0.5) == disc.HURRIED_INTERVAL_S
+    assert discovery.pause(0.05) == 0.05  # never slower than asked
+    now[0] += disc.HURRY_FOR_S + 0.01
+    assert discovery.pause(0.5) == 0.5
