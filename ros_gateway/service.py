@@ -216,14 +216,16 @@ class Gateway:
 
     async def _every(self, interval: float | Callable[[], float], job, what: str) -> None:
         """``job`` again and again, ``interval`` seconds (or what it returns, asked each time) apart."""
+        def pause() -> float:
+            return interval() if callable(interval) else interval
+
         while not self._stopping.is_set():
             try:
                 await job()
             except Exception:
-                log.exception("%s failed; trying again soon", what)
-            pause = interval() if callable(interval) else interval
+                log.exception("%s failed; trying again in %.1f s", what, pause())
             try:
-                await asyncio.wait_for(self._stopping.wait(), pause)
+                await asyncio.wait_for(self._stopping.wait(), pause())
             except asyncio.TimeoutError:
                 pass
 
