@@ -85,16 +85,21 @@ def logged_in_page(browser, site: str, username: str = "bruno-operator", **conte
         page.goto(site + "login/")
         submit_login(page, username)
         expect(page.locator("h2", has_text=ROBOT)).to_be_visible(timeout=20_000)
-        expect(page.locator("html[data-live]")).to_have_count(1, timeout=30_000)
+        wait_live(page)
         yield page
 
 
-def live_page(page, url: str, timeout_ms: int = 30_000) -> None:
-    """Open ``url`` (on a page with COUNT_LIVE) and wait for its socket's snapshot, which
-    redraws it (the fleet's robots, forms included; the node page's state panel): an element
-    found before may be gone after."""
-    page.goto(url)
+def wait_live(page, timeout_ms: int = 30_000) -> None:
+    """Wait (on a page with COUNT_LIVE) for its socket's snapshot, which redraws it (the fleet's
+    robots, forms included; the node page's state panel): an element found before may be gone
+    after, and a click before it may be answered before a snapshot read earlier arrives."""
     expect(page.locator("html[data-live]")).to_have_count(1, timeout=timeout_ms)
+
+
+def live_page(page, url: str, timeout_ms: int = 30_000) -> None:
+    """Open ``url`` and wait for its socket's snapshot (wait_live)."""
+    page.goto(url)
+    wait_live(page, timeout_ms)
 
 
 def pytest_collection_modifyitems(items):

@@ -12,7 +12,7 @@ from playwright.sync_api import expect
 
 from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
 from tests import stack
-from tests.browser.conftest import ARTIFACTS, COUNT_LIVE, submit_login
+from tests.browser.conftest import ARTIFACTS, COUNT_LIVE, submit_login, wait_live
 from tests.integration.conftest import register, transition, wait_node
 
 WAIT_MS = 30_000
@@ -49,7 +49,7 @@ def open_fleet(browser, site, **viewport):
     page.on("console", lambda m: errors.append(m.text) if m.type in ("error", "warning") else None)
     page.goto(site + "login/")
     submit_login(page, "bruno-operator")
-    expect(page.locator("html[data-live]")).to_have_count(1, timeout=WAIT_MS)
+    wait_live(page, WAIT_MS)
     return page, errors
 
 
@@ -134,7 +134,7 @@ def test_shutdown_asks_first_and_a_finalized_node_offers_no_restart(browser, sit
     page.wait_for_timeout(2_000)
     assert ManagedNode.objects.get(key=KEY).state_label == "active"
     page.goto(site)
-    expect(page.locator("html[data-live]")).to_have_count(1, timeout=WAIT_MS)
+    wait_live(page, WAIT_MS)
 
     row.get_by_role("button", name=re.compile("^shutdown")).click()
     dialog.get_by_role("button", name="Shut down").click()
@@ -168,7 +168,7 @@ def test_a_reconnect_keeps_the_choices_made_in_the_forms(browser, site, robot, o
     page.route_web_socket(re.compile(r"/ws/fleet/$"), relay)
     page.goto(site + "login/")
     submit_login(page, "bruno-operator")
-    expect(page.locator("html[data-live]")).to_have_count(1, timeout=WAIT_MS)
+    wait_live(page, WAIT_MS)
     section = page.locator("#robot-br-agv")
     section.locator("select[name=policy]").select_option("continue")
     section.locator("input[name=timeout]").fill("7")

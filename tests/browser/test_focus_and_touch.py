@@ -8,7 +8,7 @@ import pytest
 from playwright.sync_api import Page, expect
 
 from lifecycle_site.fleet.models import ManagedNode
-from tests.browser.conftest import ARTIFACTS, COUNT_LIVE, ROBOT, logged_in_page
+from tests.browser.conftest import ARTIFACTS, COUNT_LIVE, ROBOT, logged_in_page, wait_live
 from tests.integration.conftest import transition, wait_node
 
 WAIT_MS = 30_000
@@ -33,7 +33,7 @@ def live_node_page(page: Page, url: str) -> None:
     """The node page, once its socket's snapshot has redrawn the state panel (and its buttons)."""
     page.context.add_init_script(COUNT_LIVE)
     page.goto(url)
-    expect(page.locator("html[data-live]")).to_have_count(1, timeout=WAIT_MS)
+    wait_live(page, WAIT_MS)
 
 
 def focused(page: Page) -> dict:

@@ -9,7 +9,7 @@ from playwright.sync_api import Page, expect
 
 from lifecycle_site.audit.models import TransitionRecord
 from tests import stack
-from tests.browser.conftest import ARTIFACTS, DESKTOP, PHONE, ROBOT, sized_page
+from tests.browser.conftest import ARTIFACTS, DESKTOP, PHONE, ROBOT, sized_page, wait_live
 from tests.integration.conftest import transition, wait_node
 
 WAIT_MS = 30_000
@@ -20,7 +20,7 @@ REASON = re.compile("simulated hardware not found on /dev/ttyFLAKY")
 def open_node(browser, site: str, viewport: dict) -> Page:
     page = sized_page(browser, site, viewport, f"nodes/{KEY}/")
     # Measured once the socket's snapshot has redrawn the state panel (a badge found before is gone after).
-    expect(page.locator("html[data-live]")).to_have_count(1, timeout=WAIT_MS)
+    wait_live(page, WAIT_MS)
     expect(page.locator("#node-state .badge.big")).to_have_text("unconfigured", timeout=WAIT_MS)
     return page
 

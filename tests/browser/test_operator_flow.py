@@ -7,7 +7,7 @@ import pytest
 from playwright.sync_api import Page, expect
 
 from lifecycle_site.audit.models import TransitionRecord
-from tests.browser.conftest import ARTIFACTS, COUNT_LIVE, ROBOT, submit_login, watched_page
+from tests.browser.conftest import ARTIFACTS, COUNT_LIVE, ROBOT, submit_login, wait_live, watched_page
 
 WAIT_MS = 20_000
 
@@ -28,19 +28,12 @@ def page(browser):
         yield page
 
 
-def wait_live(page: Page) -> None:
-    """The page's socket snapshot has redrawn it: its state panel read before the click, so a
-    snapshot cannot come after the click's answer and replace it (failed once in CI: the node
-    page's result emptied by a snapshot read before the activate was stored)."""
-    expect(page.locator("html[data-live]")).to_have_count(1, timeout=WAIT_MS)
-
-
 def log_in(page: Page, base: str) -> None:
     page.goto(base)
     expect(page).to_have_url(re.compile(r"/login/"))
     submit_login(page, "bruno-operator")
     expect(page.locator("h2", has_text=ROBOT)).to_be_visible(timeout=WAIT_MS)
-    wait_live(page)
+    wait_live(page, WAIT_MS)
 
 
 def test_operator_flow(page: Page, base_url):
@@ -66,7 +59,7 @@ def test_operator_flow(page: Page, base_url):
     # Activate from the node page: progress, result, graph and history follow live.
     row.locator("a").click()
     expect(page.locator("h1")).to_contain_text(f"/{node}")
-    wait_live(page)
+    wait_live(page, WAIT_MS)
     page.get_by_role("button", name="activate", exact=True).click()
     expect(page.locator("#transition-result")).to_contain_text("activate succeeded", timeout=WAIT_MS)
     expect(page.locator("#node-state .badge.big")).to_have_text("active")
@@ -76,7 +69,7 @@ def test_operator_flow(page: Page, base_url):
 
     # A failing transition shows the node's own reason.
     page.goto(f"{base}nodes/{ROBOT}.flaky_node/")
-    wait_live(page)
+    wait_live(page, WAIT_MS)
     page.get_by_role("button", name="configure", exact=True).click()
     result = page.locator("#transition-result")
     expect(result).to_contain_text("Failed", timeout=WAIT_MS)

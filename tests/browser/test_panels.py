@@ -10,7 +10,7 @@ from playwright.sync_api import expect
 
 from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
 from tests import stack
-from tests.browser.conftest import ARTIFACTS, COUNT_LIVE, ROBOT, submit_login
+from tests.browser.conftest import ARTIFACTS, COUNT_LIVE, ROBOT, submit_login, wait_live
 from tests.conftest import make_user
 from tests.integration.conftest import wait_node
 
@@ -33,7 +33,7 @@ def _login(browser, site, user="bruno-operator", **viewport):
 def live(page, url: str) -> None:
     """Open ``url`` and wait for its live socket's first message (the snapshot on connect)."""
     page.goto(url)
-    expect(page.locator("html[data-live]")).to_have_count(1, timeout=WAIT_MS)
+    wait_live(page, WAIT_MS)
 
 
 def test_group_run_panel_says_its_own_policy(browser, site, robot, operator):

@@ -15,7 +15,7 @@ from playwright.sync_api import Page, expect
 from lifecycle_site.audit.models import ProcessRecord
 from lifecycle_site.fleet.models import ProcessProfile, Robot
 from tests import stack
-from tests.browser.conftest import ARTIFACTS, COUNT_LIVE, PHONE, submit_login, watched_page
+from tests.browser.conftest import ARTIFACTS, COUNT_LIVE, PHONE, submit_login, wait_live, watched_page
 from tests.integration.conftest import register
 
 ROBOT = "br-proc"
@@ -112,7 +112,7 @@ def test_stop_asks_first_and_start_runs_it_again(page: Page, site, supervised):
     page.context.add_init_script(COUNT_LIVE)
     page.goto(site)
     submit_login(page, "bruno-operator")
-    expect(page.locator("html[data-live]")).to_have_count(1, timeout=WAIT_MS)  # the fleet page, redrawn live
+    wait_live(page, WAIT_MS)  # the fleet page, redrawn live
     head = page.locator(f"#robot-{ROBOT} .robot-head")
     head.screenshot(path=ARTIFACTS / "processes-fleet-link.png")
     head.get_by_role("link", name="Processes").click()
