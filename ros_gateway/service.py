@@ -29,6 +29,7 @@ from ros_gateway.discovery import Discovery
 from ros_gateway.domain import RosDomain
 from ros_gateway.groups import GroupRunner
 from ros_gateway.host_units import DockerEngine, HostUnits, Systemd
+from ros_gateway.launch_profile import LaunchProfile
 from ros_gateway.liveness import Liveness
 from ros_gateway.logs import LogPipeline
 from ros_gateway.node_driver import NodeDriver
@@ -41,7 +42,7 @@ from ros_gateway.recovery import Recovery
 from ros_gateway.registry import NodeRegistry, StateChange, StateChanges
 from ros_gateway.relay import Relay
 from ros_gateway.shared import protocol
-from ros_gateway.supervisor import LaunchProfile, Supervisor
+from ros_gateway.supervisor import Supervisor
 
 log = logging.getLogger(__name__)
 
@@ -84,10 +85,9 @@ class Gateway:
         self.recovery = Recovery(self.runs)
         # The robots' launch profiles: processes this gateway runs for them (its facts: audit records).
         self.owner = leftovers.owner(config.name, config.redis_url, config.prefix)  # (its processes' mark)
-        self.supervisor = Supervisor(self._report_process, self.logs.on_output, self.owner)
+        self.supervisor = Supervisor(self._report_process, self.logs.on_output, self.owner, self.discovery.hurry)
         # Containers and systemd units of this host that run robots' nodes, and their supervisors.
-        self.units = HostUnits(lambda **fields: self.outbox.emit(protocol.PROCESS, **fields),
-                               DockerEngine(config.docker_socket), Systemd(config.systemd))
+        self.units = HostUnits(self._report_process, DockerEngine(config.docker_socket), Systemd(config.systemd))
         self.owners = ProcessOwners(self.registry, self.processes, self.supervisor.pids, self._report_owner,
                                     self.units)
         self.commands = CommandHandler(Parts(self.relay, self.registry, self.domains, self.driver, self.params,
@@ -119,9 +119,7 @@ class Gateway:
         return self.outbox.emit(kind, robot=node.robot.name, node=node.name, **fields)
 
     def _report_process(self, **fields) -> dict:
-        """A launch profile's fact; a process (re)started: its nodes are looked for often for a while."""
-        if fields.get("action") in ("start", "restart", "respawn") and fields.get("outcome") == "succeeded":
-            self.discovery.hurry()
+        """A process's audit fact (a launch profile's, a container's or a unit's), emitted and returned."""
         return self.outbox.emit(protocol.PROCESS, **fields)
 
     def _report_owner(self, node) -> None:

@@ -8,7 +8,6 @@ import asyncio
 import contextlib
 import logging
 import os
-import re
 import shlex
 import shutil
 import signal
@@ -19,6 +18,7 @@ from datetime import datetime, timezone
 from typing import Callable
 
 from ros_gateway import leftovers, tasks
+from ros_gateway.launch_profile import LaunchProfile
 from ros_gateway.shared.child_process import die_with_parent
 
 log = logging.getLogger(__name__)
@@ -27,65 +27,8 @@ MIN_UPTIME_S, MAX_RESPAWN_DELAY_S = 10.0, 30.0  # an exit this soon after its st
 EARLY_EXIT_S = 0.5  # a process ending this soon with a non-zero status did not start
 LINE_LIMIT = 4096  # bytes of one output line handed on; the rest is dropped and the line marked "…"
 DRAIN_S, KILL_WAIT_S, CLOSE_MARGIN_S = 1.0, 3.0, 5.0  # bounds: output after the end; the end after SIGKILL; close()
-MAX_TEXT, MAX_ITEMS, MAX_SECONDS, MAX_WINDOW_S, MAX_FAILURES = 4096, 256, 300.0, 7 * 86400.0, 10_000
-NAME = re.compile(r"[A-Za-z0-9_.-]{1,64}")
 SIGNAL_NAMES = {int(sig): sig.name for sig in signal.Signals}
 Process = asyncio.subprocess.Process
-
-
-@dataclass(frozen=True)
-class LaunchProfile:
-    robot: str
-    name: str  # 1-64 chars of [A-Za-z0-9_.-]
-    command: str  # the executable (absolute path or a name found on PATH)
-    args: tuple[str, ...] = ()
-    env: tuple[tuple[str, str], ...] = ()  # added to the gateway's own environment
-    cwd: str | None = None
-    respawn: bool = True
-    respawn_delay: float = 1.0  # doubles for each exit in a row within MIN_UPTIME_S, up to MAX_RESPAWN_DELAY_S
-    stop_signal: int = signal.SIGTERM  # SIGTERM or SIGINT
-    stop_grace: float = 10.0  # seconds after stop_signal before SIGKILL
-    max_failures: int = 5  # exits (not asked for) within failure_window ...
-    failure_window: float = 300.0  # ... after which respawning stops ("given_up") until started by request
-
-    @classmethod
-    def from_config(cls, robot: str, data: object) -> LaunchProfile:
-        """From the site's JSON: name, command and the other fields optional (null as absent; env an object, stop_signal
-        "SIGTERM" or "SIGINT"). ValueError, naming the field and what it must be, for anything malformed."""
-        if not isinstance(data, dict):
-            raise ValueError("a launch profile must be a JSON object")
-        data = {key: value for key, value in data.items() if value is not None}
-        if not NAME.fullmatch(name := _text(data.get("name"), "name")):
-            raise ValueError("name must be 1-64 characters of A-Z, a-z, 0-9, '_', '.' and '-'")
-        args, env, cwd = data.get("args", []), data.get("env", {}), data.get("cwd")
-        if not isinstance(args, list) or len(args) > MAX_ITEMS:
-            raise ValueError(f"args must be a list of at most {MAX_ITEMS} strings")
-        if not isinstance(env, dict) or len(env) > MAX_ITEMS or any("=" in _text(key, "env's names") for key in env):
-            raise ValueError(f"env must be an object of at most {MAX_ITEMS} names (without '=') and string values")
-        if (stop_signal := data.get("stop_signal", "SIGTERM")) not in ("SIGTERM", "SIGINT"):
-            raise ValueError('stop_signal must be "SIGTERM" or "SIGINT"')
-        if not isinstance(respawn := data.get("respawn", True), bool):
-            raise ValueError("respawn must be true or false")
-        if type(failures := data.get("max_failures", 5)) is not int or not 1 <= failures <= MAX_FAILURES:
-            raise ValueError(f"max_failures must be a whole number from 1 to {MAX_FAILURES}")
-        return cls(robot, name, _text(data.get("command"), "command"),
-                   tuple(_text(arg, f"args[{n}]", empty=True) for n, arg in enumerate(args)),
-                   tuple(sorted((key, _text(value, f"env[{key!r}]", empty=True)) for key, value in env.items())),
-                   None if cwd is None else _text(cwd, "cwd"), respawn, _seconds(data, "respawn_delay", 1.0),
-                   signal.Signals[stop_signal], _seconds(data, "stop_grace", 10.0), failures,
-                   _seconds(data, "failure_window", 300.0, MAX_WINDOW_S))
-
-
-def _text(value: object, what: str, *, empty: bool = False) -> str:
-    if not isinstance(value, str) or (not value and not empty) or "\0" in value or len(value) > MAX_TEXT:
-        raise ValueError(f"{what} must be a{'' if empty else ' non-empty'} string of at most {MAX_TEXT} chars, no NUL")
-    return value
-
-
-def _seconds(data: dict, key: str, default: float, most: float = MAX_SECONDS) -> float:
-    if type(value := data.get(key, default)) not in (int, float) or not 0 <= value <= most:  # NaN, infinity too
-        raise ValueError(f"{key} must be a number of seconds from 0 to {most:g}")
-    return float(value)
 
 
 class UnknownProcess(LookupError):
@@ -126,10 +69,11 @@ class _Supervised:
 
 class Supervisor:
     def __init__(self, report: Callable[..., dict], on_output: Callable[[str, str, str, str], None],
-                 gateway: str = "") -> None:
+                 gateway: str = "", on_launch: Callable[[], None] = lambda: None) -> None:
         """report(**fields) emits one fact and returns it; on_output(robot, name, stream, line) gets each line;
-        ``gateway``: its name, marked on every process it starts (leftovers.py)."""
-        self._report, self._on_output, self.gateway = report, on_output, gateway
+        ``gateway``: its name, marked on every process it starts (leftovers.py); on_launch() as soon as a process
+        was started (its nodes may appear before it counts as started, EARLY_EXIT_S later)."""
+        self._report, self._on_output, self.gateway, self._on_launch = report, on_output, gateway, on_launch
         self._procs: dict[tuple[str, str], _Supervised] = {}
         self._applying, self._closed = asyncio.Lock(), False
 
@@ -257,6 +201,7 @@ class Supervisor:
         except (OSError, subprocess.SubprocessError) as exc:
             return f"{profile.command} could not be run ({getattr(exc, 'strerror', None) or exc})", None
         p.proc, p.gone, p.done_with, p.last_pid = proc, _gone(proc), None, proc.pid
+        self._on_launch()
         p.started_at, p.started_mono = datetime.now(timezone.utc).isoformat(), time.monotonic()
         readers = [tasks.spawn(self._read(profile, name, pipe)) for name, pipe in
                    (("stdout", proc.stdout), ("stderr", proc.stderr))]

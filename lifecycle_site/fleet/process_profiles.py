@@ -72,7 +72,7 @@ class ProcessProfile(models.Model):
         return " ".join([self.command, *(str(a) for a in self.args or [])])
 
     def for_gateway(self) -> dict:
-        """The profile as the gateway reads it (ros_gateway.supervisor.LaunchProfile.from_config)."""
+        """The profile as the gateway reads it (ros_gateway.launch_profile.LaunchProfile.from_config)."""
         return {
             "name": self.name, "command": self.command, "args": list(self.args or []),
             "env": {**(self.env or {}), **(self.secret_env or {})}, "cwd": self.cwd or None,

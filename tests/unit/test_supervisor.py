@@ -4,17 +4,16 @@ reaching the process's own children, nothing left running after close()."""
 from __future__ import annotations
 
 import asyncio
-import math
 import re
 import shlex
-import signal
 import sys
 import time
 from pathlib import Path
 
 import pytest
 
-from ros_gateway.supervisor import LINE_LIMIT, LaunchProfile, Supervisor, UnknownProcess
+from ros_gateway.launch_profile import LaunchProfile
+from ros_gateway.supervisor import LINE_LIMIT, Supervisor, UnknownProcess
 
 ROBOT = "agv-1"
 SLEEPER = "import time\nwhile True: time.sleep(0.1)"
@@ -218,6 +217,23 @@ def test_restart_reports_one_fact_with_the_old_and_the_new_pid():
     run(scenario, python("worker", SLEEPER))
 
 
+def test_on_launch_is_called_as_each_process_starts_before_it_counts_as_started():
+    """(The gateway's discovery then looks for its nodes often: they may appear before EARLY_EXIT_S.)"""
+    async def main() -> None:
+        launched: list[tuple[str, int]] = []
+        rig = Rig()
+        rig.supervisor = Supervisor(rig.report, rig.output, on_launch=lambda: launched.append(
+            (rig.state("worker")["state"], len(rig.facts))))
+        try:
+            await rig.supervisor.apply([python("worker", SLEEPER)])
+            await rig.supervisor.restart(ROBOT, "worker", source="api")
+            # each time before its own fact: the first start's, the restart's (one fact, the start's, before it)
+            assert launched == [("starting", 0), ("starting", 1)] and len(rig.facts) == 2
+        finally:
+            await rig.supervisor.close()
+    asyncio.run(main())
+
+
 def test_apply_starts_the_new_stops_the_removed_and_restarts_the_changed():
     keep, change, drop = python("keep", SLEEPER), python("change", SLEEPER), python("drop", SLEEPER)
 
@@ -324,53 +340,6 @@ def test_an_unknown_process_is_refused():
             await rig.supervisor.start("agv-2", "idle", source="api")
 
     run(scenario, python("idle", SLEEPER))
-
-
-def test_from_config_reads_the_site_json():
-    profile = LaunchProfile.from_config(ROBOT, {
-        "name": "nav2.bringup", "command": "ros2", "args": ["launch", "nav2_bringup", "x.launch.py"],
-        "env": {"ROS_DOMAIN_ID": "7", "A": ""}, "cwd": "/opt", "respawn": False, "respawn_delay": 2,
-        "stop_signal": "SIGINT", "stop_grace": 15, "max_failures": 3, "failure_window": 60.5})
-    assert profile == LaunchProfile(ROBOT, "nav2.bringup", "ros2", ("launch", "nav2_bringup", "x.launch.py"),
-                                    (("A", ""), ("ROS_DOMAIN_ID", "7")), "/opt", False, 2.0, signal.SIGINT, 15.0, 3,
-                                    60.5)
-    assert LaunchProfile.from_config(ROBOT, {"name": "a", "command": "b", "env": None}) == LaunchProfile(ROBOT, "a",
-                                                                                                          "b")
-
-
-@pytest.mark.parametrize("data, field", [
-    (["name", "cmd"], "JSON object"),
-    ({"command": "x"}, "name"),
-    ({"name": "has space", "command": "x"}, "name"),
-    ({"name": "n" * 65, "command": "x"}, "name"),
-    ({"name": "n", "command": ""}, "command"),
-    ({"name": "n", "command": "a\0b"}, "command"),
-    ({"name": "n", "command": "x" * 4097}, "command"),
-    ({"name": "n", "command": "x", "args": "--fast"}, "args"),
-    ({"name": "n", "command": "x", "args": ["a"] * 257}, "args"),
-    ({"name": "n", "command": "x", "args": ["ok", 3]}, r"args\[1\]"),
-    ({"name": "n", "command": "x", "env": ["A=1"]}, "env"),
-    ({"name": "n", "command": "x", "env": {"A": 1}}, "env"),
-    ({"name": "n", "command": "x", "env": {f"K{n}": "v" for n in range(257)}}, "env"),
-    ({"name": "n", "command": "x", "env": {"A=B": "v"}}, "env"),
-    ({"name": "n", "command": "x", "cwd": ""}, "cwd"),
-    ({"name": "n", "command": "x", "respawn": "yes"}, "respawn"),
-    ({"name": "n", "command": "x", "respawn_delay": -1}, "respawn_delay"),
-    ({"name": "n", "command": "x", "respawn_delay": math.inf}, "respawn_delay"),
-    ({"name": "n", "command": "x", "respawn_delay": math.nan}, "respawn_delay"),
-    ({"name": "n", "command": "x", "respawn_delay": 301}, "respawn_delay"),
-    ({"name": "n", "command": "x", "respawn_delay": True}, "respawn_delay"),
-    ({"name": "n", "command": "x", "stop_grace": 300.5}, "stop_grace"),
-    ({"name": "n", "command": "x", "stop_grace": "10"}, "stop_grace"),
-    ({"name": "n", "command": "x", "stop_signal": "SIGKILL"}, "stop_signal"),
-    ({"name": "n", "command": "x", "stop_signal": 15}, "stop_signal"),
-    ({"name": "n", "command": "x", "max_failures": 0}, "max_failures"),
-    ({"name": "n", "command": "x", "max_failures": 2.5}, "max_failures"),
-    ({"name": "n", "command": "x", "failure_window": 10 ** 400}, "failure_window"),
-])
-def test_from_config_refuses_what_is_malformed_naming_the_field(data, field):
-    with pytest.raises(ValueError, match=field):
-        LaunchProfile.from_config(ROBOT, data)
 
 
 def test_the_gateways_own_settings_and_credentials_stay_out_of_its_processes(monkeypatch):
