@@ -76,6 +76,7 @@ class Discovery:
         self._incarnation_cursor: dict[int, str] = {}  # domain id -> name of the last node checked
         self._snapshot_at: dict[int, float] = {}  # robot id -> when its node list was last reported
         self._hurried_until = 0.0  # (monotonic)
+        self._first_reads: set[str] = set()  # keys of nodes whose state is being read since they appeared
 
     def hurry(self) -> None:
         """A process was (re)started on this host: look for its nodes often for HURRY_FOR_S."""
@@ -134,10 +135,11 @@ class Discovery:
                     if robot is not None and not self._held_back(domain, node, name):
                         self._appeared(domain, robot, name)
                 elif not node.state_read:
-                    spawn(self.read_state(node))
+                    self._read_first(node)
                 elif not node.in_transition:  # a transition of ours watches it
                     settled.append(node)
             self._check_incarnations(domain, settled, deadline)
+            domain.drop_kept()
             if domain.settling():
                 continue
             # A transition of ours watches the process itself (and records its loss).
@@ -160,7 +162,7 @@ class Discovery:
         return bool(current) and current <= gone or self.holds_back(domain, name, frozenset(gone))
 
     def _lost(self, domain: RosDomain, node: LiveNode, how: str, ended: bool = False) -> None:
-        domain.forget_node(node.name)
+        domain.forget_node(node.name, keep=True)
         self.registry.vanished(node, reason=protocol.PROCESS_LOST, ended=ended)
         self.records.lost(node, how)
 
@@ -180,7 +182,7 @@ class Discovery:
         self.forget_parameters(node.key)  # possibly a new process: its parameters are read afresh
         domain.watch_node(name)
         log.info("node %s appeared on %s", name, robot.name)
-        spawn(self.read_state(node))
+        self._read_first(node)
 
     def _check_incarnations(self, domain: RosDomain, nodes: list[LiveNode], deadline: float) -> None:
         """Check nodes in name order from where the last pass stopped, until ``deadline`` (at
@@ -224,6 +226,20 @@ class Discovery:
             node.live = new  # its endpoints, seen after it appeared
         elif node.live and not now & node.live:
             self._lost(domain, node, LEFT_GRAPH)
+
+    def _read_first(self, node: LiveNode) -> None:
+        """Read the state of a node that appeared (or came back), once at a time: a pass that
+        finds it still unread while a read is under way adds none (that read is sent again
+        while unanswered, domain.RESEND_AFTER_S)."""
+        if node.key not in self._first_reads:
+            self._first_reads.add(node.key)
+            spawn(self._first_read(node))
+
+    async def _first_read(self, node: LiveNode) -> None:
+        try:
+            await self.read_state(node)
+        finally:
+            self._first_reads.discard(node.key)
 
     async def read_state(self, node: LiveNode) -> bool | None:
         """Read the node's state; False if it did not answer, None if not asked (a command

@@ -46,6 +46,11 @@ DISCOVERY_SETTLE_S = 3.0
 COMMAND_DISCOVERY_WAIT_S = 6.0
 # Watched nodes per shard (its own rclpy node, executor and thread).
 NODES_PER_SHARD = 12
+# A node whose process ended keeps its clients and event subscription this long: the next process
+# under its name (a restart; a respawn waits up to 30 s, supervisor.MAX_RESPAWN_DELAY_S) matches them
+# while it starts, so the first calls into it are answered at once instead of after a new client's
+# own discovery (0.2-0.5 s after 50 nodes appeared at once). Kept, they cost nothing until dropped.
+KEEP_GONE_S = 35.0
 # The service list (thousands of entries in a big domain) is re-read on each discovery pass
 # while the set of running nodes changes and for a while after; otherwise this often.
 SERVICE_SCAN_SETTLE_S = 5.0
@@ -146,6 +151,7 @@ class RosDomain:
         self._shard_of: dict[str, _Shard] = {}  # watched node -> its shard
         self._clients: dict[tuple[str, str], Any] = {}
         self._event_subscriptions: dict[str, Any] = {}
+        self._kept: dict[str, float] = {}  # gone nodes whose entities are kept -> until (monotonic)
         self._log_node: rclpy.node.Node | None = None
         self._rosout: RosoutReader | None = None
         self.started_at = 0.0
@@ -252,12 +258,14 @@ class RosDomain:
 
     def watch_node(self, fqn: str) -> None:
         """Subscribe to the node's transition events."""
+        self._kept.pop(fqn, None)
         if fqn in self._event_subscriptions:
             return
         self._event_subscriptions[fqn] = self._shard_for(fqn).node.create_subscription(
             TransitionEvent,
             f"{fqn}/transition_event",
-            lambda msg, fqn=fqn: self._hand_over(self._on_transition_event, self.domain_id, fqn, msg),
+            lambda msg, fqn=fqn: fqn in self._kept or self._hand_over(self._on_transition_event, self.domain_id,
+                                                                      fqn, msg),
             10,
         )
 
@@ -281,8 +289,14 @@ class RosDomain:
                 return bytes(info.endpoint_gid)
         return None
 
-    def forget_node(self, fqn: str) -> None:
-        """Drop the node's subscription and clients (it vanished or left our robots)."""
+    def forget_node(self, fqn: str, *, keep: bool = False) -> None:
+        """Drop the node's subscription and clients (it left our robots). ``keep``: its process
+        ended or left; they are kept for KEEP_GONE_S (its events not handed on meanwhile), for a
+        process that comes back under its name (drop_kept ends them)."""
+        if keep and fqn in self._shard_of:
+            self._kept[fqn] = time.monotonic() + KEEP_GONE_S
+            return
+        self._kept.pop(fqn, None)
         shard = self._shard_of.pop(fqn, None)
         if shard is None:
             return
@@ -292,6 +306,12 @@ class RosDomain:
             shard.node.destroy_subscription(subscription)
         for key in [k for k in self._clients if k[0] == fqn]:
             shard.node.destroy_client(self._clients.pop(key))
+
+    def drop_kept(self) -> None:
+        """Forget the gone nodes kept longer than KEEP_GONE_S."""
+        now = time.monotonic()
+        for fqn in [fqn for fqn, until in self._kept.items() if until <= now]:
+            self.forget_node(fqn)
 
     # -- service calls --------------------------------------------------------------
     async def call(self, fqn: str, service: str, srv_type: Any, request: Any, timeout: float) -> Any:

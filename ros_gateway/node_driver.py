@@ -60,7 +60,7 @@ class NodeDriver:
         try:
             driven = await self._transition(node, requested, timeout, source=source, user_id=user_id,
                                             run_id=run_id, known_state=known_state, read_timeout=read_timeout,
-                                            vouching=vouching or {})
+                                            vouching=vouching or {}, by_reply=delivered_by_reply)
         except NodeUnreachableRecorded as exc:
             if not delivered_by_reply:
                 await self.outbox.delivered(exc.fact, DELIVERY_WAIT_S)
@@ -73,7 +73,7 @@ class NodeDriver:
 
     async def _transition(self, node: LiveNode, requested, timeout: float, *, source: str, user_id: int | None,
                           run_id: str, known_state: int | None, read_timeout: float | None,
-                          vouching: dict) -> Driven:
+                          vouching: dict, by_reply: bool) -> Driven:
         domain = self.domains[node.robot.domain_id]
         requested_at = datetime.now(timezone.utc)
         # A command of the site carries its grant, and the record the request's id (protocol.vouching).
@@ -97,18 +97,22 @@ class NodeDriver:
             node.tracker.settled = result.transition.id  # its beginning is yet to come
         facts = []
         if result.outcome == protocol.PROCESS_LOST and node.alive:
-            domain.forget_node(node.name)
+            domain.forget_node(node.name, keep=True)
             ended = result.process_gone != LEFT_GRAPH  # exited, or replaced: the old one lingers dead
             facts.append(self.registry.vanished(node, reason=protocol.PROCESS_LOST, ended=ended).fact)
         if result.outcome in ("failed", protocol.PROCESS_LOST):
             result.message = await self._with_reason(node, requested_at, result.message)
         if result.result_state is not None:
             change = self.registry.set_state(node, result.result_state)
-            # The state goes with the answer even when a transition event reported it first,
-            # so that the site's record of the node is right before the requester hears back.
             state_fact = change.fact if change is not None else None
-            facts.append(state_fact or self.outbox.emit(protocol.NODE_STATE, robot=node.robot.name, node=node.name,
-                                                        state_id=result.result_state))
+            if state_fact is None and by_reply:
+                # A reply carries the state even when a transition event reported it first, so that
+                # the site's record of the node is right before the requester hears back. A run's
+                # step has nobody waiting: the event's fact, in the stream before this, is enough.
+                state_fact = self.outbox.emit(protocol.NODE_STATE, robot=node.robot.name, node=node.name,
+                                              state_id=result.result_state)
+            if state_fact is not None:
+                facts.append(state_fact)
         transition = result.transition
         fact = self.outbox.emit(
             protocol.TRANSITION, **audit,

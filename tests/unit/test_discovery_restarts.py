@@ -26,7 +26,7 @@ class Domain:
     def incarnation(self, name: str) -> frozenset:
         return self.endpoints.get(name, frozenset())
 
-    def forget_node(self, name: str) -> None:
+    def forget_node(self, name: str, keep: bool = False) -> None:
         pass
 
     def watch_node(self, name: str) -> None:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import gc
+import threading
 import time
 
 import pytest
@@ -15,6 +16,7 @@ from lifecycle_msgs.srv import GetState
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.lifecycle import LifecycleNode
 
+from ros_gateway import domain as domain_module
 from ros_gateway.domain import RosDomain
 from tests import stack
 
@@ -32,6 +34,11 @@ class Process:
         self.executor: SingleThreadedExecutor | None = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.running = True
+
+    def spin(self) -> Process:
+        """Answer its services (in a thread of its own, until end())."""
+        threading.Thread(target=self.executor.spin, daemon=True).start()
+        return self
 
     def end(self) -> None:
         """Like the process exiting: every endpoint of the node leaves. destroy_node alone
@@ -91,3 +98,45 @@ def test_an_unlisted_node_that_stops_publishing_is_gone(graph, monkeypatch):
     ros.node.create_client(GetState, "/unlisted_node/get_state")
     processes["unlisted_node"].end()
     assert names_within(ros, {"/listed_node"}, FOUND_WITHIN_S, known=["/unlisted_node"]) == {"/listed_node"}
+
+
+def test_a_gone_nodes_client_is_kept_for_the_next_process_under_its_name_and_then_dropped(graph, monkeypatch):
+    """A restarted process's first calls find a client that has matched it while it started; the
+    events of a gone node are not handed on until it is watched again."""
+    ros, processes = graph
+    events: list[str] = []
+    ros._on_transition_event = lambda domain_id, fqn, msg: events.append(fqn)
+
+    def state_of(fqn: str) -> int:
+        answer = ros.loop.run_until_complete(ros.call(fqn, "get_state", GetState, GetState.Request(), 5.0))
+        return answer.current_state.id
+
+    def events_after(seconds: float) -> list[str]:
+        ros.loop.run_until_complete(asyncio.sleep(seconds))  # the handed-over events run
+        return events
+
+    processes["listed_node"].spin()
+    ros.watch_node("/listed_node")
+    assert state_of("/listed_node") == 1
+    client = ros._clients["/listed_node", "get_state"]
+    processes["listed_node"].end()
+    ros.forget_node("/listed_node", keep=True)  # its process ended
+    processes["listed_node"] = again = Process(ros.domain_id, "listed_node").spin()  # the next one under its name
+    deadline = time.monotonic() + FOUND_WITHIN_S  # the process knows the kept subscription (it matched it)
+    while not again.node.count_subscribers("/listed_node/transition_event") and time.monotonic() < deadline:
+        time.sleep(0.05)
+    again.node.trigger_configure()  # while it is not watched again: its event is not handed on
+    ros.drop_kept()  # not expired yet
+    assert events_after(0.5) == [] and ros._clients["/listed_node", "get_state"] is client
+    ros.watch_node("/listed_node")  # it appeared
+    assert state_of("/listed_node") == 2 and ros._clients["/listed_node", "get_state"] is client
+    again.node.trigger_activate()
+    deadline = time.monotonic() + 5.0
+    while not events_after(0.05) and time.monotonic() < deadline:
+        pass
+    assert events and set(events) == {"/listed_node"}  # watched again: handed on
+
+    monkeypatch.setattr(domain_module, "KEEP_GONE_S", 0.0)
+    ros.forget_node("/listed_node", keep=True)
+    ros.drop_kept()  # expired: forgotten for good
+    assert ("/listed_node", "get_state") not in ros._clients and "/listed_node" not in ros._event_subscriptions

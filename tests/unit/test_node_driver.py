@@ -1,0 +1,102 @@
+"""The one way a transition is carried out (ros_gateway/node_driver.py), on real rclpy: the facts
+it reports. A request's reply carries the node's new state even when a transition event reported
+it first (the site's record of the node is right before the requester hears back); a run's step,
+which nobody waits on, does not report that state a second time."""
+from __future__ import annotations
+
+import asyncio
+import threading
+
+import pytest
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.lifecycle import LifecycleNode
+
+from ros_gateway.domain import RosDomain
+from ros_gateway.node_driver import NodeDriver
+from ros_gateway.parts import Core
+from ros_gateway.registry import LiveNode, NodeRegistry, RobotInfo, StateChanges
+from ros_gateway.shared import protocol
+from ros_gateway.shared import state_machine as sm
+from tests import stack
+
+DOMAIN_OFFSET = 3
+
+
+class Outbox:
+    """The facts going out, kept in a list; each is 'in Redis' at once."""
+
+    def __init__(self) -> None:
+        self.facts: list[dict] = []
+
+    def emit(self, kind: str, **fields) -> dict:
+        self.facts.append({"type": kind, "seq": len(self.facts) + 1, **fields})
+        return self.facts[-1]
+
+    async def delivered(self, fact: dict, timeout: float) -> bool:
+        return True
+
+
+@pytest.fixture
+def driven(gateway_environ):
+    """A lifecycle node in a process of its own (its own context), the gateway's domain, a
+    registry whose state changes are reported to the outbox, and a driver."""
+    domain_id = stack.domain(DOMAIN_OFFSET)
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=domain_id)
+    ros_node = LifecycleNode("driven_node", context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(ros_node)
+    thread = threading.Thread(target=executor.spin, daemon=True)
+    thread.start()
+    loop = asyncio.new_event_loop()
+    domain = RosDomain(domain_id, loop, on_transition_event=lambda *a: None, on_log=lambda *a: None)
+    domain.start()
+    outbox = Outbox()
+    registry = NodeRegistry(StateChanges(report=lambda change: outbox.emit(
+        protocol.NODE_STATE, robot=change.node.robot.name, node=change.node.name, state_id=change.state_id)))
+    node = LiveNode(robot=RobotInfo(1, "agv", domain_id, ""), name="/driven_node", alive=True)
+    registry.nodes[(domain_id, node.name)] = node
+    driver = NodeDriver(Core(registry, {domain_id: domain}, outbox, None, 5.0), logs=None)
+    try:
+        yield driver, registry, node, outbox, loop
+    finally:
+        domain.stop()
+        loop.close()
+        executor.shutdown(timeout_sec=1.0)
+        ros_node.destroy_node()
+        rclpy.shutdown(context=context)
+        thread.join(timeout=3.0)
+
+
+def transition(driver: NodeDriver, node: LiveNode, loop, label: str, start: int, *, by_reply: bool):
+    async def run():
+        async with node.lock:
+            return await driver.transition(node, label, 5.0, source="api", known_state=start,
+                                           delivered_by_reply=by_reply)
+    return loop.run_until_complete(run())
+
+
+def states(outbox: Outbox) -> list[int]:
+    return [fact["state_id"] for fact in outbox.facts if fact["type"] == protocol.NODE_STATE]
+
+
+def test_a_reply_carries_the_state_an_event_reported_first_and_a_runs_step_does_not_repeat_it(driven):
+    driver, registry, node, outbox, loop = driven
+    registry.set_state(node, sm.INACTIVE)  # the configure's transition event came before its answer
+    before = len(outbox.facts)
+    result = transition(driver, node, loop, "configure", sm.UNCONFIGURED, by_reply=True)
+    assert result.result.outcome == "succeeded"
+    assert states(outbox)[-1:] == [sm.INACTIVE] and len(outbox.facts) == before + 2  # the state, the record
+    assert [fact["type"] for fact in result.facts] == [protocol.NODE_STATE, protocol.TRANSITION]
+
+    registry.set_state(node, sm.ACTIVE)  # the activate's event came first: reported once, here
+    before = len(outbox.facts)
+    result = transition(driver, node, loop, "activate", sm.INACTIVE, by_reply=False)  # a run's step
+    assert result.result.outcome == "succeeded" and result.record["result_state"] == sm.ACTIVE
+    assert [fact["type"] for fact in outbox.facts[before:]] == [protocol.TRANSITION]
+
+    before = len(outbox.facts)  # no event first: the step's new state is reported, once
+    result = transition(driver, node, loop, "deactivate", sm.ACTIVE, by_reply=False)
+    assert [(fact["type"], fact.get("state_id")) for fact in outbox.facts[before:]] == [
+        (protocol.NODE_STATE, sm.INACTIVE), (protocol.TRANSITION, None)]
