@@ -27,7 +27,7 @@ from django.db import connections
 from django.http import HttpRequest, HttpResponseBase
 from django.urls import set_script_prefix
 
-from lifecycle_site.fleet import live_updates
+from lifecycle_site.ingest import live_updates
 from ros_gateway.shared import environment
 
 # Requests served at once. A transition waits for its gateway (seconds, if a node hangs), so

@@ -96,6 +96,8 @@ INSTALLED_APPS = [
     "django_htmx",
     "axes",
     "lifecycle_site.fleet",
+    "lifecycle_site.gateway_link",
+    "lifecycle_site.ingest",
     "lifecycle_site.audit",
     "lifecycle_site.api",
     "lifecycle_site.dashboard",
@@ -277,8 +279,8 @@ LIFECYCLE = {
     # /rosout history kept server-side: per logger (node) count, and age.
     "LOG_KEEP_PER_NODE": env.whole("LIFECYCLE_LOG_KEEP_PER_NODE", 2000, minimum=1, unit="log records"),
     "LOG_KEEP_HOURS": env.number("LIFECYCLE_LOG_KEEP_HOURS", 72.0, above=0, unit="hours"),
-    # Bytes each gateway's Redis keys may hold before the site cuts it off (fleet/redis_guard.py);
-    # None: an eighth of Redis's maxmemory, at most 64 MB (fleet.gateway_config.redis_quota).
+    # Bytes each gateway's Redis keys may hold before the site cuts it off (gateway_link/redis_guard.py);
+    # None: an eighth of Redis's maxmemory, at most 64 MB (gateway_link.gateway_config.redis_quota).
     "GATEWAY_REDIS_QUOTA": env.megabytes("LIFECYCLE_GATEWAY_REDIS_QUOTA_MB"),
 }
 

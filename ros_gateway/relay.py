@@ -6,7 +6,7 @@ updates for open pages (the ``live`` stream, which the site checks and sends on)
 down is survived: calls fail, are logged at most once per ``quiet`` seconds, and work resumes
 when it is back.
 
-The gateway's Redis user may run only what is needed here (lifecycle_site/fleet/redis_users.py):
+The gateway's Redis user may run only what is needed here (lifecycle_site/gateway_link/redis_users.py):
 no scripts, so the lease's compare-and-delete is a WATCH/MULTI transaction.
 """
 from __future__ import annotations

@@ -159,7 +159,7 @@ def viewer_client(db) -> Client:
 @pytest.fixture(scope="module")
 def gateway(redis_server, live_db, ingest):
     """The gateway "local" on this run's Redis, one per test module (integration and deploy tests)."""
-    from lifecycle_site.fleet import gateways
+    from lifecycle_site.gateway_link import gateways
 
     process = stack.start_gateway()
     stack.wait_for(lambda: gateways.status("local").online or not process.alive(), 30, "the gateway heartbeat")

@@ -6,8 +6,8 @@ from __future__ import annotations
 import json
 from datetime import datetime, timedelta, timezone
 
-from lifecycle_site.fleet import attribution
-from lifecycle_site.fleet.gateways import channel_prefix
+from lifecycle_site.gateway_link import attribution
+from lifecycle_site.gateway_link.gateways import channel_prefix
 from ros_gateway.shared import protocol
 from tests import stack
 
@@ -60,7 +60,7 @@ class GatewayPart:
     @staticmethod
     def vouch(fact: dict) -> dict:
         """The fact with the grant the site gave the command it answers, and the id that goes
-        with it (lifecycle_site/fleet/attribution.py, protocol.vouching)."""
+        with it (lifecycle_site/gateway_link/attribution.py, protocol.vouching)."""
         request_id = fact["request_id"] = fact["id"]
         node = fact.get("node")
         if fact["type"] == protocol.TRANSITION:

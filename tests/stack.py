@@ -190,7 +190,7 @@ def write_beat(gateway: str, *, at: float | None = None, stopped: bool = False, 
     read it afresh)."""
     import socket as _socket
 
-    from lifecycle_site.fleet import gateways
+    from lifecycle_site.gateway_link import gateways
     from ros_gateway.shared import protocol
 
     beat = {
@@ -207,7 +207,7 @@ def write_beat(gateway: str, *, at: float | None = None, stopped: bool = False, 
 
 def facts_read(gateway: str) -> bool:
     """Whether the site's ingest process has read and stored every fact the gateway has sent."""
-    from lifecycle_site.fleet import gateways
+    from lifecycle_site.gateway_link import gateways
     from ros_gateway.shared import protocol
 
     client = redis_client()

@@ -6,8 +6,8 @@ class AlertsConfig(AppConfig):
     verbose_name = "Alerts"
 
     def ready(self) -> None:
-        # The ingest process hands the rules what it stores (fleet/watchers.py).
+        # The ingest process hands the rules what it stores (ingest/watchers.py).
         from lifecycle_site.alerts.engine import Evaluator
-        from lifecycle_site.fleet import watchers
+        from lifecycle_site.ingest import watchers
 
         watchers.register(Evaluator)

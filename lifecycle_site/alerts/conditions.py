@@ -12,9 +12,9 @@ from datetime import datetime
 from django.db.models import F, Q
 
 from lifecycle_site.alerts.models import Rule
-from lifecycle_site.fleet import gateways
 from lifecycle_site.fleet.models import Gateway, ManagedNode, ProcessProfile
-from lifecycle_site.fleet.observations import GONE, Observation
+from lifecycle_site.gateway_link import gateways
+from lifecycle_site.ingest.observations import GONE, Observation
 from ros_gateway.shared import protocol
 
 

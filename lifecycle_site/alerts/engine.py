@@ -25,7 +25,7 @@ from django.utils import timezone
 from lifecycle_site.alerts import conditions as cond
 from lifecycle_site.alerts.delivery import Dispatcher, Job, Result
 from lifecycle_site.alerts.models import CONTROL_CHARACTERS, Alert, Delivery, Receiver, Rule, split_emails
-from lifecycle_site.fleet.observations import Observation, observations
+from lifecycle_site.ingest.observations import Observation, observations
 
 log = logging.getLogger(__name__)
 

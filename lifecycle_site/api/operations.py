@@ -8,8 +8,8 @@ from django.http import Http404, HttpRequest, JsonResponse
 from lifecycle_site.api.auth import api_view, error, json_body
 from lifecycle_site.api.limits import MAX_NODES
 from lifecycle_site.api.views import get_node
-from lifecycle_site.fleet.gateway_client import MAX_SERVICE_TIMEOUT
 from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
+from lifecycle_site.gateway_link.gateway_client import MAX_SERVICE_TIMEOUT
 from lifecycle_site.operations.desired_state import set_desired_state
 from lifecycle_site.operations.runs import start_run, wait_for
 from lifecycle_site.refusal import Refusal, shown

@@ -8,11 +8,11 @@ from django.http import Http404, HttpRequest, JsonResponse
 
 from lifecycle_site.api.auth import api_view, error, json_body
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.fleet import gateway_input as checks
-from lifecycle_site.fleet import gateways as gateway_status
-from lifecycle_site.fleet.gateway_client import MAX_SERVICE_TIMEOUT, GatewayError, call_gateway
 from lifecycle_site.fleet.models import Gateway, LogRecord, ManagedNode, Robot
 from lifecycle_site.fleet.serializers import node_dict
+from lifecycle_site.gateway_link import gateway_input as checks
+from lifecycle_site.gateway_link import gateways as gateway_status
+from lifecycle_site.gateway_link.gateway_client import MAX_SERVICE_TIMEOUT, GatewayError, call_gateway
 from lifecycle_site.operations.transitions import request_transition
 from lifecycle_site.refusal import shown
 from ros_gateway.shared import param_types, protocol

@@ -17,7 +17,7 @@ from django.template.loader import render_to_string
 
 from lifecycle_site.dashboard.audit_views import PAGE_SIZE, filtered
 from lifecycle_site.dashboard.consumers import LiveConsumer
-from lifecycle_site.fleet.live_updates import AUDIT_GROUP
+from lifecycle_site.ingest.live_updates import AUDIT_GROUP
 from lifecycle_site.prefix import script_prefix
 
 

@@ -68,7 +68,7 @@ class LiveConsumer(AsyncWebsocketConsumer):
 
     async def dispatch(self, message: dict) -> None:
         """A group message this page cannot show is dropped (and logged), never the socket:
-        what reaches the groups is checked by the site (fleet/live_relay.py), but one bad
+        what reaches the groups is checked by the site (ingest/live_relay.py), but one bad
         message must not close every open page."""
         if str(message.get("type", "")).startswith("websocket."):
             await super().dispatch(message)
@@ -151,7 +151,7 @@ class LiveConsumer(AsyncWebsocketConsumer):
         return verdict.refusal
 
     def gateway_views(self) -> list[dict]:
-        """The gateways of what the page shows (fleet.gateways.describe() dicts)."""
+        """The gateways of what the page shows (gateway_link.gateways.describe() dicts)."""
         return []
 
     async def gateways_seen(self, views: list[dict]) -> None:

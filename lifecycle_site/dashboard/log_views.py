@@ -13,8 +13,8 @@ from django.utils import dateparse, timezone
 
 from lifecycle_site.dashboard import snapshots
 from lifecycle_site.dashboard.access import viewer_required
-from lifecycle_site.fleet import outages
 from lifecycle_site.fleet.models import LogRecord, ManagedNode, Robot
+from lifecycle_site.ingest import outages
 
 HISTORY_LINES = 500
 AROUND_LINES = HISTORY_LINES // 2  # on each side of a moment the page was opened at (?at=, from the timeline)

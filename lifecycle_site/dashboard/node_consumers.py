@@ -12,7 +12,7 @@ from django.template.loader import render_to_string
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.dashboard import fragments, snapshots
 from lifecycle_site.dashboard.consumers import LiveConsumer, RunPanels
-from lifecycle_site.fleet import outages
+from lifecycle_site.ingest import outages
 from lifecycle_site.prefix import script_prefix
 from ros_gateway.shared import protocol
 
@@ -105,7 +105,7 @@ GAP_WAIT_S = 30.0  # how long after its gateway is back a console looks for the 
 
 class LogConsumer(LiveConsumer):
     """``ws/logs/node/<key>/`` or ``ws/logs/robot/<name>/``: records as JSON; and the stretches
-    of /rosout not received while the gateway's process was down (fleet/outages.py), once the
+    of /rosout not received while the gateway's process was down (ingest/outages.py), once the
     ingest process has recorded them."""
 
     gap_since: str | None = None  # the last heartbeat before the gateway went offline

@@ -14,9 +14,9 @@ from lifecycle_site.api import limits
 from lifecycle_site.api.auth import NonFiniteNumber, loads_finite
 from lifecycle_site.dashboard.access import operator_required, viewer_required
 from lifecycle_site.dashboard.views import node_or_404
-from lifecycle_site.fleet.gateway_client import GatewayError
 from lifecycle_site.fleet.models import ManagedNode
 from lifecycle_site.fleet.param_files import ParameterFileError, diff, load
+from lifecycle_site.gateway_link.gateway_client import GatewayError
 from lifecycle_site.operations.parameters import apply, fetch
 from ros_gateway.shared import param_types as pt
 

@@ -15,9 +15,9 @@ from django.utils.safestring import mark_safe
 
 from lifecycle_site.dashboard.graph import layout
 from lifecycle_site.dashboard.runs import recent_runs
-from lifecycle_site.fleet import gateways
 from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
 from lifecycle_site.fleet.serializers import node_dict
+from lifecycle_site.gateway_link import gateways
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 

@@ -9,10 +9,6 @@ class FleetConfig(AppConfig):
         from django.contrib.auth import get_user_model
         from django.db.models.signals import m2m_changed, post_migrate
 
-        from lifecycle_site.fleet import (
-            gateway_config,  # noqa: F401 - its signals publish configs
-            redis_users,  # noqa: F401 - its signal drops a deleted gateway's user
-        )
         from lifecycle_site.fleet.roles import admins_are_staff, ensure_roles
 
         # After every app's migrations (not only ours): the roles use permissions of the audit and

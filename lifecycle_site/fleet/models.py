@@ -28,7 +28,7 @@ class Gateway(models.Model):
 
     The site registers it (``manage.py add_gateway``); the ingest process copies its heartbeat
     here and keeps the accounts of its fact and log streams. Whether it is online right now
-    comes from its heartbeat in Redis (``fleet.gateways.status``), not from this row.
+    comes from its heartbeat in Redis (``gateway_link.gateways.status``), not from this row.
     """
 
     name = models.CharField(max_length=63, unique=True, validators=[GATEWAY_NAME_VALIDATOR])
@@ -61,7 +61,7 @@ class Gateway(models.Model):
     facts_seq = models.PositiveBigIntegerField(default=0)
     logs_instance = models.CharField(max_length=32, blank=True)
     logs_seq = models.PositiveBigIntegerField(default=0)
-    # Kept by the site's checks of what the gateway sends and holds (fleet/quarantine.py).
+    # Kept by the site's checks of what the gateway sends and holds (gateway_link/quarantine.py).
     quarantined = models.DateTimeField(
         null=True, blank=True, editable=False,
         help_text="When the site cut it off (its Redis user disabled, its streams no longer read); "
@@ -162,7 +162,7 @@ class ManagedNode(models.Model):
     first_seen = models.DateTimeField(null=True, blank=True)
     last_seen = models.DateTimeField(null=True, blank=True)
     state_changed = models.DateTimeField(null=True, blank=True)
-    # The audit chain (fleet/state_chain.py): the state the node's records leave it in, as of
+    # The audit chain (ingest/state_chain.py): the state the node's records leave it in, as of
     # when, and since when the node has been seen in another state that no record explains yet.
     audited_state_id = models.PositiveSmallIntegerField(null=True, blank=True, editable=False)
     audited_at = models.DateTimeField(null=True, blank=True, editable=False)
@@ -233,7 +233,7 @@ class NodeAbsence(models.Model):
 class GatewayOutage(models.Model):
     """A stretch of time a gateway could take no commands, and nothing received its robots'
     /rosout: from its last heartbeat before the site saw it offline, stopped or quarantined (or
-    before its process was restarted), to the first heartbeat after (fleet/outages.py, kept by the
+    before its process was restarted), to the first heartbeat after (ingest/outages.py, kept by the
     ingest process). The state timeline and the log consoles mark them. Pruned like absences."""
 
     gateway = models.ForeignKey(Gateway, on_delete=models.CASCADE, related_name="outages")

@@ -49,7 +49,7 @@ class ProcessProfile(models.Model):
     stop_grace_s = models.FloatField(default=10.0, validators=[MinValueValidator(0.0), MaxValueValidator(300.0)],
                                      help_text="After the stop signal, before SIGKILL.")
 
-    # As last reported by the gateway (fleet/process_facts.py); never edited.
+    # As last reported by the gateway (ingest/process_facts.py); never edited.
     status = models.CharField(max_length=16, choices=Status.choices, default=Status.UNKNOWN, editable=False)
     pid = models.PositiveIntegerField(null=True, blank=True, editable=False)
     status_since = models.DateTimeField(null=True, blank=True, editable=False)

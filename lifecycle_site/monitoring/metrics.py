@@ -16,8 +16,8 @@ from prometheus_client.utils import floatToGoString
 
 from lifecycle_site.alerts import metrics as alert_metrics
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.fleet import gateways
 from lifecycle_site.fleet.models import Gateway, GroupRun, ManagedNode
+from lifecycle_site.gateway_link import gateways
 
 # Seconds; a lifecycle transition takes milliseconds to a node's own timeout (at most 25 s here).
 DURATION_BUCKETS_S = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)

@@ -21,8 +21,9 @@ from django.views.decorators.http import require_GET
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
 
 from lifecycle_site.api.auth import api_view
-from lifecycle_site.fleet import gateways, ingest_shares
 from lifecycle_site.fleet.models import Gateway
+from lifecycle_site.gateway_link import gateways
+from lifecycle_site.ingest import shares
 from lifecycle_site.monitoring.metrics import FleetCollector
 
 READY_TIMEOUT_S = 2.0  # each dependency's answer, so a probe never hangs on a frozen Redis
@@ -43,7 +44,7 @@ def _database() -> str | None:
     return None
 
 
-# An ingest process reports each turn of its loop (fleet/ingest_shares.py); one whose last turn is
+# An ingest process reports each turn of its loop (ingest/shares.py); one whose last turn is
 # older than this is stalled (frozen, hung on the database, or stopped without a word).
 INGEST_STALLED_S = 10.0
 
@@ -58,7 +59,7 @@ def _redis() -> tuple[str | None, dict]:
         used, limit = int(memory.get("used_memory") or 0), int(memory.get("maxmemory") or 0)
         if limit and used >= limit:
             return f"Redis is full ({used:,} of its {limit:,} bytes): it refuses writes", {"state": "unknown"}
-        return None, _ingest(ingest_shares.turns(client, gateways.channel_prefix()))
+        return None, _ingest(shares.turns(client, gateways.channel_prefix()))
     except redis.RedisError as exc:
         return f"{type(exc).__name__}: {exc}", {"state": "unknown"}
     finally:

@@ -11,8 +11,8 @@ from typing import Any
 
 from django.core.management.base import DjangoHelpFormatter
 
-from lifecycle_site.fleet.gateway_client import MAX_SERVICE_TIMEOUT
 from lifecycle_site.fleet.models import GroupRun, ManagedNode
+from lifecycle_site.gateway_link.gateway_client import MAX_SERVICE_TIMEOUT
 from lifecycle_site.operations.runs import MAX_WAIT_S
 from ros_gateway.shared import operations, protocol
 from ros_gateway.shared import state_machine as sm

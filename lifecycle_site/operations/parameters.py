@@ -3,10 +3,10 @@ each name audited whatever fails), for the API and the node page alike."""
 from __future__ import annotations
 
 from lifecycle_site.audit.models import ParameterRecord
-from lifecycle_site.fleet import gateway_input as checks
-from lifecycle_site.fleet.facts import apply_facts
-from lifecycle_site.fleet.gateway_client import GatewayError, call_gateway
-from lifecycle_site.fleet.live_updates import AUDIT_STORED, push, record_messages
+from lifecycle_site.gateway_link import gateway_input as checks
+from lifecycle_site.gateway_link.gateway_client import GatewayError, call_gateway
+from lifecycle_site.ingest.facts import apply_facts
+from lifecycle_site.ingest.live_updates import AUDIT_STORED, push, record_messages
 from ros_gateway.shared import protocol
 
 

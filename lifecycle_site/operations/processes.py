@@ -19,10 +19,10 @@ from datetime import datetime
 from django.utils import timezone
 
 from lifecycle_site.audit.models import ProcessRecord
-from lifecycle_site.fleet.facts import apply_facts
-from lifecycle_site.fleet.gateway_client import MAX_SERVICE_TIMEOUT, GatewayError, call_gateway
-from lifecycle_site.fleet.live_updates import AUDIT_STORED, push
 from lifecycle_site.fleet.models import ManagedNode, ProcessProfile, Robot
+from lifecycle_site.gateway_link.gateway_client import MAX_SERVICE_TIMEOUT, GatewayError, call_gateway
+from lifecycle_site.ingest.facts import apply_facts
+from lifecycle_site.ingest.live_updates import AUDIT_STORED, push
 from lifecycle_site.refusal import Refusal, shown
 from ros_gateway.shared import protocol
 

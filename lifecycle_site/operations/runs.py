@@ -11,9 +11,10 @@ import uuid
 
 from django.db.models import F
 
-from lifecycle_site.fleet import roles, verdicts
-from lifecycle_site.fleet.gateway_client import GatewayError, call_gateway
+from lifecycle_site.fleet import roles
 from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
+from lifecycle_site.gateway_link.gateway_client import GatewayError, call_gateway
+from lifecycle_site.ingest import verdicts
 from lifecycle_site.refusal import Refusal
 from ros_gateway.shared import operations, protocol
 

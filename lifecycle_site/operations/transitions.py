@@ -1,7 +1,7 @@
 """Requesting one lifecycle transition on behalf of a user, for the API and the pages alike.
 
 The robot's gateway checks the transition against the node's real state, calls it and
-reports the outcome as facts with its reply; they are applied here (fleet.facts) before the
+reports the outcome as facts with its reply; they are applied here (ingest.facts) before the
 user gets the answer. What is refused before reaching the gateway is recorded here too, so
 every attempt lands in the audit log.
 """
@@ -12,12 +12,12 @@ from dataclasses import dataclass, field
 from django.utils import timezone
 
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.fleet import gateway_input as checks
-from lifecycle_site.fleet.fact_context import Hints
-from lifecycle_site.fleet.facts import apply_facts
-from lifecycle_site.fleet.gateway_client import GatewayError, call_gateway
-from lifecycle_site.fleet.live_updates import push, record_messages
 from lifecycle_site.fleet.models import ManagedNode
+from lifecycle_site.gateway_link import gateway_input as checks
+from lifecycle_site.gateway_link.gateway_client import GatewayError, call_gateway
+from lifecycle_site.ingest.fact_context import Hints
+from lifecycle_site.ingest.facts import apply_facts
+from lifecycle_site.ingest.live_updates import push, record_messages
 from lifecycle_site.refusal import Refusal, shown
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm

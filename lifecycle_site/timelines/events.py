@@ -1,5 +1,5 @@
 """What a timeline marks besides states: crashes, restarts and failed transitions (audit
-records) and the outages of the robot's gateway (fleet/outages.py), each with what an operator
+records) and the outages of the robot's gateway (ingest/outages.py), each with what an operator
 needs to look closer: the node's own reason, its audit record and the log lines of that moment.
 
 Bounded reads: the records come from those the timeline read anyway (their ids included), and

@@ -324,7 +324,7 @@ def unanswered_id(request_id: str) -> str:
 def vouching(command: dict, parameter: str | None = None) -> dict:
     """What the audit fact of a command carries of the site's word on who asked: its request id,
     the site's grant (for a transition; per parameter name for parameters) and the id the fact
-    must have (so that a grant makes at most one record), for lifecycle_site/fleet/attribution.py.
+    must have (so that a grant makes at most one record), for lifecycle_site/gateway_link/attribution.py.
     Empty for a command without grants (not the site's)."""
     request_id = str(command.get("request_id") or "")
     if parameter is None:

@@ -184,7 +184,7 @@
   }
 
   // -- gaps ---------------------------------------------------------------------------
-  // A stretch in which the gateway's process was down (log_views: fleet/outages.py): nothing
+  // A stretch in which the gateway's process was down (log_views: ingest/outages.py): nothing
   // received /rosout then. Marked where it falls among the lines, whatever the filters.
   function addGaps(gaps) {
     (gaps || []).forEach(function (gap) {

@@ -10,8 +10,8 @@ import pytest
 from playwright.sync_api import Page, expect
 
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.fleet import gateways, quarantine
 from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
+from lifecycle_site.gateway_link import gateways, quarantine
 from tests import stack
 from tests.browser.conftest import ARTIFACTS, DESKTOP, PHONE, ROBOT, sized_page
 from tests.integration.conftest import transition, wait_node
@@ -51,7 +51,7 @@ def cut_off_gateway(robot, live_db):
     yield row
     quarantine.lift(row)
     Robot.objects.filter(name="br-q").delete()
-    row.delete()  # and its Redis user (fleet/redis_users.py)
+    row.delete()  # and its Redis user (gateway_link/redis_users.py)
     gateways.forget_beats()
 
 

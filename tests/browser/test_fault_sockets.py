@@ -14,7 +14,7 @@ from playwright.sync_api import expect
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 
 from lifecycle_site.dashboard.consumers import TRY_AGAIN_LATER
-from lifecycle_site.fleet import gateways
+from lifecycle_site.gateway_link import gateways
 from tests import stack
 from tests.benchmarks.web import Http, ws_connect
 from tests.browser.conftest import PASSWORD, ROBOT, submit_login

@@ -15,8 +15,8 @@ from django.test import Client
 from django.utils import timezone
 
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.fleet import gateways
 from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
+from lifecycle_site.gateway_link import gateways
 from tests import stack
 from tests.deploy import engine
 from tests.deploy.test_host_units import activate_as_desired

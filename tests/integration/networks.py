@@ -16,8 +16,8 @@ import pytest
 from django.core.management import call_command
 
 from lifecycle_site import local_redis
-from lifecycle_site.fleet import gateways as gateway_status
 from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
+from lifecycle_site.gateway_link import gateways as gateway_status
 from tests import netns, stack
 
 # Subnets of the layouts; the site's host has .254 on every LAN it is plugged into.

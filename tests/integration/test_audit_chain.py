@@ -13,9 +13,9 @@ import pytest
 from django.core.management import call_command
 
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.fleet import gateways
-from lifecycle_site.fleet.gateway_client import GatewayError, call_gateway
 from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
+from lifecycle_site.gateway_link import gateways
+from lifecycle_site.gateway_link.gateway_client import GatewayError, call_gateway
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 from tests import stack

@@ -10,8 +10,8 @@ import redis
 from django.conf import settings
 
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.fleet import gateways
 from lifecycle_site.fleet.models import ManagedNode, Robot
+from lifecycle_site.gateway_link import gateways
 from ros_gateway.shared import protocol
 from tests import stack
 from tests.integration.conftest import register, transition, wait_node

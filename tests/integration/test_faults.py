@@ -24,8 +24,8 @@ from django.utils import timezone
 from lifecycle_site.audit.models import ParameterRecord, TransitionRecord
 from lifecycle_site.dashboard.consumers import TRY_AGAIN_LATER
 from lifecycle_site.dashboard.routing import websocket_urlpatterns
-from lifecycle_site.fleet import gateways
 from lifecycle_site.fleet.models import Gateway, GroupRun, Robot
+from lifecycle_site.gateway_link import gateways
 from ros_gateway.shared import protocol
 from tests import stack
 from tests.conftest import make_user, session_of

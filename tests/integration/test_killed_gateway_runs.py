@@ -9,8 +9,8 @@ import pytest
 from django.core.management import call_command
 
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.fleet import gateways
 from lifecycle_site.fleet.models import Gateway, GroupRun, Robot
+from lifecycle_site.gateway_link import gateways
 from tests import stack
 from tests.integration.conftest import register, transition, wait_node
 

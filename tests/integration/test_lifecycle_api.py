@@ -8,9 +8,9 @@ import pytest
 from django.core.cache import cache
 
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.fleet import gateways
-from lifecycle_site.fleet.gateways import channel_prefix
 from lifecycle_site.fleet.models import LogRecord
+from lifecycle_site.gateway_link import gateways
+from lifecycle_site.gateway_link.gateways import channel_prefix
 from ros_gateway.shared import protocol
 from tests import stack
 from tests.integration.conftest import register, transition, wait_node

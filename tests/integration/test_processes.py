@@ -13,8 +13,8 @@ from django.test import Client
 from django.utils import timezone
 
 from lifecycle_site.audit.models import ProcessRecord, TransitionRecord
-from lifecycle_site.fleet.gateway_client import GatewayError, call_gateway
 from lifecycle_site.fleet.models import ManagedNode, ProcessProfile, Robot
+from lifecycle_site.gateway_link.gateway_client import GatewayError, call_gateway
 from tests import stack
 from tests.conftest import make_user
 from tests.integration.conftest import register, wait_node

@@ -20,8 +20,9 @@ from django.test import Client
 from lifecycle_site.alerts.models import Alert, Rule
 from lifecycle_site.api.models import ApiToken
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.fleet import gateways, ingest_shares
 from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
+from lifecycle_site.gateway_link import gateways
+from lifecycle_site.ingest import shares
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 from tests import stack
@@ -70,7 +71,7 @@ def attacker(name: str, tmp: Path) -> redis.Redis:
     url = credentials(name, tmp)["REDIS_URL"]
     client = redis.Redis.from_url(url, socket_timeout=30)
     client.url = url  # type: ignore[attr-defined]
-    lease = ingest_shares.gateway_lease_key(gateways.channel_prefix(), name)
+    lease = shares.gateway_lease_key(gateways.channel_prefix(), name)
     stack.wait_for(lambda: stack.redis_client().exists(lease), 15, f"an ingest process reading {name}'s streams")
     return client
 

@@ -10,7 +10,7 @@ def fresh_site_caches():
 
     from lifecycle_site.api.grants import forget
     from lifecycle_site.dashboard import fragments
-    from lifecycle_site.fleet import gateways
+    from lifecycle_site.gateway_link import gateways
 
     forget()
     gateways.forget()

@@ -12,8 +12,8 @@ from django.utils import timezone
 from lifecycle_site.alerts import lifecycle
 from lifecycle_site.alerts.engine import Evaluator
 from lifecycle_site.alerts.models import Alert, Rule
-from lifecycle_site.fleet.management.commands.ingest import Ingest
 from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
+from lifecycle_site.ingest.management.commands.ingest import Ingest
 from lifecycle_site.refusal import Refusal
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm

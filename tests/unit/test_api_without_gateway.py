@@ -10,8 +10,8 @@ from django.test import Client
 from django.utils import timezone
 
 from lifecycle_site.audit.models import AppendOnlyError, TransitionRecord
-from lifecycle_site.fleet import gateways
 from lifecycle_site.fleet.models import ManagedNode, Robot
+from lifecycle_site.gateway_link import gateways
 from ros_gateway.shared import state_machine as sm
 from tests import stack
 
@@ -178,8 +178,8 @@ def test_logs_endpoint_filters_by_level(operator_client, node):
 
 def test_log_history_is_pruned_by_count_per_logger_and_by_age(db):
 
-    from lifecycle_site.fleet.log_store import prune_logs
     from lifecycle_site.fleet.models import LogRecord
+    from lifecycle_site.ingest.log_store import prune_logs
 
     robot = Robot.objects.create(name="chatty", domain_id=98)
     now = timezone.now()

@@ -249,7 +249,7 @@ def test_refusals_before_any_view_can_answer_in_json():
 
 def test_no_two_apps_of_the_site_import_each_other():
     """Each pair of the site's apps depends one way at most (alerts watch fleet through
-    fleet/watchers.py; the API's alert endpoints live in api; timelines are their own package)."""
+    ingest/watchers.py; the API's alert endpoints live in api; timelines are their own package)."""
     apps = sorted(p.name for p in (ROOT / "lifecycle_site").iterdir() if (p / "__init__.py").exists())
     uses: dict[str, set[str]] = {app: set() for app in apps}
     for app in apps:

@@ -9,8 +9,8 @@ from django.test import Client
 from django.utils import timezone
 
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.fleet import gateways
 from lifecycle_site.fleet.models import Gateway, LogRecord, ManagedNode, Robot
+from lifecycle_site.gateway_link import gateways
 from ros_gateway.shared import state_machine as sm
 from tests import stack
 from tests.conftest import make_user

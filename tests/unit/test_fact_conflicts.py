@@ -12,8 +12,8 @@ import pytest
 from django.db import connection, transaction
 
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.fleet.facts import apply_facts
 from lifecycle_site.fleet.models import Gateway, GroupRun, ManagedNode, Robot
+from lifecycle_site.ingest.facts import apply_facts
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 from tests.gateway_part import GatewayPart

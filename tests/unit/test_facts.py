@@ -1,4 +1,4 @@
-"""What a gateway reports becomes rows, once: fleet.facts.apply_facts, the one writer used by
+"""What a gateway reports becomes rows, once: ingest.facts.apply_facts, the one writer used by
 the ingest process and by the request path alike."""
 from __future__ import annotations
 
@@ -7,10 +7,10 @@ from datetime import datetime, timedelta, timezone
 import pytest
 
 from lifecycle_site.audit.models import ParameterRecord, TransitionRecord
-from lifecycle_site.fleet.fact_context import Hints
-from lifecycle_site.fleet.facts import apply_facts
 from lifecycle_site.fleet.models import Gateway, GroupRun, ManagedNode, NodeAbsence, Robot
 from lifecycle_site.fleet.serializers import node_dict
+from lifecycle_site.ingest.fact_context import Hints
+from lifecycle_site.ingest.facts import apply_facts
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 from tests.conftest import make_user
@@ -212,7 +212,7 @@ def test_facts_about_robots_the_gateway_does_not_own_are_refused_and_never_store
 
 def test_a_replys_facts_with_the_request_paths_hints_cost_seven_queries(cell, django_assert_num_queries):
     """BEGIN, the node's state, the record's fact id, where the node's records leave it and the
-    insert, the node's audited state (the chain, fleet/state_chain.py), COMMIT: no savepoint per
+    insert, the node's audited state (the chain, ingest/state_chain.py), COMMIT: no savepoint per
     fact, no second read of the node, robot or user the request already holds."""
     part, robot = cell
     user = make_user("hint-operator", "operator")

@@ -18,8 +18,8 @@ from django.core.management import call_command
 from django.core.management.base import CommandError
 
 from lifecycle_site import local_redis
-from lifecycle_site.fleet import gateways
 from lifecycle_site.fleet.models import Gateway
+from lifecycle_site.gateway_link import gateways
 from ros_gateway.shared import protocol
 from tests import stack
 

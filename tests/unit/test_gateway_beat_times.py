@@ -10,10 +10,10 @@ from datetime import datetime, timedelta, timezone
 
 import pytest
 
-from lifecycle_site.fleet import gateways
-from lifecycle_site.fleet.management.commands.ingest import Ingest
 from lifecycle_site.fleet.models import Gateway, Robot
-from lifecycle_site.fleet.stream_entries import MAX_CLOCK_SKEW, beat_fields
+from lifecycle_site.gateway_link import gateways
+from lifecycle_site.gateway_link.stream_entries import MAX_CLOCK_SKEW, beat_fields
+from lifecycle_site.ingest.management.commands.ingest import Ingest
 from ros_gateway.shared import protocol
 from tests import stack
 from tests.gateway_part import clear_streams, forget_ingest_processes

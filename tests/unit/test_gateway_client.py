@@ -1,4 +1,4 @@
-"""The site's side of a gateway command (lifecycle_site/fleet/gateway_client.py) on the real Redis,
+"""The site's side of a gateway command (lifecycle_site/gateway_link/gateway_client.py) on the real Redis,
 the gateway's part played by the test as the wire contract says: what is sent, a reply taken
 (and one the site cannot read refused in words), a refusal's code kept, a gateway offline or
 silent answered without waiting for nothing, and a command nobody took withdrawn, on record as
@@ -10,8 +10,8 @@ import threading
 
 import pytest
 
-from lifecycle_site.fleet import gateways
-from lifecycle_site.fleet.gateway_client import (
+from lifecycle_site.gateway_link import gateways
+from lifecycle_site.gateway_link.gateway_client import (
     MAX_SERVICE_TIMEOUT,
     GatewayError,
     GatewayOffline,

@@ -12,8 +12,8 @@ import pytest
 from django.test import Client
 
 from lifecycle_site.audit.models import ParameterRecord, TransitionRecord
-from lifecycle_site.fleet import gateways
 from lifecycle_site.fleet.models import Gateway, GroupRun, ManagedNode, Robot
+from lifecycle_site.gateway_link import gateways
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 from tests.conftest import make_user

@@ -14,10 +14,11 @@ from channels.layers import get_channel_layer
 from django.test import Client
 
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.fleet import gateways, ingest_shares, redis_users
-from lifecycle_site.fleet.management.commands import ingest as ingest_command
-from lifecycle_site.fleet.management.commands.ingest import Ingest
 from lifecycle_site.fleet.models import Gateway, LogRecord, ManagedNode, Robot
+from lifecycle_site.gateway_link import gateways, redis_users
+from lifecycle_site.ingest import shares
+from lifecycle_site.ingest.management.commands import ingest as ingest_command
+from lifecycle_site.ingest.management.commands.ingest import Ingest
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 from tests import stack
@@ -235,7 +236,7 @@ def test_the_ingest_process_catches_up_in_order_after_a_stop(cell):
 
 def test_runs_of_a_gateway_silent_past_the_bound_end_failed_and_others_stay(cell, settings):
     from lifecycle_site.fleet.models import GroupRun
-    from lifecycle_site.fleet.run_orphans import fail_runs_of_silent_gateways
+    from lifecycle_site.ingest.run_orphans import fail_runs_of_silent_gateways
 
     _part, robot = cell
     other = Robot.objects.create(name="ingest-arm", domain_id=43, gateway=Gateway.objects.create(name="cell-j"))
@@ -292,11 +293,11 @@ def test_two_ingest_processes_share_the_gateways_and_apply_nothing_twice(cell):
         def shared() -> bool:
             """Both hold some of these gateways, and each gateway is held by one of them."""
             held = [set(t.get("gateways") or []) & set(robots)
-                    for t in ingest_shares.turns(part.redis, part.prefix) if t["pid"] in (first.pid, second.pid)]
+                    for t in shares.turns(part.redis, part.prefix) if t["pid"] in (first.pid, second.pid)]
             return len(held) == 2 and all(held) and not held[0] & held[1] and held[0] | held[1] == set(robots)
 
         stack.wait_for(shared, 30, "the two processes sharing the four gateways")
-        print("DEBUG", ingest_shares.turns(part.redis, part.prefix), first.pid, second.pid)
+        print("DEBUG", shares.turns(part.redis, part.prefix), first.pid, second.pid)
         transitions = TransitionRecord.objects.filter(robot_name__startswith="ingest-agv").exclude(outcome="observed")
         assert transitions.count() == 4  # (the states no record explains are the chain's: observed)
         for p in parts:

@@ -11,8 +11,8 @@ import pytest
 from asgiref.sync import async_to_sync
 from channels.layers import get_channel_layer
 
-from lifecycle_site.fleet import live_updates
-from lifecycle_site.fleet.gateways import redis_client
+from lifecycle_site.gateway_link.gateways import redis_client
+from lifecycle_site.ingest import live_updates
 from ros_gateway.shared import protocol
 
 GROUP = "unit-live-updates"
@@ -61,7 +61,7 @@ def test_a_request_does_not_wait_for_its_push_and_the_push_arrives(server_loop):
 def test_pushes_waiting_for_the_loop_are_bounded(server_loop, monkeypatch, caplog):
     monkeypatch.setattr(live_updates, "MAX_PENDING", 2)
     busy(server_loop, 1.0)
-    with caplog.at_level(logging.WARNING, logger="lifecycle_site.fleet.live_updates"):
+    with caplog.at_level(logging.WARNING, logger="lifecycle_site.ingest.live_updates"):
         for n in range(3):
             live_updates.push([(GROUP, {"type": "audit.record", "record": {"id": n}})])
     assert live_updates.pending() == 2
@@ -92,7 +92,7 @@ def test_outside_the_server_pushes_share_one_kept_loop_and_a_hung_one_is_bounded
     monkeypatch.setattr(live_updates, "SEND_TIMEOUT_S", 0.2)
     busy(loop, 1.0)
     began = time.monotonic()
-    with caplog.at_level(logging.WARNING, logger="lifecycle_site.fleet.live_updates"):
+    with caplog.at_level(logging.WARNING, logger="lifecycle_site.ingest.live_updates"):
         live_updates.push([(GROUP, {"type": "audit.record", "record": {"id": 4}})])
     assert time.monotonic() - began < 0.5
     assert "could not push 1 of 1 live updates: not sent within 0.2 s" in caplog.text

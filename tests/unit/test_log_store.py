@@ -9,10 +9,10 @@ import pytest
 from django.db import IntegrityError, connection
 from django.utils import timezone as dj_timezone
 
-from lifecycle_site.fleet import log_store as store
-from lifecycle_site.fleet.fact_context import FactRejected
-from lifecycle_site.fleet.log_store import LogRow
 from lifecycle_site.fleet.models import Gateway, LogRecord, ManagedNode, Robot
+from lifecycle_site.gateway_link.gateway_input import FactRejected
+from lifecycle_site.ingest import log_store as store
+from lifecycle_site.ingest.log_store import LogRow
 from ros_gateway.shared import protocol
 
 COLUMNS = ["id", *(LogRecord._meta.get_field(name).column for name in LogRow._fields)]

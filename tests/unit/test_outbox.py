@@ -8,7 +8,7 @@ import json
 import pytest
 from django.conf import settings
 
-from lifecycle_site.fleet.gateways import channel_prefix
+from lifecycle_site.gateway_link.gateways import channel_prefix
 from ros_gateway.outbox import FLUSH_BATCH, Outbox
 from ros_gateway.relay import Relay
 from ros_gateway.shared import protocol

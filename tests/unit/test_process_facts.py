@@ -1,4 +1,4 @@
-"""A gateway's process facts (lifecycle_site/fleet/process_facts.py): one audit record each, the
+"""A gateway's process facts (lifecycle_site/ingest/process_facts.py): one audit record each, the
 profile's status following them, who asked only as far as the site vouches, and every field of a
 stranger's fact checked."""
 from __future__ import annotations
@@ -6,9 +6,9 @@ from __future__ import annotations
 import pytest
 
 from lifecycle_site.audit.models import ProcessRecord
-from lifecycle_site.fleet.facts import apply_facts
-from lifecycle_site.fleet.gateway_config import build_config
 from lifecycle_site.fleet.models import Gateway, ProcessProfile, Robot
+from lifecycle_site.gateway_link.gateway_config import build_config
+from lifecycle_site.ingest.facts import apply_facts
 from ros_gateway.shared import protocol
 from tests.conftest import make_user
 from tests.gateway_part import GatewayPart

@@ -11,8 +11,8 @@ from django.test import Client
 from django.utils import timezone
 
 from lifecycle_site.audit.models import ProcessRecord
-from lifecycle_site.fleet import gateways
 from lifecycle_site.fleet.models import ProcessProfile, Robot
+from lifecycle_site.gateway_link import gateways
 from ros_gateway.shared import protocol
 from tests import stack
 from tests.conftest import make_user

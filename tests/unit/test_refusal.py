@@ -6,8 +6,8 @@ import pytest
 from django.test import Client
 
 from lifecycle_site.alerts.lifecycle import acknowledge
-from lifecycle_site.fleet.gateway_client import GatewayNoAnswer, GatewayOffline
 from lifecycle_site.fleet.models import Robot
+from lifecycle_site.gateway_link.gateway_client import GatewayNoAnswer, GatewayOffline
 from lifecycle_site.operations.runs import start_run
 from lifecycle_site.refusal import Refusal
 from tests.conftest import make_user

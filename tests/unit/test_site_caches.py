@@ -23,8 +23,8 @@ from django.utils import timezone
 from lifecycle_site.api import grants
 from lifecycle_site.api.models import ApiToken, hash_token
 from lifecycle_site.dashboard import consumers, snapshots
-from lifecycle_site.fleet import gateway_client, gateways
 from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
+from lifecycle_site.gateway_link import gateway_client, gateways
 from lifecycle_site.prefix import script_prefix
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm

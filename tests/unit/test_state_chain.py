@@ -1,4 +1,4 @@
-"""The audit state chain (fleet/state_chain.py) as facts build it: a state no record explains
+"""The audit state chain (ingest/state_chain.py) as facts build it: a state no record explains
 becomes an observed record naming its likely cause, unless its record comes in the next batch."""
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ from datetime import datetime, timedelta, timezone
 import pytest
 
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.fleet.facts import apply_facts
 from lifecycle_site.fleet.models import Gateway, GroupRun, Robot
+from lifecycle_site.ingest.facts import apply_facts
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 from tests.conftest import make_user
@@ -26,7 +26,7 @@ def test_a_change_no_record_explains_becomes_an_observed_record_with_its_likely_
     """Requirement 5 of issue 25: the chain of a node's records has no gap. A gateway killed
     while an activate was under way: the request timed out, the node went active anyway, and
     the new gateway reports it active. After a grace the site records what it found."""
-    from lifecycle_site.fleet import state_chain
+    from lifecycle_site.ingest import state_chain
 
     part, robot = cell
     user = make_user("chain-operator", "operator")
@@ -81,7 +81,7 @@ def test_a_change_undone_by_the_next_request_is_bridged_though_its_reply_shows_t
 def test_a_change_undone_before_any_record_comes_makes_no_observed_record(cell):
     """Seen away from its records' state and back again, with no record starting elsewhere:
     nothing to record (the settle clears the mark)."""
-    from lifecycle_site.fleet import state_chain
+    from lifecycle_site.ingest import state_chain
 
     part, robot = cell
     apply_facts("cell-f", [part.fact(protocol.NODE_STATE, robot=robot.name, node="/lidar", state_id=sm.INACTIVE),
@@ -98,7 +98,7 @@ def test_a_change_undone_before_any_record_comes_makes_no_observed_record(cell):
 
 
 def test_a_state_whose_record_comes_in_the_next_batch_makes_no_observed_record(cell):
-    from lifecycle_site.fleet import state_chain
+    from lifecycle_site.ingest import state_chain
 
     part, robot = cell
     apply_facts("cell-f", [part.fact(protocol.NODE_STATE, robot=robot.name, node="/lidar", state_id=sm.INACTIVE)])

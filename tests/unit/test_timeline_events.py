@@ -12,9 +12,9 @@ import pytest
 
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.dashboard import timeline_drawing as td
-from lifecycle_site.fleet import gateways as gw
-from lifecycle_site.fleet import outages
 from lifecycle_site.fleet.models import Gateway, GatewayOutage, LogRecord, ManagedNode, Robot
+from lifecycle_site.gateway_link import gateways as gw
+from lifecycle_site.ingest import outages
 from lifecycle_site.timelines import events as te
 from lifecycle_site.timelines import node as tl
 from lifecycle_site.timelines import windows as tw

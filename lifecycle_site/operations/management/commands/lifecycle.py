@@ -15,8 +15,8 @@ from django.core.management.base import BaseCommand, CommandError
 from django.db import DatabaseError
 from django.db.models import Q
 
-from lifecycle_site.fleet.gateway_client import GatewayError, GatewayOffline, call_gateway
 from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
+from lifecycle_site.gateway_link.gateway_client import GatewayError, GatewayOffline, call_gateway
 from lifecycle_site.operations import cli_output as out
 from lifecycle_site.operations import processes
 from lifecycle_site.operations.runs import start_run, wait_for

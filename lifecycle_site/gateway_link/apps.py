@@ -1,0 +1,15 @@
+from django.apps import AppConfig
+
+
+class GatewayLinkConfig(AppConfig):
+    """The site's link to its gateways: commands and their replies, heartbeats, configs, Redis users
+    and quotas, quarantines, and the checks of everything a gateway sends."""
+
+    name = "lifecycle_site.gateway_link"
+    verbose_name = "Gateway link"
+
+    def ready(self) -> None:
+        from lifecycle_site.gateway_link import (  # noqa: F401
+            gateway_config,  # its signals publish configs
+            redis_users,  # its signal drops a deleted gateway's user
+        )
