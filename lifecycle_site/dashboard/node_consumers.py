@@ -43,8 +43,11 @@ class NodeConsumer(RunPanels, LiveConsumer):
         return snapshots.node_gateway(self.key)
 
     async def send_snapshot(self) -> None:
+        """The node as stored. It never clears a transition's result on the page: a click made
+        while the socket opened may have been answered before this was read, and the live update
+        of its new state comes right after this (this consumer's messages wait for it)."""
         node = await database_sync_to_async(snapshots.one_node)(self.key)
-        await self.node_state({"node": node})
+        await self.show_state(node, snapshot=True)
         last = await database_sync_to_async(last_record, thread_sensitive=False)(self.key)
         await self.send_last(last)
 
@@ -71,15 +74,18 @@ class NodeConsumer(RunPanels, LiveConsumer):
                 await self.send_html("dashboard/_node_gateway.html", {"gateway": view, "oob": True})
 
     async def node_state(self, event: dict) -> None:
+        await self.show_state(event["node"])
+
+    async def show_state(self, node: dict, snapshot: bool = False) -> None:
         def render() -> str:
-            panel = snapshots.state_panel(event["node"], self.gateway_offline, self.gateway_known_at)
-            context = {**panel, "can_operate": self.can_operate, "oob": True}
+            panel = snapshots.state_panel(node, self.gateway_offline, self.gateway_known_at)
+            context = {**panel, "can_operate": self.can_operate, "oob": True, "snapshot": snapshot}
             with script_prefix(self.prefix):
                 return render_to_string("dashboard/_node_state.html", context) + render_to_string(
                     "dashboard/_node_restart.html", context)
 
-        key = ("node-state", self.prefix, self.can_operate, self.gateway_offline, self.gateway_known_at,
-               event["node"])
+        key = ("node-state", self.prefix, self.can_operate, self.gateway_offline, self.gateway_known_at, snapshot,
+               node)
         await self.send(text_data=fragments.rendered(key, render))
 
     async def audit_record(self, event: dict) -> None:
