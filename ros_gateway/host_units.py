@@ -182,9 +182,11 @@ class HostUnits:
     """Attributes nodes' processes to containers and units, and acts on them for the robot."""
 
     def __init__(self, report: Callable[..., dict], docker: DockerEngine, systemd: Systemd,
-                 proc: Path = Path("/proc")) -> None:
-        """report(**fields) emits one process fact and returns it."""
+                 proc: Path = Path("/proc"), on_launch: Callable[[], None] = lambda: None) -> None:
+        """report(**fields) emits one process fact and returns it; on_launch() once a unit was
+        started (or restarted) by its supervisor, before its state is read back."""
         self._report, self.docker, self.systemd, self.proc = report, docker, systemd, proc
+        self._on_launch = on_launch
         self._cgroups: OrderedDict[str, HostUnit | None] = OrderedDict()  # cgroup path -> its unit
         self._units: OrderedDict[tuple[str, str], HostUnit] = OrderedDict()  # (robot, name) -> unit
         self._locks: dict[HostUnit, asyncio.Lock] = {}
@@ -267,6 +269,7 @@ class HostUnits:
                     stopped = await self._status(unit)
                 if action in ("start", "restart"):
                     await self._act(unit, "start", before.grace)
+                    self._on_launch()
                 after = await self._status(unit)
             except UnitError as exc:
                 log.warning("%s: %s failed: %s", what, action, exc)

@@ -87,7 +87,8 @@ class Gateway:
         self.owner = leftovers.owner(config.name, config.redis_url, config.prefix)  # (its processes' mark)
         self.supervisor = Supervisor(self._report_process, self.logs.on_output, self.owner, self.discovery.hurry)
         # Containers and systemd units of this host that run robots' nodes, and their supervisors.
-        self.units = HostUnits(self._report_process, DockerEngine(config.docker_socket), Systemd(config.systemd))
+        self.units = HostUnits(self._report_process, DockerEngine(config.docker_socket), Systemd(config.systemd),
+                               on_launch=self.discovery.hurry)
         self.owners = ProcessOwners(self.registry, self.processes, self.supervisor.pids, self._report_owner,
                                     self.units)
         self.commands = CommandHandler(Parts(self.relay, self.registry, self.domains, self.driver, self.params,

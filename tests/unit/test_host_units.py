@@ -118,7 +118,9 @@ def control(units: HostUnits, action: str, robot: str = "agv-1", name: str = "sy
 
 def test_restart_stop_and_start_of_an_attributed_unit_are_reported(tmp_path):
     systemctl = FakeSystemctl(tmp_path)
-    units = HostUnits(lambda **f: f, DockerEngine(""), systemctl)
+    launched: list[str] = []  # (the gateway's discovery then looks for the unit's nodes often)
+    units = HostUnits(lambda **f: f, DockerEngine(""), systemctl,
+                      on_launch=lambda: launched.append(systemctl.calls.read_text().split()[-2]))
     units.attribute("agv-1", HostUnit("systemd", "agv-drivers.service", "systemd:agv-drivers.service"))
 
     restart = control(units, "restart")
@@ -134,6 +136,7 @@ def test_restart_stop_and_start_of_an_attributed_unit_are_reported(tmp_path):
     assert (again["outcome"], again["message"]) == ("rejected", "Unit agv-drivers.service of agv-1 is not running.")
     start = control(units, "start")
     assert (start["outcome"], start["pid"], start["exit_signal"]) == ("succeeded", 4102, None)
+    assert launched == ["start", "start"]  # once the restart's and the start's start had run, not on a stop
 
 
 def test_only_a_unit_attributed_to_that_robot_is_acted_on(tmp_path):
