@@ -23,7 +23,9 @@ from django.utils.crypto import constant_time_compare, salted_hmac
 
 from ros_gateway.shared import protocol
 
-SALT = "lifecycle_site.gateway_link.attribution"
+# Part of the grants' key (salted_hmac), not a module path: changing it voids every grant in flight
+# (their records would lose who asked), so it keeps the name of the module that first held it.
+SALT = "lifecycle_site.fleet.attribution"
 GATEWAY_SOURCES = ("external", "recovery")  # what a gateway may say on its own
 GATEWAY_PROCESS_SOURCES = ("supervisor", "config", "external")  # ... of a supervised process
 
