@@ -233,13 +233,7 @@ class Discovery:
         while unanswered, domain.RESEND_AFTER_S)."""
         if node.key not in self._first_reads:
             self._first_reads.add(node.key)
-            spawn(self._first_read(node))
-
-    async def _first_read(self, node: LiveNode) -> None:
-        try:
-            await self.read_state(node)
-        finally:
-            self._first_reads.discard(node.key)
+            spawn(self.read_state(node)).add_done_callback(lambda _: self._first_reads.discard(node.key))
 
     async def read_state(self, node: LiveNode) -> bool | None:
         """Read the node's state; False if it did not answer, None if not asked (a command

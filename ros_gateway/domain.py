@@ -47,9 +47,10 @@ COMMAND_DISCOVERY_WAIT_S = 6.0
 # Watched nodes per shard (its own rclpy node, executor and thread).
 NODES_PER_SHARD = 12
 # A node whose process ended keeps its clients and event subscription this long: the next process
-# under its name (a restart; a respawn waits up to 30 s, supervisor.MAX_RESPAWN_DELAY_S) matches them
-# while it starts, so the first calls into it are answered at once instead of after a new client's
-# own discovery (0.2-0.5 s after 50 nodes appeared at once). Kept, they cost nothing until dropped.
+# under its name (a restart; a crash's respawn after its back-off, up to 30 s unless its profile asks
+# for a longer delay) matches them while it starts, so the first calls into it are answered at once
+# instead of after a new client's own discovery (0.2-0.5 s after 50 nodes appeared at once). Kept,
+# they hold their places on their shard and are matched by DDS, but nothing is sent or handed on.
 KEEP_GONE_S = 35.0
 # The service list (thousands of entries in a big domain) is re-read on each discovery pass
 # while the set of running nodes changes and for a while after; otherwise this often.
@@ -296,16 +297,15 @@ class RosDomain:
         if keep and fqn in self._shard_of:
             self._kept[fqn] = time.monotonic() + KEEP_GONE_S
             return
-        self._kept.pop(fqn, None)
         shard = self._shard_of.pop(fqn, None)
-        if shard is None:
-            return
-        shard.watched.discard(fqn)
-        subscription = self._event_subscriptions.pop(fqn, None)
-        if subscription is not None:
-            shard.node.destroy_subscription(subscription)
-        for key in [k for k in self._clients if k[0] == fqn]:
-            shard.node.destroy_client(self._clients.pop(key))
+        if shard is not None:
+            shard.watched.discard(fqn)
+            subscription = self._event_subscriptions.pop(fqn, None)
+            if subscription is not None:
+                shard.node.destroy_subscription(subscription)
+            for key in [k for k in self._clients if k[0] == fqn]:
+                shard.node.destroy_client(self._clients.pop(key))
+        self._kept.pop(fqn, None)  # (after: an event of a kept node is not handed on while it goes)
 
     def drop_kept(self) -> None:
         """Forget the gone nodes kept longer than KEEP_GONE_S."""
