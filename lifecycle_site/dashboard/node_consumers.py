@@ -43,9 +43,9 @@ class NodeConsumer(RunPanels, LiveConsumer):
         return snapshots.node_gateway(self.key)
 
     async def send_snapshot(self) -> None:
-        """The node as stored. It never clears a transition's result on the page: a click made
-        while the socket opened may have been answered before this was read, and the live update
-        of its new state comes right after this (this consumer's messages wait for it)."""
+        """The node as stored. It clears only the results the page showed before its socket
+        opened: a click made while the socket opened may have been answered before this was read
+        (the live update of its new state comes right after this: the consumer's messages wait)."""
         node = await database_sync_to_async(snapshots.one_node)(self.key)
         await self.show_state(node, snapshot=True)
         last = await database_sync_to_async(last_record, thread_sensitive=False)(self.key)

@@ -36,6 +36,14 @@
     banner(true);
   });
   document.addEventListener("htmx:wsOpen", function () { linkRetries = 0; });
+  // A transition's result on the page as its socket (re)opens is older than the snapshot the server
+  // sends now, which may clear it (templates/dashboard/_node_state.html); a result that comes later
+  // (a click answered while that snapshot was read) is newer, and stays.
+  document.addEventListener("htmx:wsOpen", function () {
+    document.querySelectorAll("#transition-result > .result").forEach(function (el) {
+      el.setAttribute("data-before-socket", "");
+    });
+  });
   document.addEventListener("htmx:wsError", function () { banner(true); });
   document.addEventListener("htmx:wsOpen", function () { banner(false); });
   window.lifecycleBanner = banner;
