@@ -26,6 +26,7 @@ from ros_gateway.shared import state_machine as sm
 log = logging.getLogger(__name__)
 
 GRACE_S = 5.0
+UNANSWERED_LOOKBACK = 20  # records without a result looked through for an unanswered request
 RUN_CONTEXT = timedelta(minutes=10)  # a run that ended this long before still names the cause
 
 
@@ -76,21 +77,40 @@ def bridge(node: ManagedNode, start: int | None, requested_at: datetime) -> Tran
     has seen the node there, unexplained (the change in between reached no record, and the
     operator acted on the state seen before the sweep came): the change in between is recorded
     first, as ``observed``. Not when the site has not seen it: the record that explains it may
-    still be on its way (the ingest behind the request path)."""
+    still be on its way (the ingest behind the request path); unless a request after the last
+    known result was left unanswered by a gateway whose process ended: none can come then."""
     if start is None or not sm.is_primary(start):
         return None
     found = next(iter(ManagedNode.objects.filter(pk=node.pk).order_by().values_list(
         "audited_state_id", "audited_at", "unexplained_since")), None)
     # (No record yet: the first state seen only marks where the chain may begin; the first
     # record says where it does. Its own result may even have been seen first.)
-    if found is None or found[0] is None or found[1] is None or found[2] is None or found[0] == start:
+    if found is None or found[0] is None or found[1] is None or found[0] == start:
         return None
     audited, _, since = found
+    if since is None:
+        since = _unanswered_since(node, requested_at)
+        if since is None:
+            return None
     moment = min(since, requested_at - timedelta(microseconds=1))
     node.audited_state_id, node.unexplained_since = audited, moment
     record = observed(node, moment, found_state=start)
     ManagedNode.objects.filter(pk=node.pk).update(audited_state_id=start, audited_at=moment, unexplained_since=None)
     return record
+
+
+def _unanswered_since(node: ManagedNode, before: datetime) -> datetime | None:
+    """Just after the request left unanswered because its gateway's process ended (the site's own
+    record: timed out, no result, no completion), if one came after the node's last known result:
+    the node went on without a record, and none can come now (the site has not seen its new state
+    yet when the next request's reply is stored before the new gateway's state fact)."""
+    for record in TransitionRecord.objects.filter(node=node, requested_at__lt=before).order_by(
+            "-requested_at", "-id")[:UNANSWERED_LOOKBACK]:
+        if record.result_state_id is not None:
+            return None
+        if record.outcome == TransitionRecord.Outcome.TIMED_OUT and record.completed_at is None:
+            return record.requested_at + timedelta(microseconds=1)
+    return None
 
 
 def settle(now: datetime | None = None) -> list[TransitionRecord]:
