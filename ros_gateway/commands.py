@@ -12,12 +12,11 @@ from ros_gateway.groups import GroupRunner
 from ros_gateway.host_units import HostUnits
 from ros_gateway.lifecycle import NodeUnreachable, available_states, available_transitions, read_state
 from ros_gateway.node_driver import DELIVERY_WAIT_S, NodeDriver, NodeUnreachableRecorded
-from ros_gateway.outbox import Outbox
 from ros_gateway.param_keeper import ParameterKeeper
+from ros_gateway.parts import Core
 from ros_gateway.process_usage import ProcessUsage
 from ros_gateway.recovery import Recovery
-from ros_gateway.registry import LiveNode, NodeRegistry, RobotInfo
-from ros_gateway.relay import Relay
+from ros_gateway.registry import LiveNode, RobotInfo
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 from ros_gateway.supervisor import Supervisor, UnknownProcess
@@ -39,16 +38,12 @@ class CommandError(Exception):
 
 @dataclass
 class Parts:
-    """What serving commands takes, and nothing more."""
+    """What serving commands takes besides what every part shares (``core``), and nothing more."""
 
-    relay: Relay
-    registry: NodeRegistry
-    domains: dict[int, RosDomain]
+    core: Core
     driver: NodeDriver
     params: ParameterKeeper
     runs: GroupRunner
-    service_timeout: float
-    outbox: Outbox
     supervisor: Supervisor
     units: HostUnits
     recovery: Recovery
@@ -73,12 +68,12 @@ class CommandHandler:
         log.warning("did not carry out command %s of %s: %s", command.get("command"), command.get("requested_at"),
                     why)
         text = f"Not carried out: {why}; nothing was sent to {command.get('robot') or 'the robot'}."
-        relay = self.parts.relay
+        relay = self.parts.core.relay
         for fact in protocol.not_carried_out(relay.gateway, command, text, relay.instance):
-            self.parts.outbox.emit_fact(fact)
+            self.parts.core.outbox.emit_fact(fact)
 
     async def run(self, stopping: asyncio.Event) -> None:
-        relay = self.parts.relay
+        relay = self.parts.core.relay
         while not stopping.is_set():
             command = await relay.next_command()
             if command is None:
@@ -122,7 +117,7 @@ class CommandHandler:
     async def _reply(self, request_id: str, reply: dict) -> None:
         """The reply and the facts queued before it in one round trip; if that fails, as
         before: the reply's facts reach the stream first (a bounded wait), then the reply."""
-        relay, outbox = self.parts.relay, self.parts.outbox
+        relay, outbox = self.parts.core.relay, self.parts.core.outbox
         key, message = relay.reply_parts(request_id, reply)
         if await outbox.reply(key, message, protocol.REPLY_TTL_S):
             return
@@ -134,9 +129,9 @@ class CommandHandler:
     async def handle(self, command: dict) -> dict:
         parts = self.parts
         name = command.get("command")
-        timeout = _timeout(command.get("timeout"), parts.service_timeout)
+        timeout = _timeout(command.get("timeout"), parts.core.service_timeout)
         if name == protocol.PING:
-            return {"ok": True, "domains": sorted(parts.domains), "nodes": len(parts.registry.nodes)}
+            return {"ok": True, "domains": sorted(parts.core.domains), "nodes": len(parts.core.registry.nodes)}
         if name == protocol.START_RUN:
             return parts.runs.start(command.get("run"))
         if name == protocol.PROCESS_CONTROL:
@@ -144,12 +139,12 @@ class CommandHandler:
         if name == protocol.PROCESS_USAGE:
             return await self.process_usage(command)
         node = await self._node(command, timeout)
-        domain = parts.domains[node.robot.domain_id]
+        domain = parts.core.domains[node.robot.domain_id]
         first_call = self._first_call_timeout(command, domain, timeout)
         try:
             if name == protocol.GET_STATE:
                 state_id = await read_state(domain, node.name, first_call)
-                parts.registry.set_state(node, state_id)
+                parts.core.registry.set_state(node, state_id)
                 return {"ok": True, "state": sm.state_dict(state_id)}
             if name == protocol.GET_AVAILABLE_STATES:
                 return {"ok": True, "states": await available_states(domain, node.name, first_call)}
@@ -195,7 +190,7 @@ class CommandHandler:
         except (UnknownProcess, LookupError):
             where = ("no node of it has been seen in that container or unit since the gateway started"
                      if protocol.HOST_PROCESS_RE.match(name) else "its launch profiles may not have reached it yet")
-            raise CommandError("unknown_process", f"Gateway {self.parts.relay.gateway} runs no process "
+            raise CommandError("unknown_process", f"Gateway {self.parts.core.relay.gateway} runs no process "
                                                   f"{name!r} for {robot.name} ({where}).") from None
         if action in ("start", "restart") and fact.get("outcome") == "succeeded":
             self.parts.recovery.forgive(robot.name, name)
@@ -209,7 +204,7 @@ class CommandHandler:
         return {"ok": True, "usage": usage}
 
     def _robot(self, command: dict) -> RobotInfo:
-        robot = self.parts.registry.robot_named(str(command.get("robot")))
+        robot = self.parts.core.registry.robot_named(str(command.get("robot")))
         if robot is None:
             raise CommandError("robot_not_watched", f"Robot {command.get('robot')!r} is not watched (unknown or "
                                                     "disabled).")
@@ -217,17 +212,17 @@ class CommandHandler:
 
     async def _node(self, command: dict, timeout: float) -> LiveNode:
         robot, name = self._robot(command), command.get("node")
-        node = self.parts.registry.find(robot.name, name)
+        node = self.parts.core.registry.find(robot.name, name)
         # Just after this gateway (or the robot's domain) started, discovery has not had its
         # chance yet: wait for it rather than call a running node "not running", bounded by the
         # domain's settling and by the requester's deadline: the wait takes the place of the
         # first call, the others keep their time.
-        domain = self.parts.domains.get(robot.domain_id)
+        domain = self.parts.core.domains.get(robot.domain_id)
         give_up = _first_call_deadline(command, timeout)
         while (node is None or not node.alive) and domain is not None and domain.settling(COMMAND_DISCOVERY_WAIT_S) \
                 and time.time() < give_up:
             await asyncio.sleep(0.1)
-            node = self.parts.registry.find(robot.name, name)
+            node = self.parts.core.registry.find(robot.name, name)
         if node is None or not node.alive:
             raise CommandError("node_offline", f"{name} is not running on {robot.name} (not in its ROS graph).")
         return node

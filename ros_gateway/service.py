@@ -91,9 +91,8 @@ class Gateway:
                                on_launch=self.discovery.hurry)
         self.owners = ProcessOwners(self.registry, self.processes, self.supervisor.pids, self._report_owner,
                                     self.units)
-        self.commands = CommandHandler(Parts(self.relay, self.registry, self.domains, self.driver, self.params,
-                                             self.runs, config.service_timeout, self.outbox, self.supervisor,
-                                             self.units, self.recovery, ProcessUsage()))
+        self.commands = CommandHandler(Parts(core, self.driver, self.params, self.runs, self.supervisor, self.units,
+                                             self.recovery, ProcessUsage()))
         # A state change is reported to the site first (self._report, its fact kept on the change);
         # then, in this order: the pages (a push), the audit of a new process instance, its
         # parameters read again, the stuck-transition check, and automatic recovery.
