@@ -231,9 +231,10 @@ class Discovery:
         """Read the state of a node that appeared (or came back), once at a time: a pass that
         finds it still unread while a read is under way adds none (that read is sent again
         while unanswered, domain.RESEND_AFTER_S)."""
-        if node.key not in self._first_reads:
-            self._first_reads.add(node.key)
-            spawn(self.read_state(node)).add_done_callback(lambda _: self._first_reads.discard(node.key))
+        key = node.key  # (as it is now: a robot renamed meanwhile changes it)
+        if key not in self._first_reads:
+            self._first_reads.add(key)
+            spawn(self.read_state(node)).add_done_callback(lambda _: self._first_reads.discard(key))
 
     async def read_state(self, node: LiveNode) -> bool | None:
         """Read the node's state; False if it did not answer, None if not asked (a command
