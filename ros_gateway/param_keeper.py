@@ -127,7 +127,11 @@ class ParameterKeeper:
         node = self.registry.nodes.get((domain_id, msg.node))
         if node is None or not node.alive:
             return
-        changed = [(p.name, from_msg(p.value)) for p in list(msg.new_parameters) + list(msg.changed_parameters)]
+        # A new parameter of a node whose listing was never read (or was dropped with its old
+        # process) is the node declaring it as it starts, not a change made by anyone; once the
+        # listing is known, a new name is a value set on an undeclared parameter.
+        declared = list(msg.new_parameters) if node.key in self.cache else []
+        changed = [(p.name, from_msg(p.value)) for p in declared + list(msg.changed_parameters)]
         changed += [(p.name, None) for p in msg.deleted_parameters]
         self._observed(node, changed)
 
