@@ -35,6 +35,7 @@ CONTAINER_IN_CGROUP = re.compile(r"(?:^|/)(?:docker[-/])([0-9a-f]{64})(?:\.scope
 LIMIT = 256  # units remembered per gateway; cgroups looked up
 REPLY_LIMIT = 1 << 20  # bytes of one Docker Engine answer
 CALL_S, MARGIN_S, MAX_GRACE_S = 5.0, 10.0, 120.0  # one quick call; over a stop's grace; a unit's stop time at most
+ASK_AGAIN_FIRST_S, ASK_AGAIN_MAX_S = 2.0, 120.0  # a container the engine could not name: asked again after
 
 
 @dataclass(frozen=True)
@@ -190,6 +191,8 @@ class HostUnits:
         self._cgroups: OrderedDict[str, HostUnit | None] = OrderedDict()  # cgroup path -> its unit
         self._units: OrderedDict[tuple[str, str], HostUnit] = OrderedDict()  # (robot, name) -> unit
         self._locks: dict[HostUnit, asyncio.Lock] = {}
+        # cgroup path -> (when to ask its container's name again, the last wait): the engine did not tell it
+        self._asked: dict[str, tuple[float, float]] = {}
         self._own = self._cgroup_of(os.getpid())
 
     def _cgroup_of(self, pid: int) -> str:
@@ -208,20 +211,36 @@ class HostUnits:
             return self._cgroups[path]
         found, unit = unit_in(path, self._own), None
         if found and found[0] == "docker" and self.docker.available():
+            asked, now = self._asked.get(path), time.monotonic()
+            if asked is not None and now < asked[0]:
+                return None
             try:
                 name = str((await self.docker.inspect(found[1])).get("Name") or "").lstrip("/")
             except UnitError as exc:
-                log.warning("the container of pid %d is not known: %s", pid, exc)
-                return None  # looked up again next time
+                if asked is None:
+                    log.warning("the container of pid %d is not known: %s", pid, exc)
+                if len(self._asked) >= LIMIT:
+                    self._asked.clear()
+                wait = min(ASK_AGAIN_MAX_S, asked[1] * 2) if asked else ASK_AGAIN_FIRST_S
+                self._asked[path] = (now + wait, wait)  # asked again then, then less and less often
+                return None
+            self._asked.pop(path, None)
             name = f"docker:{name}" if protocol.HOST_PROCESS_RE.match(f"docker:{name}") else f"docker:{found[1][:12]}"
             unit = HostUnit("docker", found[1], name)
-        elif found and found[0] == "systemd" and self.systemd.available() and protocol.HOST_PROCESS_RE.match(
-                name := f"systemd:{found[1]}"):
-            unit = HostUnit("systemd", found[1], name)
+        elif found and found[0] == "systemd" and self.systemd.available():
+            name = f"systemd:{found[1]}"
+            unit = HostUnit("systemd", found[1], name) if protocol.HOST_PROCESS_RE.match(name) else None
+        elif found:
+            return None  # its supervisor is not reachable (yet): looked up again next time
         self._cgroups[path] = unit
         if len(self._cgroups) > LIMIT:
             self._cgroups.popitem(last=False)
         return unit
+
+    def identified(self, pid: int) -> bool:
+        """Whether what ``identify`` answers for this process is settled (not to be asked again)."""
+        path = self._cgroup_of(pid)
+        return not path or path in self._cgroups
 
     def attribute(self, robot: str, unit: HostUnit) -> None:
         self._units[robot, unit.name] = unit

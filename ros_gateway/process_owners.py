@@ -35,8 +35,12 @@ class ProcessOwners:
         for node in list(self.registry.nodes.values()):
             if not node.alive or self._looked.get(node.key) == (node.live, pids):
                 continue
-            self._looked[node.key] = (node.live, pids)
-            owner = self.owner(node, owners) or await self._unit(node)
+            owner = self.owner(node, owners)
+            settled = bool(owner)
+            if not owner:
+                owner, settled = await self._unit(node)
+            if settled:  # else looked at again next time (a process not matched yet, a supervisor not answering)
+                self._looked[node.key] = (node.live, pids)
             if not owner and node.process and not self._runs(node):
                 continue  # its process has ended (its node not marked gone yet): it keeps its owner
             if owner != node.process:
@@ -51,17 +55,25 @@ class ProcessOwners:
         return any(self.processes.process(domain, p) is not None and not self.processes.ended(domain, p)
                    for p in node.live)
 
-    async def _unit(self, node: LiveNode) -> str:
-        """The container or unit running the node's process ("" if none is known), attributed to its robot."""
-        if self.units is None:
-            return ""
+    async def _unit(self, node: LiveNode) -> tuple[str, bool]:
+        """The container or unit running the node's process ("" if none is known), attributed to
+        its robot; and whether that is settled (False: a process of this host not matched yet, or
+        a unit whose supervisor did not tell its name)."""
+        domain = node.robot.domain_id
+        settled = True
         for prefix in node.live:
-            found = self.processes.process(node.robot.domain_id, prefix)
-            unit = await self.units.identify(found.pid) if found is not None else None
+            found = self.processes.process(domain, prefix)
+            if found is None:
+                settled = settled and not self.processes.unmatched(domain, prefix)
+                continue
+            if self.units is None:
+                continue
+            unit = await self.units.identify(found.pid)
             if unit is not None:
                 self.units.attribute(node.robot.name, unit)
-                return unit.name
-        return ""
+                return unit.name, True
+            settled = settled and self.units.identified(found.pid)
+        return "", settled
 
     def owner(self, node: LiveNode, owners: dict[int, tuple[str, str]]) -> str:
         """The launch profile whose process (or a descendant of it) runs the node, or ""."""

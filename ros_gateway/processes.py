@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 import os
 import re
+import time
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
@@ -38,6 +39,9 @@ KNOWN_LIMIT = 4096
 # domain's; Fast DDS's shared-memory transport names its port segments after them.
 PORT_BASE, DOMAIN_GAIN = 7400, 250
 SHM_PORT = re.compile(r"/dev/shm/fastrtps_port(\d+)")
+# A participant of this host not matched to one process (not there yet, or ambiguous) is looked
+# for again after RETRY_FIRST_S, then after twice as long each time, up to RETRY_MAX_S.
+RETRY_FIRST_S, RETRY_MAX_S = 1.0, 60.0
 
 
 @dataclass(frozen=True)
@@ -96,16 +100,24 @@ class LocalProcesses:
     def __init__(self, proc: Path = Path("/proc")) -> None:
         self.proc = proc
         self.host: bytes | None = None  # our own participants' host id (set by the first domain)
-        # (domain id, participant) -> its process (None: not matched)
-        self._known: dict[tuple[int, bytes], OsProcess | None] = {}
+        # (domain id, participant) -> its process, once matched
+        self._known: dict[tuple[int, bytes], OsProcess] = {}
+        # (domain id, participant of this host) -> (when to look again, the last wait) while not matched
+        self._retry: dict[tuple[int, bytes], tuple[float, float]] = {}
 
     def learn_host(self, own_gid: bytes | None) -> None:
         if own_gid and self.host is None and bytes(own_gid)[:2] == FASTDDS_VENDOR:
             self.host = bytes(own_gid)[2:4]
 
+    def ours(self, prefix: bytes) -> bool:
+        """Whether the participant is of this host (False while that is not known yet)."""
+        return self.host is not None and prefix[:2] == FASTDDS_VENDOR and prefix[2:4] == self.host
+
+    def unmatched(self, domain_id: int, prefix: bytes) -> bool:
+        """Whether the participant may be a process of this host not matched yet (looked for again later)."""
+        return self.host is None or (self.ours(prefix) and (domain_id, prefix) not in self._known)
+
     def _match(self, domain_id: int, prefix: bytes) -> OsProcess | None:
-        if self.host is None or prefix[:2] != FASTDDS_VENDOR or prefix[2:4] != self.host:
-            return None  # another vendor's or another host's participant: nothing to look up here
         low = int.from_bytes(prefix[4:6], "little")
         try:
             pids = [int(name) for name in os.listdir(self.proc) if name.isdigit()]
@@ -126,11 +138,27 @@ class LocalProcesses:
         if self.host is None:
             return None  # not known yet which host is ours: look again later
         key = (domain_id, prefix)
-        if key not in self._known:
-            if len(self._known) >= KNOWN_LIMIT:
-                self._known.clear()
-            self._known[key] = self._match(domain_id, prefix)
-        return self._known[key]
+        found = self._known.get(key)
+        if found is not None or not self.ours(prefix):
+            return found  # another vendor's or another host's participant: nothing to look up here
+        now = time.monotonic()
+        retry = self._retry.get(key)
+        if retry is not None and now < retry[0]:
+            return None
+        # Not matched once is not for good: a process just started, or looked at while another
+        # with the same low pid bits also mapped the domain's ports, is matched on a later look.
+        found = self._match(domain_id, prefix)
+        if found is None:
+            if len(self._retry) >= KNOWN_LIMIT:
+                self._retry.clear()
+            wait = min(RETRY_MAX_S, retry[1] * 2) if retry else RETRY_FIRST_S
+            self._retry[key] = (now + wait, wait)
+            return None
+        self._retry.pop(key, None)
+        if len(self._known) >= KNOWN_LIMIT:
+            self._known.clear()
+        self._known[key] = found
+        return found
 
     def ended(self, domain_id: int, prefix: bytes) -> bool:
         """Whether the participant is known to be of a process of this host that has ended."""

@@ -4,15 +4,19 @@ file of a ROS domain, as a Fast DDS participant does, is found from the low 16 b
 (as a GUID prefix carries them) and seen ended at once when it is killed, reaped or not."""
 from __future__ import annotations
 
+import asyncio
 import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
 
+from ros_gateway.process_owners import ProcessOwners
 from ros_gateway.processes import DOMAIN_GAIN, FASTDDS_VENDOR, PORT_BASE, LocalProcesses
+from ros_gateway.registry import LiveNode, NodeRegistry, RobotInfo, StateChanges
 
 DOMAIN = 231  # no test or robot here uses it: its port files are this test's alone
 HOST = b"\x12\x34"
@@ -87,3 +91,67 @@ def test_a_process_that_maps_no_port_of_the_domain_is_not_taken_for_the_particip
     finally:
         other.kill()
         other.wait(5)
+
+
+LATE_MAPPER = """
+import mmap, sys, time
+sys.stdin.readline()  # told to start its participant
+with open(sys.argv[1], "r+b") as f:
+    m = mmap.mmap(f.fileno(), 4096)
+    print("mapped", flush=True)
+    time.sleep(120)
+"""
+
+
+@pytest.fixture
+def late_mapper(port_file):
+    """A process whose participant is not up yet: it maps the domain's port when told to."""
+    process = subprocess.Popen([sys.executable, "-c", LATE_MAPPER, str(port_file)], stdin=subprocess.PIPE,
+                               stdout=subprocess.PIPE, text=True)
+
+    def map_port() -> None:
+        process.stdin.write("go\n")
+        process.stdin.flush()
+        assert process.stdout.readline().strip() == "mapped"
+
+    yield process, map_port
+    process.kill()
+    process.wait(5)
+
+
+def test_a_participant_not_matched_at_first_is_matched_on_a_later_look(late_mapper, monkeypatch):
+    monkeypatch.setattr("ros_gateway.processes.RETRY_FIRST_S", 0.2)
+    process, map_port = late_mapper
+    processes = watcher()
+    prefix = prefix_of(process.pid)
+    assert processes.process(DOMAIN, prefix) is None  # seen in DDS before /proc shows it as a participant
+    assert processes.unmatched(DOMAIN, prefix)
+    map_port()
+    assert processes.process(DOMAIN, prefix) is None  # not looked for again at once: a back-off
+    time.sleep(0.25)
+    assert processes.process(DOMAIN, prefix).pid == process.pid
+    assert not processes.unmatched(DOMAIN, prefix)
+    # Another host's participant is not one to look for here.
+    assert not processes.unmatched(DOMAIN, prefix_of(process.pid, host=b"\x99\x99"))
+
+
+def test_a_nodes_launch_profile_is_found_when_its_process_was_not_matched_at_first_look(late_mapper, monkeypatch):
+    """The gateway's first look at a node can come before its process is matched (a robot's
+    units starting together at boot): the owner is looked for again, not given up for good."""
+    monkeypatch.setattr("ros_gateway.processes.RETRY_FIRST_S", 0.2)
+    process, map_port = late_mapper
+    registry = NodeRegistry(StateChanges())
+    robot = RobotInfo(id=1, name="agv", domain_id=DOMAIN, namespace="")
+    node = LiveNode(robot=robot, name="/lidar_driver", alive=True, live=frozenset({prefix_of(process.pid)}))
+    registry.nodes[(DOMAIN, node.name)] = node
+    reported: list[str] = []
+    owners = ProcessOwners(registry, watcher(), lambda: {process.pid: ("agv", "drivers")},
+                           lambda n: reported.append(n.process))
+    asyncio.run(owners.refresh())
+    assert node.process == "" and reported == []
+    map_port()
+    time.sleep(0.25)
+    asyncio.run(owners.refresh())
+    assert node.process == "drivers" and reported == ["drivers"]
+    asyncio.run(owners.refresh())  # settled: not reported again
+    assert reported == ["drivers"]

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from ros_gateway.host_units import DockerEngine, HostUnit, HostUnits, Systemd, cgroup_path, unit_in
+from ros_gateway.host_units import DockerEngine, HostUnit, HostUnits, Systemd, UnitError, cgroup_path, unit_in
 from ros_gateway.shared import protocol
 
 CONTAINER = "ecc652cbdbbbcaa148721cd45c5789ba8e2a82c9d674ef3d3801f130496087f0"
@@ -109,6 +109,8 @@ def test_a_process_in_a_unit_is_attributed_to_it_from_real_proc_data(unit_cgroup
     assert protocol.HOST_PROCESS_RE.match(found.name)
     without = HostUnits(lambda **f: f, DockerEngine(""), Systemd(enabled=False))
     assert asyncio.run(without.identify(pid)) is None  # no supervisor to reach: nothing offered
+    assert not without.identified(pid)  # ... for now: asked again (systemd or Docker may come up later)
+    assert units.identified(pid)
     assert asyncio.run(units.identify(os.getpid())) is None  # this test's own process: no unit
 
 
@@ -163,3 +165,34 @@ def test_a_unit_stop_time_is_read_in_systemd_words():
     from ros_gateway.host_units import _usec
     assert (_usec("1min 30s"), _usec("90s"), _usec("500ms"), _usec("infinity"), _usec("")) == (
         90.0, 90.0, 0.5, 120.0, 90.0)
+
+
+def test_a_container_the_engine_could_not_name_is_asked_again_less_and_less_often(tmp_path, monkeypatch):
+    """An engine that does not answer (restarting, overloaded) is not the last word on a node's
+    container: it is asked again after a back-off, with one warning, and the answer then settles it."""
+    proc = tmp_path / "proc"
+    (proc / "4100").mkdir(parents=True)
+    (proc / "4100" / "cgroup").write_text(f"0::/system.slice/docker-{CONTAINER}.scope\n")
+    socket_file = tmp_path / "docker.sock"
+    socket_file.write_text("")  # there, but not a socket: every call fails
+    units = HostUnits(lambda **f: f, DockerEngine(str(socket_file)), Systemd(enabled=False), proc=proc)
+    asked: list[str] = []
+
+    async def inspect(ident: str) -> dict:
+        asked.append(ident)
+        if len(asked) < 3:
+            raise UnitError("no answer within 5 s")
+        return {"Name": "/drivers"}
+
+    monkeypatch.setattr(units.docker, "inspect", inspect)
+    clock = [1000.0]
+    monkeypatch.setattr("ros_gateway.host_units.time.monotonic", lambda: clock[0])
+    assert asyncio.run(units.identify(4100)) is None and not units.identified(4100)
+    assert asyncio.run(units.identify(4100)) is None and len(asked) == 1  # within the back-off: not asked
+    clock[0] += 2.0
+    assert asyncio.run(units.identify(4100)) is None and len(asked) == 2
+    clock[0] += 2.0
+    assert asyncio.run(units.identify(4100)) is None and len(asked) == 2  # the wait doubled
+    clock[0] += 2.0
+    assert asyncio.run(units.identify(4100)) == HostUnit("docker", CONTAINER, "docker:drivers")
+    assert units.identified(4100) and len(asked) == 3
