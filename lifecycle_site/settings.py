@@ -103,6 +103,7 @@ INSTALLED_APPS = [
     "lifecycle_site.dashboard",
     "lifecycle_site.alerts",
     "lifecycle_site.operations",
+    "lifecycle_site.modes",
 ]
 
 MIDDLEWARE = [

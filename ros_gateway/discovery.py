@@ -55,7 +55,8 @@ def robots_from_config(config: dict) -> tuple[dict[int, RobotInfo], dict[int, di
         nodes = entry.get("nodes") if isinstance(entry.get("nodes"), dict) else {}
         settings[robot.id] = {
             str(name): NodeSettings(order=s.get("order") if isinstance(s.get("order"), int) else None,
-                                    desired_state=str(s.get("desired_state") or ""))
+                                    desired_state=str(s.get("desired_state") or ""), keep=str(s.get("keep") or "off"),
+                                    resumed=str(s.get("resumed") or ""))
             for name, s in nodes.items() if isinstance(s, dict)
         }
     return robots, settings
@@ -72,6 +73,7 @@ class Discovery:
         self.service_timeout = core.service_timeout
         self.forget_parameters = forget_parameters
         self.holds_back = holds_back
+        self.on_external: Callable[[LiveNode], None] = lambda node: None  # a transition by another tool ended
         self.config_version: str | None = None
         self._incarnation_cursor: dict[int, str] = {}  # domain id -> name of the last node checked
         self._snapshot_at: dict[int, float] = {}  # robot id -> when its node list was last reported
@@ -296,3 +298,4 @@ class Discovery:
             source="external", user_id=None, requested_at=completed.started_at.isoformat(),
             completed_at=completed.finished_at.isoformat(), error="", run_id="",
         )
+        self.on_external(node)

@@ -159,6 +159,7 @@ class RosDomain:
         self._running: set[str] = set()  # running nodes at the last discovery pass
         self._lifecycle: set[str] = set()  # of those, the ones offering GetState at the last scan
         self._last_change = self._last_scan = 0.0
+        self._meter: _Shard | None = None  # topics whose rates are measured (topic_rates.py)
 
     # -- life of the domain ---------------------------------------------------------
     def start(self) -> None:
@@ -190,7 +191,7 @@ class RosDomain:
         try:
             if self._rosout is not None:
                 self._rosout.stop()
-            for shard in self._shards:
+            for shard in [*self._shards, *([self._meter] if self._meter else [])]:
                 shard.stop()
             if self.executor is not None:
                 self.executor.shutdown(timeout_sec=2.0)
@@ -203,9 +204,19 @@ class RosDomain:
                 self.context.try_shutdown()
             if self._thread is not None:
                 self._thread.join(timeout=3.0)
-            for shard in self._shards:
+            for shard in [*self._shards, *([self._meter] if self._meter else [])]:
                 shard.thread.join(timeout=3.0)
         log.info("stopped watching ROS domain %d", self.domain_id)
+
+    def meter_node(self) -> rclpy.node.Node:
+        """A node with an executor thread of its own for the topics whose rates are measured (a busy
+        topic's messages do not wait behind, nor delay, the lifecycle nodes' events)."""
+        if self._meter is None:
+            self._meter = _Shard(self.context, self.domain_id, 999)
+        return self._meter.node
+
+    def topic_types(self) -> dict[str, list[str]]:
+        return dict(self.node.get_topic_names_and_types()) if self.node is not None else {}
 
     def settling(self, window: float = DISCOVERY_SETTLE_S) -> bool:
         """Whether discovery in this domain is too young to call a node missing."""

@@ -14,16 +14,22 @@ import logging
 import time
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
+from typing import TYPE_CHECKING, Any
 
+from ros_gateway import mode_plan
 from ros_gateway.lifecycle import NodeUnreachable, read_state
 from ros_gateway.node_driver import NodeDriver
 from ros_gateway.parts import Core
 from ros_gateway.registry import LiveNode, NodeRegistry, RobotInfo
+from ros_gateway.run_progress import Progress
 from ros_gateway.shared import operations, protocol
 from ros_gateway.shared import state_machine as sm
 from ros_gateway.shared.operations import Phase
 from ros_gateway.tasks import spawn
 from ros_gateway.verdicts import RunVerdict
+
+if TYPE_CHECKING:
+    from ros_gateway.param_keeper import ParameterKeeper
 
 log = logging.getLogger(__name__)
 
@@ -32,8 +38,6 @@ log = logging.getLogger(__name__)
 SETTLE_TIMEOUTS = 3
 # Nodes of one tier driven at the same time, at most.
 TIER_CONCURRENCY = 16
-# A run's progress goes out (push and fact) at most this often, and at its end.
-PROGRESS_INTERVAL_S = 0.25
 MAX_NODE_TIMEOUT_S = 60.0
 
 
@@ -53,6 +57,9 @@ class Run:
     tiers: list[list[str]] = field(default_factory=list)
     source: str = "api"
     user_id: int | None = None
+    # A mode's run: each node's target (None: left alone) and the parameters set before it is activated.
+    targets: dict[str, int | None] = field(default_factory=dict)
+    parameters: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     @classmethod
     def from_spec(cls, spec: object, registry: NodeRegistry) -> "Run":
@@ -63,7 +70,7 @@ class Run:
             raise BadRun(f"Robot {spec.get('robot')!r} is not watched (disabled or just added); try again in a moment.")
         operation = spec.get("operation")
         known = operations.get(operation)
-        if known is None or not known.startable:
+        if known is None or known.scope == operations.GATEWAY:
             raise BadRun(f"{operation!r} is not an operation this gateway knows.")
         tiers = spec.get("tiers")
         if not isinstance(tiers, list) or not all(isinstance(t, list) and all(isinstance(n, str) for n in t)
@@ -75,16 +82,23 @@ class Run:
             raise BadRun("node_timeout must be a number of seconds.") from None
         if not 0 < timeout <= MAX_NODE_TIMEOUT_S:
             raise BadRun(f"node_timeout must be more than 0 and at most {MAX_NODE_TIMEOUT_S:g} s.")
+        targets: dict[str, int | None] = {}
+        parameters: dict[str, dict[str, Any]] = {}
+        if known.scope == operations.MODE:
+            try:
+                targets, parameters = mode_plan.parse(spec, [name for tier in tiers for name in tier])
+            except mode_plan.BadPlan as exc:
+                raise BadRun(str(exc)) from None
         user_id = spec.get("user_id")
         return cls(id=str(spec.get("id") or protocol.new_id()), robot=robot, operation=operation,
                    policy="continue" if spec.get("policy") == "continue" else "stop", node_timeout=timeout,
                    tiers=tiers, source=str(spec.get("source") or "api"),
-                   user_id=user_id if isinstance(user_id, int) else None)
+                   user_id=user_id if isinstance(user_id, int) else None, targets=targets, parameters=parameters)
 
 
 class GroupRunner:
-    def __init__(self, core: Core, driver: NodeDriver) -> None:
-        self.domains, self.registry, self.driver = core.domains, core.registry, driver
+    def __init__(self, core: Core, driver: NodeDriver, params: ParameterKeeper | None = None) -> None:
+        self.domains, self.registry, self.driver, self.params = core.domains, core.registry, driver, params
         self.outbox, self.relay = core.outbox, core.relay
 
     def start(self, spec: object) -> dict:
@@ -115,7 +129,7 @@ class GroupRunner:
         # Results in the order of the last phase (the one that leaves the nodes where they end).
         last_reversed = bool(phases) and phases[-1].reverse
         names = [name for tier in run.tiers for name in tier]
-        progress = _Progress(self, run, names[::-1] if last_reversed else names, started)
+        progress = Progress(self, run, names[::-1] if last_reversed else names, started)
         limit = asyncio.Semaphore(TIER_CONCURRENCY)
         stopped_by: list[str] = []  # the node whose failure stopped the run
         verdict = RunVerdict(self.relay, run.id)
@@ -173,6 +187,9 @@ class GroupRunner:
                           verdict: RunVerdict) -> dict:
         result = {"node": name, "node_id": node.key if node else None, "steps": [], "outcome": "succeeded",
                   "message": ""}
+        if (phase.target == operations.EACH_NODES_OWN and run.targets.get(name) is None
+                and not run.parameters.get(name)):
+            return {**result, "outcome": "skipped", "message": "left alone (the mode does not say)"}
         if node is None or not node.alive:
             return {**result, "outcome": "failed", "message": f"{name} is not running"}
         began = time.perf_counter()
@@ -181,6 +198,8 @@ class GroupRunner:
             async with asyncio.timeout(run.node_timeout * (4 + SETTLE_TIMEOUTS) * 4 + 5):
                 async with node.lock:
                     state = await self._settled_state(node, run.node_timeout)
+                    if phase.target == operations.EACH_NODES_OWN:
+                        return await self._drive_to_own(run, node, name, phase, state, result, verdict, began)
                     target = phase.target
                     if state in phase.leave_alone:
                         return {**result, "outcome": "skipped", "state": sm.state_dict(state),
@@ -193,25 +212,81 @@ class GroupRunner:
                     if not steps:
                         return {**result, "outcome": "skipped", "state": sm.state_dict(state),
                                 "message": f"already {sm.state_label(state)}"}
-                    for label in steps:
-                        if not await verdict.may_step():
-                            result.update(outcome="failed", message=f"stopped before {label}: {verdict.ended}")
-                            if not result["steps"]:
-                                result.update(outcome="not_run", message=f"not run: {verdict.ended}")
-                            break
-                        step = await self._step(run, node, label, state)
-                        state = step["to"]["id"]
-                        result["steps"].append(step)
-                        if step["outcome"] != "succeeded":
-                            result.update(outcome="failed", message=step["message"])
-                            break
+                    await self._steps(run, node, steps, state, result, verdict)
         except NodeUnreachable as exc:
             result.update(outcome="failed", message=str(exc))
         except TimeoutError:
             result.update(outcome="failed", message="gave up waiting for the node (busy or hung)")
+        return self._ended(node, result, began)
+
+    @staticmethod
+    def _ended(node: LiveNode, result: dict, began: float) -> dict:
         result["state"] = sm.state_dict(node.state_id)
         result["duration_ms"] = round((time.perf_counter() - began) * 1000, 1)
         return result
+
+    async def _steps(self, run: Run, node: LiveNode, labels: list[str], state: int, result: dict,
+                     verdict: RunVerdict) -> bool:
+        """Carry out these transitions in turn; False (and the result says why) at the first that fails."""
+        for label in labels:
+            if not await verdict.may_step():
+                result.update(outcome="failed", message=f"stopped before {label}: {verdict.ended}")
+                if not result["steps"]:
+                    result.update(outcome="not_run", message=f"not run: {verdict.ended}")
+                return False
+            step = await self._step(run, node, label, state)
+            state = step["to"]["id"]
+            result["steps"].append(step)
+            if step["outcome"] != "succeeded":
+                result.update(outcome="failed", message=step["message"])
+                return False
+        return True
+
+    async def _drive_to_own(self, run: Run, node: LiveNode, name: str, phase: Phase, state: int, result: dict,
+                            verdict: RunVerdict, began: float) -> dict:
+        """A mode's step for one node (its lock held): in the down phase, down to its target if that
+        is below; in the up phase, up to it, its parameters set before it is activated (or once it
+        is there, or at once for a node the mode leaves alone)."""
+        target = run.targets.get(name)
+        values = run.parameters.get(name) if phase.only == operations.UP else None
+        moves = target is not None and mode_plan.goes(phase.only, state, target)
+        if not moves and not values:
+            message = f"already {sm.state_label(state)}" if target == state else ""  # (else: the other phase's)
+            return self._ended(node, {**result, "outcome": "skipped", "message": message}, began)
+        steps = sm.path(state, target) if moves else []
+        if steps is None:
+            return self._ended(node, {**result, "outcome": "failed", "state": sm.state_dict(state),
+                                      "message": f"cannot go from {sm.state_label(state)} to "
+                                                 f"{sm.state_label(target)}"
+                                                 + (" (restart its process)" if state == sm.FINALIZED else "")}, began)
+        before = steps[:steps.index("activate")] if values and "activate" in steps else steps
+        if await self._steps(run, node, before, state, result, verdict) and values:
+            if await self._set_parameters(run, node, values, result, verdict):
+                await self._steps(run, node, steps[len(before):], node.state_id, result, verdict)
+        return self._ended(node, result, began)
+
+    async def _set_parameters(self, run: Run, node: LiveNode, values: dict, result: dict,
+                              verdict: RunVerdict) -> bool:
+        if not await verdict.may_step():
+            result.update(outcome="failed" if result["steps"] else "not_run",
+                          message=f"stopped before its parameters were set: {verdict.ended}")
+            return False
+        began = time.perf_counter()
+        if self.params is None:
+            answers: list[dict] = [{"name": n, "successful": False, "reason": "not set by this gateway"}
+                                   for n in values]
+        else:
+            answers, _ = await self.params.set(node, values, run.node_timeout, run.source, run.user_id,
+                                               run_id=run.id)
+        refused = [a for a in answers if not a["successful"]]
+        message = "; ".join(f"{a['name']}: {a['reason']}" for a in refused)
+        result["steps"].append({"transition": mode_plan.SET_PARAMETERS, "outcome": "failed" if refused else "succeeded",
+                                "message": message or ", ".join(f"{n}={v!r}" for n, v in values.items()),
+                                "duration_ms": round((time.perf_counter() - began) * 1000, 1),
+                                "to": sm.state_dict(node.state_id)})
+        if refused:
+            result.update(outcome="failed", message=f"parameters refused: {message}")
+        return not refused
 
     async def _step(self, run: Run, node: LiveNode, label: str, state: int) -> dict:
         """One transition; ``state`` is the node's state as just read or reached (no re-read)."""
@@ -245,82 +320,3 @@ class GroupRunner:
                 self.registry.set_state(node, state)
                 return state
             await asyncio.sleep(0.1)
-
-
-def merged(earlier: dict, later: dict) -> dict:
-    """A node's result over two phases of a run: its steps in turn, the later state. Skipped in
-    both is skipped; a later phase not run after an earlier one drove the node says so."""
-    steps = [*earlier["steps"], *later["steps"]]
-    outcome, message = later["outcome"], later["message"]
-    if outcome == "skipped" and earlier["outcome"] == "succeeded":
-        outcome, message = "succeeded", earlier["message"]
-    elif outcome == "not_run" and earlier["steps"]:
-        message = f"{message}; left {earlier.get('state', {}).get('label', 'where the first phase took it')}"
-    return {**earlier, **later, "steps": steps, "outcome": outcome, "message": message,
-            "node_id": later.get("node_id") or earlier.get("node_id"),
-            "duration_ms": round(earlier.get("duration_ms", 0.0) + later.get("duration_ms", 0.0), 1)}
-
-
-class _Progress:
-    """A run's results as its nodes finish, saved and pushed at most every PROGRESS_INTERVAL_S
-    (a 100-node run sends a handful of updates, not a hundred)."""
-
-    def __init__(self, runner: GroupRunner, run: Run, names: list[str], started: str) -> None:
-        self.runner, self.run, self.names, self.started = runner, run, names, started
-        self.done: dict[str, dict] = {}
-        self.fresh_nodes: list[str] = []  # node keys finished since the last push
-        self.last_push = 0.0
-        self.pending: asyncio.Task | None = None  # the task sending updates, while there are any
-        self.waiting = False  # it is in its sleep (safe to cancel)
-        self.changed = False  # results finished since the last update
-
-    def results(self) -> list[dict]:
-        """Finished nodes' results, in the run's order."""
-        return [self.done[name] for name in self.names if name in self.done]
-
-    def failed(self, name: str) -> bool:
-        return self.done.get(name, {}).get("outcome") == "failed"
-
-    def finished(self, result: dict) -> None:
-        earlier = self.done.get(result["node"])
-        self.done[result["node"]] = merged(earlier, result) if earlier else result
-        if result.get("node_id"):
-            self.fresh_nodes.append(result["node_id"])
-        self.changed = True
-        if self.pending is None:
-            self.pending = asyncio.ensure_future(self._push_while_changed())
-
-    async def _push_while_changed(self) -> None:
-        try:
-            while self.changed:
-                self.waiting = True
-                await asyncio.sleep(max(0.0, self.last_push + PROGRESS_INTERVAL_S - time.monotonic()))
-                self.waiting, self.changed = False, False
-                self.runner.report(self.run, "running", "", self.results(), started=self.started)
-                await self.push()
-        finally:
-            self.waiting = False
-            if self.pending is asyncio.current_task():
-                self.pending = None
-
-    async def close(self) -> None:
-        """Drop an update still waiting its turn, or let one under way finish (so it cannot
-        overtake the final one, which follows)."""
-        pending, self.pending = self.pending, None
-        if pending is not None:
-            if self.waiting:
-                pending.cancel()
-            await asyncio.gather(pending, return_exceptions=True)
-
-    async def push(self, status: str = "running", message: str = "") -> None:
-        self.last_push = time.monotonic()
-        run = self.run
-        # The robot's and the fleet's pages follow every run; a node page only its own node's
-        # (always so for a restart or recovery, which are about one node): ``nodes`` names them.
-        nodes = list(dict.fromkeys(self.fresh_nodes))
-        self.fresh_nodes = []
-        await self.runner.relay.publish(
-            {"type": "run.progress", "nodes": nodes,
-             "run": {"id": run.id, "robot": run.robot.name, "operation": run.operation, "policy": run.policy,
-                     "status": status, "message": message, "results": self.results()}},
-        )

@@ -48,16 +48,18 @@ class ParameterKeeper:
         return parameters
 
     def _record(self, node: LiveNode, name: str, old: Any, new: Any, outcome: str, reason: str, source: str,
-                user_id: int | None, vouching: Callable[[str], dict] | None = None) -> dict:
+                user_id: int | None, vouching: Callable[[str], dict] | None = None, run_id: str = "") -> dict:
         """Report one parameter change or refused attempt to the site (an audit fact; for a
-        command of the site with its grant for that name, and the id that goes with it)."""
+        command of the site with its grant for that name, and the id that goes with it; for a
+        step of a run, the run's id, by which the site knows who asked)."""
         return self.outbox.emit(protocol.PARAMETER, robot=node.robot.name, node=node.name, name=name,
                                 old=protocol.bounded(old), new=protocol.bounded(new), outcome=outcome, reason=reason,
-                                source=source, user_id=user_id, **(vouching(name) if vouching else {}))
+                                source=source, user_id=user_id, **(vouching(name) if vouching else {}),
+                                **({"run_id": run_id} if run_id else {}))
 
     async def set(self, node: LiveNode, values: dict, timeout: float, source: str,
                   user_id: int | None, vouching: Callable[[str], dict] | None = None,
-                  atomic: bool = False) -> tuple[list[dict], list[dict]]:
+                  atomic: bool = False, run_id: str = "") -> tuple[list[dict], list[dict]]:
         """Check each value against the node's descriptors, send the good ones together, and
         record every outcome. Returns one result per requested name, in request order, and
         the audit facts reporting them. ``atomic``: all values or none (a parameter file): none
@@ -116,7 +118,8 @@ class ParameterKeeper:
                 known[name] = {**known[name], "value": new}
                 changes.append({"name": name, "old": old, "new": new})
             outcome = result.pop("outcome", "succeeded" if result["successful"] else "rejected")
-            facts.append(self._record(node, name, old, new, outcome, result["reason"], source, user_id, vouching))
+            facts.append(self._record(node, name, old, new, outcome, result["reason"], source, user_id, vouching,
+                                      run_id))
             ordered.append({"name": name, "old": old, "new": new, **result})
         if changes:
             self._push(node, changes)

@@ -41,10 +41,13 @@ class RobotInfo:
 
 @dataclass(frozen=True)
 class NodeSettings:
-    """What an operator set for a node in the site: its bring-up position, desired state."""
+    """What an operator set for a node in the site: its bring-up position, desired state, and
+    whether that state is kept against other tools (protocol.KEEP_POLICIES, or KEEP_PAUSED)."""
 
     order: int | None = None
     desired_state: str = ""
+    keep: str = "off"
+    resumed: str = ""  # when an operator last resumed keeping it after a fight (the site's word)
 
 
 @dataclass

@@ -22,9 +22,10 @@ import socket
 from datetime import datetime, timezone
 from typing import Callable
 
-from ros_gateway import budget, leftovers, tasks
+from ros_gateway import budget, leftovers, tasks, topic_rates
 from ros_gateway.commands import CommandHandler, Parts
 from ros_gateway.config import GatewayConfig
+from ros_gateway.desired_keeper import DesiredKeeper
 from ros_gateway.discovery import Discovery
 from ros_gateway.domain import RosDomain
 from ros_gateway.groups import GroupRunner
@@ -43,6 +44,7 @@ from ros_gateway.registry import NodeRegistry, StateChange, StateChanges
 from ros_gateway.relay import Relay
 from ros_gateway.shared import protocol
 from ros_gateway.supervisor import Supervisor
+from ros_gateway.topic_rates import TopicRates
 
 log = logging.getLogger(__name__)
 
@@ -81,8 +83,11 @@ class Gateway:
         self.discovery = Discovery(core, self._new_domain, self.params.forget, self.liveness.holds_back,
                                    self.liveness.suspect)
         self.driver = NodeDriver(core, self.logs)
-        self.runs = GroupRunner(core, self.driver)
+        self.runs = GroupRunner(core, self.driver, self.params)
         self.recovery = Recovery(self.runs)
+        self.keeper = DesiredKeeper(self.runs, self.registry)  # desired states kept against other tools
+        self.rates = TopicRates(self.registry, self.domains, self.outbox)  # for the modes' readiness
+        self.discovery.on_external = self.keeper.on_external
         # The robots' launch profiles: processes this gateway runs for them (its facts: audit records).
         self.owner = leftovers.owner(config.name, config.redis_url, config.prefix)  # (its processes' mark)
         self.supervisor = Supervisor(self._report_process, self.logs.on_output, self.owner, self.discovery.hurry)
@@ -170,6 +175,7 @@ class Gateway:
             self._every(config.heartbeat_interval, self.heartbeat, "heartbeat"),
             self._every(RESYNC_EVERY_S, self.discovery.resync_states, "state resync"),
             self._every(OWNERS_EVERY_S, self._refresh_owners, "process owners"),
+            self._every(topic_rates.REPORT_S, self.rates.report, "topic rates"),
             *([self._every(config.liveness_interval, self.liveness.probe, "liveness probe")]
               if self.liveness.enabled else []),
             self.logs.run(self._stopping),
@@ -258,6 +264,8 @@ class Gateway:
                 self.outbox.set_quota(quota)
                 self.relay.live.set_quota(quota)
             await self.discovery.apply_config(config)
+            self.keeper.on_settings()
+            self.rates.apply(config)
             await self.supervisor.apply(self._profiles(config))
 
     def _profiles(self, config: dict) -> list[LaunchProfile]:

@@ -15,6 +15,8 @@ from lifecycle_site.alerts.models import Rule
 from lifecycle_site.fleet.models import Gateway, ManagedNode, ProcessProfile
 from lifecycle_site.gateway_link import gateways
 from lifecycle_site.ingest.observations import GONE, Observation
+from lifecycle_site.modes import readiness
+from lifecycle_site.modes.models import CurrentMode
 from ros_gateway.shared import protocol
 
 
@@ -28,6 +30,10 @@ class Condition:
     gateway: str = ""
     robot: str = ""
     node: str = ""
+
+
+KEPT = ("alert", "enforce")  # the node policies (keep_desired) under which drift is alerted
+MODE_ROBOTS = 500  # robots whose readiness one evaluation works out
 
 
 def _node_text(node: str, robot: str) -> str:
@@ -51,6 +57,12 @@ def node_conditions(rule: Rule, now: datetime) -> dict[str, Condition]:
         nodes = nodes.filter(alive=True, state_label=rule.state)
     elif rule.kind == Rule.Kind.GONE:
         nodes = nodes.filter(alive=False, first_seen__isnull=False)  # seen once, gone now
+    elif rule.kind == Rule.Kind.NOT_KEPT:
+        # Nodes whose desired state is kept (their own policy, or their robot's), moved away from
+        # it while running; or left alone by their gateway after a fight with another manager.
+        kept = Q(keep_desired__in=KEPT) | Q(keep_desired="", robot__keep_desired__in=KEPT)
+        nodes = nodes.exclude(desired_state="").filter(kept).filter(
+            Q(alive=True) & ~Q(state_label=F("desired_state")) | Q(enforcement_stopped__isnull=False))
     else:
         # A node that crashed (or stopped answering) is not in its desired state either: its
         # alert keeps firing rather than resolving at the moment the node was lost.
@@ -58,7 +70,8 @@ def node_conditions(rule: Rule, now: datetime) -> dict[str, Condition]:
             Q(alive=False, first_seen__isnull=False) | Q(alive=True) & ~Q(state_label=F("desired_state")))
     found = {}
     for row in nodes.values("key", "name", "robot__name", "robot__gateway__name", "state_label", "desired_state",
-                            "state_changed", "last_seen", "gone_reason", "alive"):
+                            "state_changed", "last_seen", "gone_reason", "alive", "enforcement_stopped",
+                            "enforcement_note"):
         if not rule.matches_node(row["name"]):
             continue
         node, robot = row["name"], row["robot__name"]
@@ -66,6 +79,12 @@ def node_conditions(rule: Rule, now: datetime) -> dict[str, Condition]:
             since, summary = row["state_changed"], f"{_node_text(node, robot)} is {rule.state}."
         elif rule.kind == Rule.Kind.GONE:
             since, summary = row["last_seen"], _gone_text(node, robot, row["gone_reason"])
+        elif row["enforcement_stopped"] and rule.kind == Rule.Kind.NOT_KEPT:
+            since, summary = row["enforcement_stopped"], f"{_node_text(node, robot)}: {row['enforcement_note']}."
+        elif rule.kind == Rule.Kind.NOT_KEPT:
+            since = row["state_changed"]
+            summary = (f"{_node_text(node, robot)} was moved to {row['state_label']}; its desired state is "
+                       f"{row['desired_state']}, kept against other tools.")
         elif not row["alive"]:
             since = row["last_seen"]
             how = "is not answering" if row["gone_reason"] == "unreachable" else "is not running (lost)"
@@ -115,9 +134,33 @@ def process_conditions(rule: Rule, now: datetime) -> dict[str, Condition]:
     return found
 
 
+def mode_conditions(rule: Rule, now: datetime) -> dict[str, Condition]:
+    """Robots not ready in their current mode (a readiness predicate fails), since when."""
+    rows = CurrentMode.objects.filter(robot__enabled=True).select_related("robot__gateway", "mode")
+    if rule.robot_id:
+        rows = rows.filter(robot_id=rule.robot_id)
+    if rule.gateway_id:
+        rows = rows.filter(robot__gateway_id=rule.gateway_id)
+    found = {}
+    for now_mode in rows[:MODE_ROBOTS]:
+        if not now_mode.mode.ready_when:
+            continue
+        result = readiness.evaluate(now_mode)
+        if result["ready"]:
+            continue
+        failing = "; ".join(f"{c['words']} (now {c['now']})" for c in result["readiness"] if not c["holds"])
+        robot = now_mode.robot
+        summary = f"Robot {robot.name} is not ready in mode {now_mode.mode.name}: {failing}."
+        found[robot.name] = Condition(robot.name, now_mode.not_ready_since or now, summary[:2000],
+                                      robot.gateway.name, robot.name)
+    return found
+
+
 def current(rule: Rule, now: datetime) -> dict[str, Condition]:
     if rule.kind == Rule.Kind.PROCESS_GIVEN_UP:
         return process_conditions(rule, now)
+    if rule.kind == Rule.Kind.MODE_NOT_READY:
+        return mode_conditions(rule, now)
     return node_conditions(rule, now) if rule.watches_nodes else gateway_conditions(rule, now)
 
 

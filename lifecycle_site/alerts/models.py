@@ -15,7 +15,7 @@ from django.db.models import Q
 from lifecycle_site.alerts import destinations
 from ros_gateway.shared import state_machine as sm
 
-NODE_KINDS = ("state", "gone", "not_desired")
+NODE_KINDS = ("state", "gone", "not_desired", "not_kept")
 # Line breaks and other control characters: in an e-mail header they end it (Django refuses to
 # send such a mail at all); in a log line they forge the next one.
 CONTROL_CHARACTERS = re.compile(r"[\x00-\x1f\x7f-\x9f\u2028\u2029]+")
@@ -102,6 +102,8 @@ class Rule(models.Model):
         NOT_DESIRED = "not_desired", "node is not in its desired state"
         GATEWAY_OFFLINE = "gateway_offline", "gateway is offline or quarantined"
         PROCESS_GIVEN_UP = "process_given_up", "a launch profile's process was given up (kept failing)"
+        NOT_KEPT = "not_kept", "node kept in its desired state was moved, or another manager keeps moving it"
+        MODE_NOT_READY = "mode_not_ready", "robot is not ready in its current mode"
 
     STATE_CHOICES = [(label, label) for state_id, label in sorted(sm.STATE_LABELS.items()) if state_id]
 
@@ -149,6 +151,8 @@ class Rule(models.Model):
             raise ValidationError({"state": "Only 'node is in a state' rules take a state."})
         if self.kind == self.Kind.GATEWAY_OFFLINE and self.node_pattern:
             raise ValidationError({"node_pattern": "A gateway rule has no node pattern."})
+        if self.kind == self.Kind.MODE_NOT_READY and self.node_pattern:
+            raise ValidationError({"node_pattern": "A mode rule has no node pattern (it watches robots)."})
         if self.kind == self.Kind.PROCESS_GIVEN_UP and self.node_pattern:
             raise ValidationError({"node_pattern": "A process rule has no node pattern (it watches every launch "
                                                    "profile of its robot or gateway)."})

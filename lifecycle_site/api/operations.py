@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import math
 
+from django.db import transaction
 from django.http import Http404, HttpRequest, JsonResponse
 
 from lifecycle_site.api.auth import api_view, error, json_body
@@ -10,7 +11,7 @@ from lifecycle_site.api.limits import MAX_NODES
 from lifecycle_site.api.views import get_node
 from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
 from lifecycle_site.gateway_link.gateway_client import MAX_SERVICE_TIMEOUT
-from lifecycle_site.operations.desired_state import set_desired_state
+from lifecycle_site.operations.desired_state import resume_keeping, set_desired_state, set_keep
 from lifecycle_site.operations.runs import start_run, wait_for
 from lifecycle_site.refusal import Refusal, shown
 from ros_gateway.shared import operations, param_types
@@ -23,7 +24,7 @@ def _body(request: HttpRequest) -> dict:
     return json_body(request, empty=b"{}", shape=dict)
 
 
-def _positive(value, name: str, default: float) -> float:
+def positive_seconds(value, name: str, default: float) -> float:
     if value is None:
         return default
     if not param_types.is_number(value) or not 0 < value <= MAX_SERVICE_TIMEOUT:
@@ -32,7 +33,7 @@ def _positive(value, name: str, default: float) -> float:
     return float(value)
 
 
-def _answer(request: HttpRequest, run: GroupRun) -> JsonResponse:
+def run_answer(request: HttpRequest, run: GroupRun) -> JsonResponse:
     """202 while the run goes on; with ?wait=S, wait (bounded) and answer 200 once it is done."""
     try:
         wait = float(request.GET.get("wait", 0))
@@ -66,9 +67,9 @@ def robot_operation(request: HttpRequest, name: str) -> JsonResponse:
         return error("invalid_field", f"A node name is at most {NODE_NAME_LENGTH} characters long.", 400)
     run = start_run(
         robot, operation, user=request.user, source="api", policy=str(body.get("policy", GroupRun.Policy.STOP)),
-        node_timeout=_positive(body.get("timeout"), "timeout", 5.0), nodes=nodes,
+        node_timeout=positive_seconds(body.get("timeout"), "timeout", 5.0), nodes=nodes,
     )
-    return _answer(request, run)
+    return run_answer(request, run)
 
 
 @api_view(methods=("POST",), permission=OPERATE)
@@ -76,8 +77,8 @@ def node_restart(request: HttpRequest, key: str) -> JsonResponse:
     node = get_node(key)
     body = _body(request)
     run = start_run(node.robot, "restart", user=request.user, source="api", nodes=[node.name],
-                    node_timeout=_positive(body.get("timeout"), "timeout", 5.0))
-    return _answer(request, run)
+                    node_timeout=positive_seconds(body.get("timeout"), "timeout", 5.0))
+    return run_answer(request, run)
 
 
 @api_view()
@@ -85,7 +86,7 @@ def run_detail(request: HttpRequest, run_id: str) -> JsonResponse:
     run = GroupRun.objects.select_related("robot", "requested_by").filter(pk=run_id).first()
     if run is None:
         raise Http404(f"There is no run {shown(run_id)}.")
-    return _answer(request, run)
+    return run_answer(request, run)
 
 
 @api_view()
@@ -100,8 +101,21 @@ def robot_runs(request: HttpRequest, name: str) -> JsonResponse:
 def desired_state(request: HttpRequest, key: str) -> JsonResponse:
     node = get_node(key)
     body = _body(request)
-    if "desired_state" not in body:
-        return error("missing_field", 'Send {"desired_state": "active"} (or null to clear it).', 400)
-    wanted = set_desired_state(node, body["desired_state"])  # null clears it; false, 0, [] are no state
-    return JsonResponse({"id": node.key, "desired_state": wanted or None,
-                         "auto_recover": node.robot.auto_recover})
+    if not {"desired_state", "keep", "resume"} & set(body):
+        return error("missing_field", 'Send {"desired_state": "active"} (or null to clear it), {"keep": "enforce"} '
+                     '(off, alert, enforce; null: as its robot) or {"resume": true} (after a fight).', 400)
+    with transaction.atomic():  # all or nothing: a refusal rolls back what came before it
+        if "desired_state" in body:
+            set_desired_state(node, body["desired_state"])  # null clears it; false, 0, [] are no state
+        if "keep" in body:
+            set_keep(node, body["keep"])
+        if body.get("resume") is True:
+            resume_keeping(node, request.user)
+    return JsonResponse(keep_json(node))
+
+
+def keep_json(node: ManagedNode) -> dict:
+    return {"id": node.key, "desired_state": node.desired_state or None, "auto_recover": node.robot.auto_recover,
+            "keep": node.keep, "keep_own": node.keep_desired or None,
+            "enforcement_stopped": node.enforcement_stopped.isoformat() if node.enforcement_stopped else None,
+            "enforcement_note": node.enforcement_note}

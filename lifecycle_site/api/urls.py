@@ -1,6 +1,6 @@
 from django.urls import path, re_path
 
-from lifecycle_site.api import alerts, operations, parameters, processes, timeline, views
+from lifecycle_site.api import alerts, modes, operations, parameters, processes, timeline, views
 from lifecycle_site.api.auth import not_found
 
 app_name = "api"
@@ -16,6 +16,13 @@ urlpatterns = [
     path("robots/<str:name>/runs", operations.robot_runs, name="robot-runs"),
     path("robots/<str:name>/processes", processes.robot_processes, name="robot-processes"),
     path("robots/<str:name>/processes/<str:process>", processes.process_action, name="process-action"),
+    path("robots/<str:name>/modes", modes.robot_modes, name="robot-modes"),
+    path("robots/<str:name>/modes.yaml", modes.robot_modes_yaml, name="robot-modes-yaml"),
+    path("robots/<str:name>/modes/<str:mode>/apply", modes.apply, name="robot-mode-apply"),
+    path("robots/<str:name>/drift", modes.robot_drift, name="robot-drift"),
+    path("modes", modes.modes, name="modes"),
+    path("modes/import", modes.import_file, name="modes-import"),
+    path("modes/<str:name>", modes.mode, name="mode"),
     path("runs/<str:run_id>", operations.run_detail, name="run"),
     path("nodes/<str:key>/restart", operations.node_restart, name="node-restart"),
     path("nodes/<str:key>/desired-state", operations.desired_state, name="node-desired-state"),

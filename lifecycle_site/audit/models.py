@@ -145,6 +145,7 @@ class ParameterRecord(AppendOnlyRecord):
     source = models.CharField(max_length=16, choices=TransitionRecord.Source.choices)
     at = models.DateTimeField()
     fact_id = models.CharField(max_length=32, null=True, blank=True, unique=True, editable=False)
+    run_id = models.CharField(max_length=64, blank=True, help_text="The run (a mode's) that set it.")
 
     class Meta:
         ordering = ["-at", "-id"]
@@ -163,6 +164,7 @@ class ParameterRecord(AppendOnlyRecord):
             "source": self.source,
             "requested_by": self.requested_by_name or None,
             "at": self.at.isoformat(),
+            "run_id": self.run_id or None,
         }
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 from functools import wraps
 
 from django.contrib.auth.decorators import login_required
-from django.http import HttpResponse
+from django.http import HttpRequest, HttpResponse
 from django.shortcuts import render
 
 from lifecycle_site.audit import denials
@@ -35,6 +35,26 @@ def operator_required(view):
                 '<p class="result fail" role="alert">Your role may view but not operate nodes (operator needed).</p>',
                 status=403,
             )
+        return view(request, *args, **kwargs)
+
+    return wrapper
+
+
+def refresh_page() -> HttpResponse:
+    """htmx reloads the page (which then says why: the login form, the no-role page, the 404)."""
+    response = HttpResponse(status=204)
+    response["HX-Refresh"] = "true"
+    return response
+
+
+def polled(view):
+    """For the part the page polls: a session that has ended or lost its role reloads the page
+    instead of swapping the login page into the table (login_required would redirect there)."""
+
+    @wraps(view)
+    def wrapper(request: HttpRequest, *args, **kwargs) -> HttpResponse:
+        if not request.user.is_authenticated or not request.user.has_perm(VIEW_PERMISSION):
+            return refresh_page()
         return view(request, *args, **kwargs)
 
     return wrapper

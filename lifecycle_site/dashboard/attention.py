@@ -4,11 +4,14 @@ the page's title. A node whose activation just failed must not look like a healt
 
 Worst first: a gateway offline or quarantined (it takes all its robots with it: it leads, or a
 fleet with many failing nodes would push it out of the strip), a failed last transition, a node
-not in its desired state, a node lost or not answering, a process lost, an alert firing; each
-with the node's own reason (the failure text of its last audit record) and a link.
+left alone after a fight with another manager, a node not in its desired state (its mode's, if
+its robot is in one), one whose parameters differ from its robot's mode, a node lost or not
+answering, a process lost, an alert firing; each with the node's own reason (the failure text of
+its last audit record) and a link.
 
 Cheap at size: three queries whatever the fleet's size (the nodes with their last record's
-outcome, the firing alerts, the last records of the nodes listed), kept KEEP_S for every page
+outcome, the firing alerts, the last records of the nodes listed), and for robots in a mode one
+more and a few per robot whose mode sets parameters (at most MODE_ROBOTS), kept KEEP_S for every page
 of the process; the fleet socket asks after node updates and every few seconds
 (consumers.FleetConsumer), and sends the strip only when it changed."""
 from __future__ import annotations
@@ -20,10 +23,13 @@ from lifecycle_site.alerts.models import Alert
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.dashboard import snapshots
 from lifecycle_site.fleet.models import ManagedNode
+from lifecycle_site.modes import drift
+from lifecycle_site.modes.models import CurrentMode
 
-FAILED, NOT_DESIRED, LOST, PROCESS_LOST, ALERT, GATEWAY = (
-    "failed", "not_desired", "lost", "process_lost", "alert", "gateway")
-RANK = {kind: i for i, kind in enumerate((GATEWAY, FAILED, NOT_DESIRED, LOST, PROCESS_LOST, ALERT))}
+FAILED, FIGHT, NOT_DESIRED, DRIFT, LOST, PROCESS_LOST, ALERT, GATEWAY = (
+    "failed", "fight", "not_desired", "drift", "lost", "process_lost", "alert", "gateway")
+RANK = {kind: i for i, kind in enumerate((GATEWAY, FAILED, FIGHT, NOT_DESIRED, DRIFT, LOST, PROCESS_LOST, ALERT))}
+MODE_ROBOTS = 100  # robots in a mode whose parameter drift the strip works out
 FAILED_OUTCOMES = (TransitionRecord.Outcome.FAILED, TransitionRecord.Outcome.TIMED_OUT)
 OUTCOME_LABELS = dict(TransitionRecord.Outcome.choices)
 SHOWN = 12  # items the strip lists; the filter shows every affected row
@@ -44,16 +50,24 @@ def _read(gateway_views: list[dict] | None) -> dict:
     rows = (ManagedNode.objects.filter(robot__enabled=True, last_seen__isnull=False)
             .annotate(last_id=Subquery(last.values("id")[:1]), last_outcome=Subquery(last.values("outcome")[:1]))
             .values_list("key", "name", "robot__name", "robot__gateway__name", "state_label", "alive",
-                         "gone_reason", "last_seen", "desired_state", "last_id", "last_outcome"))
+                         "gone_reason", "last_seen", "desired_state", "last_id", "last_outcome",
+                         "robot__current_mode__mode__name", "enforcement_stopped", "enforcement_note"))
     found: dict[str, list[tuple[str, str]]] = {}  # node key -> [(kind, label)]
     nodes: dict[str, tuple] = {}
+    in_mode: set[str] = set()  # robots in a mode
     for row in rows:
-        key, _, _, _, state, alive, gone_reason, _, desired, _, outcome = row
+        key, _, robot, _, state, alive, gone_reason, _, desired, _, outcome, mode, fight, _ = row
+        if mode:
+            in_mode.add(robot)
         kinds = []
         if outcome in FAILED_OUTCOMES:
             kinds.append((FAILED, ""))  # labelled from its record below
+        if fight:  # its gateway stopped keeping it in its desired state (ros_gateway/desired_keeper.py)
+            kinds.append((FIGHT, "another manager keeps changing it"))
         if alive and desired and state != desired:
-            kinds.append((NOT_DESIRED, f"not in its desired state: {state}, desired state {desired}"))
+            # A mode's states are its nodes' desired states while it is current (lifecycle_site/modes).
+            kinds.append((NOT_DESIRED, f"not as mode {mode} says: {state}, the mode wants {desired}" if mode
+                          else f"not in its desired state: {state}, desired state {desired}"))
         if not alive:
             if gone_reason == "process_lost":
                 kinds.append((PROCESS_LOST, "process lost"))
@@ -70,6 +84,7 @@ def _read(gateway_views: list[dict] | None) -> dict:
         "id", "transition_label", "outcome", "error", "requested_at")}
     items = [_node_item(key, nodes[key], found[key], records.get(nodes[key][9]), alerts.pop(key, []))
              for key in found]
+    items += _parameter_drift(in_mode, set(found)) if in_mode else []
     for key, fired in alerts.items():  # alerts about nodes that show nothing else
         first = fired[0]
         if first["node_name"]:
@@ -92,8 +107,27 @@ def _read(gateway_views: list[dict] | None) -> dict:
     return {"items": items, "count": len(items), "keys": keys, "gateways": gateways}
 
 
+def _parameter_drift(robots: set[str], listed: set[str]) -> list[dict]:
+    """Nodes of these robots whose parameters differ from their robot's current mode (their
+    state's drift is a desired state not reached, above); one item per node, not listed already."""
+    items: dict[str, dict] = {}
+    for now_mode in CurrentMode.objects.select_related("robot__gateway", "mode").filter(
+            robot__name__in=sorted(robots)[:MODE_ROBOTS]):
+        if not any(entry.get("parameters") for entry in now_mode.mode.nodes.values()):
+            continue
+        for found in drift.differences(now_mode.robot, now_mode):
+            if found.kind != "parameter" or found.node_id in listed:
+                continue
+            item = items.setdefault(found.node_id, {
+                "kind": DRIFT, "label": f"not as mode {now_mode.mode.name} says", "key": found.node_id,
+                "robot": now_mode.robot.name, "node": found.node, "gateway": now_mode.robot.gateway.name,
+                "reason": "", "at": now_mode.since.isoformat(), "also": []})
+            item["reason"] = "; ".join(filter(None, (item["reason"], found.words())))[:REASON_CHARS]
+    return list(items.values())
+
+
 def _node_item(key: str, row: tuple, kinds: list[tuple[str, str]], record: dict | None, fired: list[dict]) -> dict:
-    _, name, robot, gateway, _, _, _, last_seen, _, _, _ = row
+    _, name, robot, gateway, _, _, _, last_seen, _, _, _, _, fight, fight_note = row
     labels = []
     for kind, label in kinds:
         if kind == FAILED and record is not None:
@@ -104,7 +138,9 @@ def _node_item(key: str, row: tuple, kinds: list[tuple[str, str]], record: dict 
     # in its desired state they may tell of an earlier, ended episode ("its process ended").
     explains = any(kind in (FAILED, LOST, PROCESS_LOST) for kind, _ in kinds)
     reason = ((record or {}).get("error") if explains else "") or (fired[0]["summary"] if fired else "")
-    if record is not None:
+    if kinds[0][0] == FIGHT:
+        reason, at = fight_note, fight.isoformat()
+    elif record is not None:
         at = record["requested_at"].isoformat()
     else:
         at = last_seen.isoformat() if last_seen else None

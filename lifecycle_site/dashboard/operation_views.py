@@ -1,6 +1,7 @@
 """Group operations, restart and desired state from the pages (the API has the same in JSON)."""
 from __future__ import annotations
 
+from django.db import transaction
 from django.http import Http404, HttpRequest, HttpResponse
 from django.shortcuts import render
 from django.views.decorators.http import require_POST
@@ -10,7 +11,7 @@ from lifecycle_site.dashboard.access import operator_required
 from lifecycle_site.dashboard.views import node_or_404
 from lifecycle_site.fleet.models import GroupRun, Robot
 from lifecycle_site.fleet.serializers import node_dict
-from lifecycle_site.operations.desired_state import set_desired_state
+from lifecycle_site.operations.desired_state import resume_keeping, set_desired_state, set_keep
 from lifecycle_site.operations.runs import start_run
 from lifecycle_site.refusal import Refusal
 
@@ -63,8 +64,15 @@ def node_restart(request: HttpRequest, key: str) -> HttpResponse:
 def desired_state(request: HttpRequest, key: str) -> HttpResponse:
     node = node_or_404(key)
     try:
-        set_desired_state(node, request.POST.get("desired_state", ""))
+        with transaction.atomic():
+            if "desired_state" in request.POST:
+                set_desired_state(node, request.POST["desired_state"])
+            if "keep_desired" in request.POST:
+                set_keep(node, request.POST["keep_desired"])
+            if "resume" in request.POST:
+                resume_keeping(node, request.user)
     except Refusal as refused:
+        node.refresh_from_db()  # (rolled back)
         context = {"node_obj": node, "can_operate": True, "error": refused.message}
         return render(request, "dashboard/_desired_state.html", context, status=refused.status)
     return render(request, "dashboard/_desired_state.html", {"node_obj": node, "can_operate": True, "saved": True})

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import hashlib
 import re
-from functools import wraps
 
 from django.http import Http404, HttpRequest, HttpResponse
 from django.shortcuts import render
@@ -18,7 +17,7 @@ from django.views.decorators.http import require_POST
 
 from lifecycle_site.audit.models import ProcessRecord
 from lifecycle_site.dashboard import snapshots
-from lifecycle_site.dashboard.access import VIEW_PERMISSION, operator_required, viewer_required
+from lifecycle_site.dashboard.access import operator_required, polled, refresh_page, viewer_required
 from lifecycle_site.fleet.models import ProcessProfile, Robot
 from lifecycle_site.operations import processes
 from lifecycle_site.refusal import shown
@@ -35,7 +34,7 @@ REFUSAL_HEADINGS = {"gateway_offline": "Gateway offline", "process_state": "Not 
                     "unknown_action": "No such action"}
 
 
-def _robot(name: str) -> Robot:
+def robot_or_404(name: str) -> Robot:
     robot = Robot.objects.select_related("gateway").filter(name=name).first()
     if robot is None:
         raise Http404(f"There is no robot {shown(name)}.")
@@ -105,45 +104,25 @@ def _live(request: HttpRequest, robot: Robot) -> dict:
     return context
 
 
-def _refresh_page() -> HttpResponse:
-    """htmx reloads the page (which then says why: the login form, the no-role page, the 404)."""
-    response = HttpResponse(status=204)
-    response["HX-Refresh"] = "true"
-    return response
-
-
-def _polled(view):
-    """For the part the page polls: a session that has ended or lost its role reloads the page
-    instead of swapping the login page into the table (login_required would redirect there)."""
-
-    @wraps(view)
-    def wrapper(request: HttpRequest, *args, **kwargs) -> HttpResponse:
-        if not request.user.is_authenticated or not request.user.has_perm(VIEW_PERMISSION):
-            return _refresh_page()
-        return view(request, *args, **kwargs)
-
-    return wrapper
-
-
 @viewer_required
 def robot_processes(request: HttpRequest, robot: str) -> HttpResponse:
-    robot_obj = _robot(robot)
+    robot_obj = robot_or_404(robot)
     return render(request, "dashboard/processes.html", {**_live(request, robot_obj), "poll_seconds": POLL_SECONDS})
 
 
-@_polled
+@polled
 def robot_processes_rows(request: HttpRequest, robot: str) -> HttpResponse:
     """The polled part: 204 while it shows what the page has (``?seen=`` its digest)."""
     robot_obj = Robot.objects.select_related("gateway").filter(name=robot).first()
     if robot_obj is None:  # removed since the page was opened
-        return _refresh_page()
+        return refresh_page()
     context = _live(request, robot_obj)
     if request.GET.get("seen") == context["seen"]:
         return HttpResponse(status=204)
     return render(request, "dashboard/_process_live.html", context)
 
 
-@_polled
+@polled
 def robot_processes_usage(request: HttpRequest, robot: str) -> HttpResponse:
     """CPU and memory of each running process, as its gateway measures them now: cells swapped out
     of band (the rows are not redrawn: the keyboard focus and an open question stay). 204 when
@@ -169,7 +148,7 @@ def process_action(request: HttpRequest, robot: str, process: str, action: str) 
     htmx swaps only 2xx answers, so a refusal a button can meet (the gateway offline, the
     process not in a state for it) is answered 200 with its message, as the project's other
     pages do; what no button sends (an unknown process or action) gets the refusal's status."""
-    robot_obj = _robot(robot)
+    robot_obj = robot_or_404(robot)
     try:
         profile = processes.profile_of(robot_obj, process)
         record = processes.control(profile, action, request.user, "dashboard")

@@ -5,6 +5,7 @@ from django.urls import path
 from lifecycle_site.dashboard import (
     audit_views,
     log_views,
+    mode_views,
     operation_views,
     parameter_views,
     process_views,
@@ -27,6 +28,9 @@ urlpatterns = [
     path("robots/<str:robot>/processes/usage", process_views.robot_processes_usage, name="robot-processes-usage"),
     path("robots/<str:robot>/processes/<str:process>/<str:action>", process_views.process_action,
          name="process-action"),
+    path("robots/<str:robot>/modes/", mode_views.robot_modes, name="robot-modes"),
+    path("robots/<str:robot>/modes/import", mode_views.import_file, name="robot-modes-import"),
+    path("robots/<str:robot>/modes/<str:mode>/apply", mode_views.apply, name="robot-mode-apply"),
     path("nodes/<str:key>/restart", operation_views.node_restart, name="node-restart"),
     path("nodes/<str:key>/desired-state", operation_views.desired_state, name="node-desired-state"),
     path("nodes/<str:key>/parameters", parameter_views.parameters, name="node-parameters"),

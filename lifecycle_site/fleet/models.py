@@ -94,6 +94,9 @@ def default_gateway_id() -> int:
     return found
 
 
+KEEP_CHOICES = [(policy, policy) for policy in protocol.KEEP_POLICIES]
+
+
 class Robot(models.Model):
     """A robot is a ROS domain, optionally narrowed to a namespace within it."""
 
@@ -122,6 +125,10 @@ class Robot(models.Model):
         default=False,
         help_text="When a node comes back after its process was restarted, drive it to its desired state.",
     )
+    keep_desired = models.CharField(
+        "keep desired states", max_length=8, default="off", choices=KEEP_CHOICES,
+        help_text="When another tool moves a node away from its desired state: nothing (off), an alert, or the "
+                  "gateway drives it back (enforce; it stops and says so when another manager keeps moving it).")
     created = models.DateTimeField(auto_now_add=True)
 
     class Meta:
@@ -179,6 +186,13 @@ class ManagedNode(models.Model):
         choices=[("", "none"), *((label, label) for label in sm.DESIRED_STATES)],
         help_text="The state automatic recovery brings this node back to after a restart of its process.",
     )
+    keep_desired = models.CharField(
+        "keep desired state", max_length=8, blank=True, choices=[("", "as its robot"), *KEEP_CHOICES],
+        help_text="Whether its desired state is kept against other tools; empty: as its robot says.")
+    # Set when the gateway stopped keeping it (another manager keeps moving it); cleared by an operator.
+    enforcement_stopped = models.DateTimeField(null=True, blank=True, editable=False)
+    enforcement_note = models.TextField(blank=True, editable=False)
+    enforcement_resumed = models.DateTimeField(null=True, blank=True, editable=False)  # tells the gateway
 
     class Meta:
         ordering = ["robot__name", "name"]
@@ -195,6 +209,12 @@ class ManagedNode(models.Model):
     @property
     def state(self) -> dict:
         return {"id": self.state_id, "label": self.state_label}
+
+    @property
+    def keep(self) -> str:
+        """Its policy as the gateway follows it: its own or its robot's; "paused" after a fight."""
+        policy = self.keep_desired or self.robot.keep_desired
+        return protocol.KEEP_PAUSED if policy == "enforce" and self.enforcement_stopped else policy
 
     @property
     def valid_transitions(self) -> list[dict]:
@@ -324,6 +344,8 @@ class GroupRun(models.Model):
     policy = models.CharField(max_length=16, choices=Policy.choices, default=Policy.STOP)
     node_timeout = models.FloatField(default=5.0)
     only_nodes = models.JSONField(default=list, blank=True, help_text="Node names; empty for all of the robot's.")
+    plan = models.JSONField(default=dict, blank=True,
+                            help_text="A mode's run: the mode, each node's target state and parameters.")
     steps = models.PositiveSmallIntegerField(
         null=True, blank=True, editable=False,
         help_text="How many steps of the robot's bring-up order the run went in (1: all side by side); "
@@ -357,6 +379,7 @@ class GroupRun(models.Model):
             "policy": self.policy,
             "node_timeout": self.node_timeout,
             "nodes": self.only_nodes,
+            **({"mode": self.plan.get("mode")} if self.plan.get("mode") else {}),
             "steps": self.steps,
             "status": self.status,
             "message": self.message,

@@ -17,6 +17,8 @@ VIEW = [
     "audit.view_processrecord",
     "fleet.view_processprofile",
     "alerts.view_alert",
+    "modes.view_mode",
+    "modes.view_currentmode",
 ]
 OPERATE = VIEW + ["fleet.operate_node", "alerts.acknowledge_alert"]
 ADMINISTER = OPERATE + [
@@ -29,6 +31,9 @@ ADMINISTER = OPERATE + [
     "fleet.add_processprofile",
     "fleet.change_processprofile",
     "fleet.delete_processprofile",
+    "modes.add_mode",
+    "modes.change_mode",
+    "modes.delete_mode",
     "auth.view_user",
     "auth.add_user",
     "auth.change_user",

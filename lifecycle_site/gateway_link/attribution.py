@@ -100,7 +100,7 @@ def requester(known: Any, fact: dict, robot: Any) -> tuple[str, int | None, str]
         runs = known.__dict__.setdefault("runs", {})
         if run_id not in runs:
             runs[run_id] = GroupRun.objects.filter(pk=run_id).values(
-                "robot_id", "source", "requested_by_id", "only_nodes", "created", "finished").first()
+                "robot_id", "source", "requested_by_id", "only_nodes", "plan", "created", "finished").first()
         run = runs[run_id]
         if run is None or run["robot_id"] != robot.id:
             raise checks.GatewayInputRefused(f"run {str(run_id)[:32]} is not one of robot {robot.name}'s runs")
@@ -143,8 +143,13 @@ def _within(run: dict, fact: dict) -> bool:
 
     if run["only_nodes"] and fact.get("node") not in run["only_nodes"]:
         return False
+    if fact.get("type") == protocol.PARAMETER:
+        # Only a value the run's mode sets, on its node: a gateway cannot put another change on the run.
+        wanted = (run["plan"].get("parameters") or {}).get(fact.get("node")) or {}
+        if fact.get("name") not in wanted or wanted[fact.get("name")] != fact.get("new"):
+            return False
     try:
-        asked = checks.moment(fact.get("requested_at"), "requested_at")
+        asked = checks.moment(fact.get("requested_at") or fact.get("at"), "requested_at")
     except checks.GatewayInputRefused:
         return False
     return run["created"] - RUN_SLACK <= asked <= (run["finished"] or timezone.now()) + RUN_SLACK

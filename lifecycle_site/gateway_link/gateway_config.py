@@ -16,6 +16,7 @@ from django.db.models.signals import post_delete, post_save
 
 from lifecycle_site.fleet.models import Gateway, ManagedNode, ProcessProfile, Robot
 from lifecycle_site.gateway_link.gateways import channel_prefix, redis_client
+from lifecycle_site.modes.models import CurrentMode, Mode
 from ros_gateway.shared import protocol
 
 log = logging.getLogger(__name__)
@@ -26,19 +27,27 @@ def build_config(gateway_name: str) -> dict:
     the processes it runs for them (their launch profiles)."""
     robots = list(Robot.objects.filter(gateway__name=gateway_name, enabled=True).order_by("name"))
     nodes: dict[int, dict[str, dict]] = {r.id: {} for r in robots}
+    robot_keep = {r.id: r.keep_desired for r in robots}
     rows = ManagedNode.objects.filter(robot__in=robots).order_by("name").values_list(
-        "robot_id", "name", "order", "desired_state"
+        "robot_id", "name", "order", "desired_state", "keep_desired", "enforcement_stopped", "enforcement_resumed"
     )
-    for robot_id, name, order, desired in rows:
-        nodes[robot_id][name] = {"order": order, "desired_state": desired}
+    for robot_id, name, order, desired, keep, stopped, resumed in rows:
+        keep = keep or robot_keep[robot_id]  # (as ManagedNode.keep says, without a query per node)
+        keep = protocol.KEEP_PAUSED if keep == "enforce" and stopped else keep
+        nodes[robot_id][name] = {"order": order, "desired_state": desired, "keep": keep,
+                                 **({"resumed": resumed.isoformat()} if resumed else {})}
     processes: dict[int, list[dict]] = {r.id: [] for r in robots}
     for profile in ProcessProfile.objects.filter(robot__in=robots, enabled=True).order_by("name"):
         processes[profile.robot_id].append(profile.for_gateway())
+    # The topics whose rates the robots' current modes wait for (lifecycle_site/modes/readiness.py).
+    rates = {m.robot_id: m.topics()[:protocol.MAX_RATE_TOPICS]
+             for m in CurrentMode.objects.filter(robot__in=robots).select_related("mode")}
     body = {
         "gateway": gateway_name,
         "robots": [
             {"id": r.id, "name": r.name, "domain_id": r.domain_id, "namespace": r.namespace,
-             "auto_recover": r.auto_recover, "nodes": nodes[r.id], "processes": processes[r.id]}
+             "auto_recover": r.auto_recover, "nodes": nodes[r.id], "processes": processes[r.id],
+             **({"rates": rates[r.id]} if rates.get(r.id) else {})}
             for r in robots
         ],
     }
@@ -104,7 +113,8 @@ def _publish_pending() -> None:
             log.warning("could not publish the config of gateway %s (Redis: %s); the ingest process will", name, exc)
 
 
-CONFIG_FIELDS = {"name", "order", "desired_state", "robot", "robot_id"}
+CONFIG_FIELDS = {"name", "order", "desired_state", "robot", "robot_id", "keep_desired", "enforcement_stopped",
+                 "enforcement_resumed"}
 
 
 def _robot_changed(sender, instance: Robot, **kwargs) -> None:
@@ -128,6 +138,12 @@ def _profile_changed(sender, instance: ProcessProfile, **kwargs) -> None:
         publish_on_commit([gateway])
 
 
+def _mode_changed(sender, instance: Mode, **kwargs) -> None:
+    """A mode's readiness may name other topics: the gateways of the robots in it measure those."""
+    publish_on_commit(set(CurrentMode.objects.filter(mode=instance).values_list("robot__gateway__name", flat=True)))
+
+
+post_save.connect(_mode_changed, sender=Mode, dispatch_uid="gateway_link.gateways.mode_saved")
 post_save.connect(_profile_changed, sender=ProcessProfile, dispatch_uid="gateway_link.gateways.profile_saved")
 post_delete.connect(_profile_changed, sender=ProcessProfile, dispatch_uid="gateway_link.gateways.profile_deleted")
 post_save.connect(_robot_changed, sender=Robot, dispatch_uid="gateway_link.gateways.robot_saved")

@@ -24,6 +24,7 @@ from lifecycle_site.gateway_link.gateway_input import FactRejected
 from lifecycle_site.ingest import state_chain, verdicts
 from lifecycle_site.ingest.absences import node_back, node_left
 from lifecycle_site.ingest.fact_context import Applied, Hints, KnownRecords, save_once
+from lifecycle_site.ingest.keep_facts import apply_enforcement_stopped, apply_topic_rates
 from lifecycle_site.ingest.process_facts import apply_node_process, apply_process
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
@@ -290,6 +291,7 @@ def _parameter(known: KnownRecords, fact: dict, at: datetime, applied: Applied) 
         source=source,
         **_requester(known, user_id),
         at=at,
+        run_id=_run_id(fact.get("run_id")),
     )
     if save_once(known, record):
         applied.created_parameters.append(record)
@@ -387,4 +389,6 @@ HANDLERS = {
     protocol.GATEWAY_STARTED: _gateway_started,
     protocol.PROCESS: apply_process,
     protocol.NODE_PROCESS: apply_node_process,
+    protocol.ENFORCEMENT_STOPPED: apply_enforcement_stopped,
+    protocol.TOPIC_RATES: apply_topic_rates,
 }

@@ -18,10 +18,13 @@ from lifecycle_site.alerts import metrics as alert_metrics
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.fleet.models import Gateway, GroupRun, ManagedNode
 from lifecycle_site.gateway_link import gateways
+from lifecycle_site.modes import drift, readiness
+from lifecycle_site.modes.models import CurrentMode
 
 # Seconds; a lifecycle transition takes milliseconds to a node's own timeout (at most 25 s here).
 DURATION_BUCKETS_S = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
 NOT_RUNNING = "not_running"
+MODE_ROBOTS_LIMIT = 500  # robots whose drift one scrape works out
 
 
 class FleetCollector(Collector):
@@ -30,6 +33,7 @@ class FleetCollector(Collector):
         yield from self.gateways()
         yield from self.transitions()
         yield from self.runs()
+        yield from self.modes()
         yield from alert_metrics.families()
 
     @staticmethod
@@ -124,3 +128,19 @@ class FleetCollector(Collector):
         for status in (GroupRun.Status.QUEUED, GroupRun.Status.RUNNING):
             family.add_metric([status], active.get(status, 0))
         yield family
+
+    @staticmethod
+    def modes() -> Iterator[Metric]:
+        """Per robot in a mode, how many of its nodes differ from it (state, parameter or not running)."""
+        family = GaugeMetricFamily("lifecycle_mode_drift", "Differences between a robot and its current mode "
+                                   f"(robots in a mode; at most {MODE_ROBOTS_LIMIT}).", labels=["robot", "mode"])
+        ready = GaugeMetricFamily("lifecycle_mode_ready", "1 while every readiness predicate of the robot's current "
+                                  "mode holds (modes without predicates: 1).", labels=["robot", "mode"])
+        current = CurrentMode.objects.select_related("robot", "mode", "applied_by", "run").order_by("robot__name")
+        for now_mode in current[:MODE_ROBOTS_LIMIT]:
+            labels = [now_mode.robot.name, now_mode.mode.name]
+            family.add_metric(labels, len(drift.differences(now_mode.robot, now_mode)))
+            ready.add_metric(labels, 1 if readiness.evaluate(now_mode)["ready"] else 0)
+        yield family
+        yield ready
+

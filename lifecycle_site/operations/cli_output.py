@@ -20,7 +20,8 @@ from ros_gateway.shared import state_machine as sm
 RUN_DETAILS = "One line per node as it is done, then a summary; exit 0 only if the run succeeded."
 ROBOT_RUNS = operations.names(operations.ROBOT)
 NODE_RUNS = operations.names(operations.NODE)
-RUN_VERBS = (*ROBOT_RUNS, *NODE_RUNS)
+RUN_VERBS = (*ROBOT_RUNS, *NODE_RUNS, "mode")
+MODE_ACTIONS = ("list", "show", "apply", "drift")
 # Verb -> (one-line summary, details) for --help.
 VERBS: dict[str, tuple[str, str]] = {
     "nodes": ("list the lifecycle nodes", "One line per node: '/joy_to_vel' with --robot, else 'agv-1 /joy_to_vel'."),
@@ -32,6 +33,11 @@ VERBS: dict[str, tuple[str, str]] = {
     "list": ("list the transitions available from the node's current state",
              "'- configure [1]', then its start and goal states; -a: the node's whole transition graph."),
     **{op.name: (op.help, RUN_DETAILS) for op in operations.OPERATIONS if op.startable},
+    "mode": ("list a robot's modes, show one, apply one, or show how the robot differs from its mode",
+             "mode list ROBOT: one line per mode, the current one marked; mode show ROBOT MODE: one line\n"
+             "per node (its state, its parameters); mode apply ROBOT MODE: one run, one line per node as it\n"
+             "is done (exit 0 only if it succeeded); mode drift ROBOT: one line per difference (exit 0 when\n"
+             "there is none, 1 when there is)."),
     "process": ("list a robot's supervised processes, or start, stop or restart one",
                 "Without PROCESS: one line per launch profile ('drivers: running, pid 4242, 2 restarts').\n"
                 "With PROCESS ACTION (start, stop, restart): done by the robot's gateway, its supervisor; prints\n"
@@ -61,7 +67,8 @@ examples:
   manage.py lifecycle set --robot agv-1 /joy_to_vel configure
   manage.py lifecycle list agv-1.joy_to_vel -a
   manage.py lifecycle bringup agv-1 --policy continue --timeout 10 --json
-  manage.py lifecycle process agv-1 drivers restart"""
+  manage.py lifecycle process agv-1 drivers restart
+  manage.py lifecycle mode apply agv-1 production"""
 
 NODE_HELP = "node id (agv-1.joy_to_vel), or with --robot its ROS name (/joy_to_vel)"
 # How many known names an "unknown node/robot" message lists.
@@ -128,6 +135,9 @@ def add_verbs(parser: argparse.ArgumentParser) -> None:
     sub["list"].add_argument("-a", "--all", action="store_true", help="the node's whole transition graph")
     for name in ROBOT_RUNS:
         sub[name].add_argument("robot_name", nargs="?", metavar="ROBOT", help="the robot (or --robot R)")
+    sub["mode"].add_argument("action", choices=MODE_ACTIONS, metavar="ACTION", help=", ".join(MODE_ACTIONS))
+    sub["mode"].add_argument("robot_name", metavar="ROBOT", help="the robot")
+    sub["mode"].add_argument("mode", nargs="?", metavar="MODE", help="the mode (show, apply)")
     sub["process"].add_argument("robot_name", metavar="ROBOT", help="the robot")
     sub["process"].add_argument("process", nargs="?", metavar="PROCESS", help="a launch profile's name")
     sub["process"].add_argument("action", nargs="?", choices=protocol.PROCESS_ACTIONS, metavar="ACTION",
@@ -275,3 +285,21 @@ def process_line(profile: Any, usage: dict | None = None) -> str:
     if getattr(profile, "nodes", None):  # a container or unit: what runs in it
         parts.append(f"nodes: {', '.join(profile.nodes)}")
     return f"{profile.name}: {', '.join(parts)}{'' if profile.enabled else ' (disabled)'}"
+
+
+def mode_lines(modes: list[dict], current: str | None, since: str | None) -> list[str]:
+    lines = []
+    for mode in modes:
+        mark = f" (current since {since})" if mode["name"] == current else ""
+        about = f": {mode['description'].splitlines()[0]}" if mode["description"] else ""
+        lines.append(f"{mode['name']}{mark}, {len(mode['nodes'])} node(s){about}")
+    return lines or ["(no modes; an admin defines them)"]
+
+
+def mode_node_lines(mode: dict) -> list[str]:
+    lines = []
+    for name, entry in mode["nodes"].items():
+        values = ", ".join(f"{key}={value!r}" for key, value in (entry.get("parameters") or {}).items())
+        lines.append(f"{name}: {entry.get('state') or 'left alone'}" + (f"; {values}" if values else ""))
+    return lines
+

@@ -49,6 +49,13 @@ def start_run(
         raise Refusal("not_found", f"{robot.name} has no node {', '.join(unknown)}.", 404)
     if known.scope == operations.NODE and len(nodes) != 1:
         raise Refusal("invalid_field", f"{operation} works on exactly one node.")
+    return launch(robot, operation, user=user, source=source, policy=policy, node_timeout=node_timeout, nodes=nodes)
+
+
+def launch(robot: Robot, operation: str, *, user, source: str, policy: str, node_timeout: float,
+           nodes: list[str], plan: dict | None = None) -> GroupRun:
+    """Record a run whose request was checked and hand it to the gateway. ``plan``: a mode's
+    (its name, each node's target and parameters), kept with the run and sent with it."""
     order = tiers(robot, nodes)
     run = GroupRun.objects.create(
         id=uuid.uuid4().hex,
@@ -60,10 +67,12 @@ def start_run(
         steps=len(order),
         requested_by=user if getattr(user, "pk", None) else None,
         source=source,
+        plan=plan or {},
     )
     spec = {
         "id": run.id, "robot": robot.name, "operation": operation, "policy": policy, "node_timeout": node_timeout,
         "tiers": order, "source": source, "user_id": run.requested_by_id,
+        **({"targets": plan["targets"], "parameters": plan["parameters"]} if plan else {}),
     }
     try:
         call_gateway(robot.gateway.name, protocol.START_RUN, timeout=2.0, run=spec)

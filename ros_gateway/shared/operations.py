@@ -14,17 +14,22 @@ from dataclasses import dataclass
 
 from ros_gateway.shared import state_machine as sm
 
-ROBOT, NODE, GATEWAY = "robot", "node", "gateway"  # who an operation is for (Operation.scope)
+# Who an operation is for (Operation.scope); MODE: a robot's nodes, each to its own target (a mode's)
+ROBOT, NODE, GATEWAY, MODE = "robot", "node", "gateway", "mode"
+EACH_NODES_OWN = -1  # Phase.target: each node to the target the run names for it
+DOWN, UP = "down", "up"  # Phase.only: the nodes whose target is below (above) their state
 
 
 @dataclass(frozen=True)
 class Phase:
     """Every node of the run driven to ``target``: in the robot's bring-up order, or in reverse;
-    a node in one of ``leave_alone`` is skipped (not failed)."""
+    a node in one of ``leave_alone`` is skipped (not failed). ``only``: with EACH_NODES_OWN, the
+    phase moves only the nodes going that way (a mode takes nodes down in reverse order, then up)."""
 
     target: int
     reverse: bool = False
     leave_alone: tuple[int, ...] = ()
+    only: str = ""
 
 
 @dataclass(frozen=True)
@@ -34,7 +39,7 @@ class Operation:
     title: str  # a run of it, as its panel and the audit name it ("Bring-up")
     help: str  # one line: CLI --help, docs
     phases: tuple[Phase, ...]  # empty: the gateway works out the target itself (recovery)
-    scope: str = ROBOT  # ROBOT: all (or the named) nodes of a robot; NODE: exactly one; GATEWAY: not startable
+    scope: str = ROBOT  # ROBOT: all (or the named) nodes of a robot; NODE: one; MODE: see above; GATEWAY: its own
     confirm: str = ""  # asked before it starts; {nodes} is the count of nodes, {robot} the robot's name
     confirm_detail: str = ""
     danger: bool = False  # shown as a destructive button
@@ -42,11 +47,12 @@ class Operation:
 
     @property
     def startable(self) -> bool:
-        return self.scope != GATEWAY
+        """Started by name (a mode's run is started by applying the mode; a recovery by the gateway)."""
+        return self.scope in (ROBOT, NODE)
 
-    def confirm_text(self, robot: str) -> str:
-        """The question with the robot's name in it; ``{nodes}`` is left for the page to count."""
-        return self.confirm.replace("{robot}", robot)
+    def confirm_text(self, robot: str, mode: str = "") -> str:
+        """The question with the robot's (and mode's) name in it; ``{nodes}`` is left for the page to count."""
+        return self.confirm.replace("{robot}", robot).replace("{mode}", mode)
 
 
 _UP = Phase(sm.ACTIVE)
@@ -75,6 +81,12 @@ OPERATIONS: tuple[Operation, ...] = (
               confirm_detail="They end finalized; only a restart of their processes brings them back."),
     Operation("restart", "Restart", "Restart", "bring a node back to active from whatever state it is in",
               (_DOWN_TO_UNCONFIGURED, _UP), scope=NODE),
+    Operation("mode", "Apply", "Mode change",
+              "drive each node to its state in a mode (down in reverse order, then up in order), its "
+              "parameters set before it is activated",
+              (Phase(EACH_NODES_OWN, reverse=True, only=DOWN), Phase(EACH_NODES_OWN, only=UP)), scope=MODE,
+              confirm="Apply mode {mode} to {robot}?",
+              confirm_detail="Nodes are taken to the mode's states and parameters; the run lists every change."),
     Operation("recover", "Recover", "Recovery",
               "bring a node whose process was restarted back to its desired state (the gateway starts it)",
               (), scope=GATEWAY),
@@ -96,6 +108,12 @@ def choices() -> list[tuple[str, str]]:
     return [(op.name, op.title) for op in OPERATIONS]
 
 
+def _target_words(phase: Phase) -> str:
+    if phase.target != EACH_NODES_OWN:
+        return sm.state_label(phase.target)
+    return f"each to its own, those going {phase.only}" if phase.only else "each to its own"
+
+
 def markdown() -> str:
     """docs/operations.md (a unit test keeps the file equal to this)."""
     lines = [
@@ -112,12 +130,13 @@ def markdown() -> str:
     ]
     for op in OPERATIONS:
         phases = "; ".join(
-            f"{sm.state_label(p.target)}, {'reverse' if p.reverse else 'in order'}"
+            f"{_target_words(p)}, {'reverse' if p.reverse else 'in order'}"
             + (f"; leaves {', '.join(sm.state_label(s) for s in p.leave_alone)} alone" if p.leave_alone else "")
             for p in op.phases) or "the node's desired state"
         scope = {ROBOT: "a robot's nodes (or the named ones)", NODE: "one node",
-                 GATEWAY: "started by the gateway only"}[op.scope]
-        asks = op.confirm.replace("{nodes}", "N nodes").replace("{robot}", "ROBOT") if op.confirm else "-"
+                 GATEWAY: "started by the gateway only", MODE: "a robot's nodes, as a mode says"}[op.scope]
+        asks = (op.confirm.replace("{nodes}", "N nodes").replace("{robot}", "ROBOT").replace("{mode}", "MODE")
+                if op.confirm else "-")
         lines.append(f"| `{op.name}` | {op.button} | {op.help} | {phases} | {scope} | {asks} | {op.role} |")
     return "\n".join(lines) + "\n"
 

@@ -124,6 +124,16 @@ RUN = "run"  # a group run's spec (for runs the gateway starts) and its progress
 GATEWAY_STARTED = "gateway.started"  # a new instance: runs it does not know are over
 PROCESS = "process"  # one audit record of a supervised process: an action on it, an exit, a respawn
 NODE_PROCESS = "node.process"  # robot, node, process: the launch profile whose process runs it ("" none)
+# robot, node, message, changes, window_s, last_change: the gateway stopped keeping the node in its
+# desired state (another manager keeps moving it); it leaves it alone until an operator resumes.
+ENFORCEMENT_STOPPED = "enforcement.stopped"
+TOPIC_RATES = "topic.rates"  # robot, rates: [{topic, hz (None: no publisher), window_s}]: measured for the site
+MAX_RATE_TOPICS = 32  # per robot
+# A node's policy for its desired state (the site's config, per node): "off"; "alert" (drift raises
+# an alert, on the site); "enforce" (the gateway undoes changes by other tools); "paused" (enforce,
+# stopped after a fight until an operator resumes it).
+KEEP_POLICIES = ("off", "alert", "enforce")
+KEEP_PAUSED = "paused"
 
 # A node's process: lost (it ended, or its node left the graph), or replaced by a new instance.
 # A node.gone reason, and, with PROCESS_RESTARTED, a transition record's outcome (which also

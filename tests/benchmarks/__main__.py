@@ -16,7 +16,19 @@ import traceback
 from pathlib import Path
 from types import ModuleType
 
-from tests.benchmarks import fleet, flood, load, networks, push, quiet, scale, supervised, timeline, transition
+from tests.benchmarks import (
+    fleet,
+    flood,
+    load,
+    modes,
+    networks,
+    push,
+    quiet,
+    scale,
+    supervised,
+    timeline,
+    transition,
+)
 from tests.benchmarks.harness import BenchContext
 from tests.benchmarks.processes import ROOT
 from tests.benchmarks.report import ScenarioResult, machine, render_table, write_json
@@ -24,7 +36,7 @@ from tests.benchmarks.system import loadavg
 from tests.benchmarks.template import DATABASES, Template
 
 SCENARIOS: dict[str, ModuleType] = {
-    m.NAME: m for m in (transition, push, scale, flood, networks, load, quiet, timeline, fleet, supervised)
+    m.NAME: m for m in (transition, push, scale, flood, networks, load, quiet, timeline, fleet, supervised, modes)
 }
 ON_REQUEST = {quiet.NAME}  # long: run only with --only
 

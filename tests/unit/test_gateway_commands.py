@@ -156,7 +156,7 @@ def test_the_config_follows_the_robots_of_each_gateway(cells):
     node.save(update_fields=["desired_state"])
     after = config("cell-a")
     assert after["version"] != before
-    assert after["robots"][1]["nodes"]["/lidar"] == {"order": 2, "desired_state": "active"}
+    assert after["robots"][1]["nodes"]["/lidar"] == {"order": 2, "desired_state": "active", "keep": "off"}
 
 
 @pytest.mark.parametrize("timeout", ["1" + "0" * 400, "0", "-3", "true", '"5"', "26"])

@@ -4,7 +4,7 @@ from __future__ import annotations
 import asyncio
 from types import SimpleNamespace
 
-from ros_gateway import groups
+from ros_gateway import run_progress
 
 
 class Relay:
@@ -27,7 +27,7 @@ def _run_progress(finish_gaps: list[float]) -> list[dict]:
     names = [f"/n{i:03d}" for i in range(len(finish_gaps))]
 
     async def main() -> None:
-        progress = groups._Progress(runner, run, names, "2026-01-01T00:00:00+00:00")
+        progress = run_progress.Progress(runner, run, names, "2026-01-01T00:00:00+00:00")
         for name, gap in zip(reversed(names), finish_gaps, strict=True):  # finishing out of order
             await asyncio.sleep(gap)
             progress.finished({"node": name, "node_id": f"agv.{name[1:]}", "outcome": "succeeded"})
@@ -60,13 +60,13 @@ def test_a_node_over_two_phases_has_one_result_with_all_its_steps():
             "state": {"id": 1, "label": "unconfigured"}}
     up = {"node": "/a", "node_id": "agv.a", "outcome": "succeeded", "message": "", "duration_ms": 12.5,
           "steps": [{"transition": "configure"}, {"transition": "activate"}], "state": {"id": 3, "label": "active"}}
-    both = groups.merged(down, up)
+    both = run_progress.merged(down, up)
     assert [s["transition"] for s in both["steps"]] == ["deactivate", "cleanup", "configure", "activate"]
     assert (both["outcome"], both["state"]["label"], both["duration_ms"]) == ("succeeded", "active", 22.5)
     already = {**down, "outcome": "skipped", "message": "already unconfigured", "steps": []}
-    assert groups.merged(already, up)["outcome"] == "succeeded"
-    assert groups.merged(already, {**up, "outcome": "skipped", "steps": []})["outcome"] == "skipped"
+    assert run_progress.merged(already, up)["outcome"] == "succeeded"
+    assert run_progress.merged(already, {**up, "outcome": "skipped", "steps": []})["outcome"] == "skipped"
     stopped = {"node": "/a", "outcome": "not_run", "steps": [], "message": "not run: the run stopped after /b failed"}
-    left = groups.merged(down, stopped)
+    left = run_progress.merged(down, stopped)
     assert left["outcome"] == "not_run" and left["state"]["label"] == "unconfigured" and left["node_id"] == "agv.a"
     assert left["message"] == "not run: the run stopped after /b failed; left unconfigured"

@@ -182,7 +182,7 @@ def test_heartbeats_configs_and_redis_users_are_kept(cell):
     config = json.loads(part.redis.get(protocol.config_key(part.prefix, "cell-i")))
     assert config["gateway"] == "cell-i" and config["version"]
     assert config["robots"][0]["name"] == "ingest-agv"
-    assert config["robots"][0]["nodes"]["/lidar"] == {"order": 1, "desired_state": "active"}
+    assert config["robots"][0]["nodes"]["/lidar"] == {"order": 1, "desired_state": "active", "keep": "off"}
     assert redis_users.user_is_current(row, part.redis)
     part.redis.execute_command("ACL", "DELUSER", "gw-cell-i")
 

@@ -86,6 +86,7 @@ class Command(BaseCommand):
                     robot.domain_id, robot.enabled, robot.gateway = domain, True, local
                     robot.save()
             self._demo_profiles(no_robots)
+            call_command("demo_modes", *(name for name, _, _ in DEMO_ROBOTS))  # (the modes app's: docs/modes.md)
             port = free_port(port)
             self._start_children(supervisor, data, port, no_robots)
             url = f"http://127.0.0.1:{port}/"

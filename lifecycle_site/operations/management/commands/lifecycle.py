@@ -17,8 +17,9 @@ from django.db.models import Q
 
 from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
 from lifecycle_site.gateway_link.gateway_client import GatewayError, GatewayOffline, call_gateway
+from lifecycle_site.modes import drift
 from lifecycle_site.operations import cli_output as out
-from lifecycle_site.operations import processes
+from lifecycle_site.operations import modes, processes
 from lifecycle_site.operations.runs import start_run, wait_for
 from lifecycle_site.operations.transitions import TransitionRefused, ago, named, request_transition
 from lifecycle_site.refusal import Refusal
@@ -70,7 +71,7 @@ class Command(BaseCommand):
     def handle(self, *args: Any, verb: str, **options: Any) -> None:
         opts = SimpleNamespace(verb=verb, **options)
         handlers = {"nodes": self.do_nodes, "get": self.do_get, "set": self.do_set, "list": self.do_list,
-                    "process": self.do_process}
+                    "process": self.do_process, "mode": self.do_mode}
         code = handlers.get(verb, self.do_group)(opts)
         if code:
             raise CliExit(code)
@@ -205,8 +206,38 @@ class Command(BaseCommand):
         try:
             run = start_run(robot, opts.verb, user=user, source="cli", policy=opts.policy, nodes=only, **extra)
         except Refusal as exc:
-            code = {"gateway_offline": EXIT_OFFLINE, "not_found": EXIT_USAGE}.get(exc.code, EXIT_FAILED)
-            raise CliExit(code, exc.message, exc.code) from None
+            raise refused_exit(exc) from None
+        return self.follow(opts, run, operation)
+
+    def do_mode(self, opts: SimpleNamespace) -> int:
+        """A robot's modes: list, show one, apply one (a run, followed as the operations are), drift."""
+        robot = self.robot(opts.robot_name)
+        summary = drift.summary(robot)
+        if opts.action == "list":
+            found = [m.as_dict() for m in robot.modes.prefetch_related("robots")]
+            self.emit(opts, {"robot": robot.name, **summary, "modes": found},
+                      out.mode_lines(found, summary["mode"], summary.get("since")))
+            return EXIT_OK
+        if opts.action == "drift":
+            lines = [d["message"] for d in summary["drift"]] or (
+                [f"{robot.name} is in mode {summary['mode']}"] if summary["mode"] else [f"{robot.name} has no mode"])
+            self.emit(opts, {"robot": robot.name, **summary}, lines)
+            return EXIT_FAILED if summary["drift"] else EXIT_OK
+        if not opts.mode:
+            raise CliExit(EXIT_USAGE, f"Which mode? Give MODE after the robot ({opts.action} ROBOT MODE).")
+        try:
+            mode = modes.mode_of(robot, opts.mode)
+            if opts.action == "show":
+                self.emit(opts, {"mode": mode.as_dict()}, out.mode_node_lines(mode.as_dict()))
+                return EXIT_OK
+            extra = {"node_timeout": opts.timeout} if opts.timeout else {}
+            run = modes.apply_mode(robot, mode, user=self.user(opts.user), source="cli", policy=opts.policy, **extra)
+        except Refusal as exc:
+            raise refused_exit(exc) from None
+        return self.follow(opts, run, modes.MODE_RUN)
+
+    def follow(self, opts: SimpleNamespace, run: GroupRun, operation: operations.Operation) -> int:
+        """Print the run's nodes as they are done, then its summary; its exit status."""
         shown: set[str] = set()
 
         def progress(current: GroupRun) -> None:
@@ -300,6 +331,11 @@ class Command(BaseCommand):
             raise CliExit(EXIT_USAGE, f"Site user {name!r} may not operate nodes (inactive, or without the operator "
                           "role).", "forbidden")
         return user
+
+
+def refused_exit(exc: Refusal) -> CliExit:
+    code = {"gateway_offline": EXIT_OFFLINE, "not_found": EXIT_USAGE}.get(exc.code, EXIT_FAILED)
+    return CliExit(code, exc.message, exc.code)
 
 
 def as_exit(exc: BaseException) -> CliExit:

@@ -1,0 +1,79 @@
+"""How a robot differs from its current mode, node by node: a node not running, in another state,
+or with a parameter value other than the mode's (a change recorded since the mode was applied,
+or a new process of the node, whose values are its defaults again until the mode is applied)."""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+from lifecycle_site.audit.models import ParameterRecord
+from lifecycle_site.fleet.models import ManagedNode, Robot
+from lifecycle_site.modes import readiness
+from lifecycle_site.modes.models import CurrentMode
+
+# Drift is listed for at most this many nodes of a robot (a mode holds at most definitions.MAX_NODES).
+MAX_LISTED = 500
+UNKNOWN = "unknown: its process was restarted"
+
+
+@dataclass(frozen=True)
+class Difference:
+    node: str
+    kind: str  # "absent", "state" or "parameter"
+    want: Any
+    have: Any
+    parameter: str = ""
+    node_id: str = ""
+
+    def words(self) -> str:
+        if self.kind == "absent":
+            return f"{self.node} is not running (the mode wants it {self.want})"
+        if self.kind == "state":
+            return f"{self.node} is {self.have}, the mode wants {self.want}"
+        return f"{self.node}: {self.parameter} is {self.have!r}, the mode sets {self.want!r}"
+
+
+def current(robot: Robot) -> CurrentMode | None:
+    return CurrentMode.objects.select_related("mode", "applied_by", "run").filter(robot=robot).first()
+
+
+def differences(robot: Robot, now_mode: CurrentMode | None = None) -> list[Difference]:
+    now_mode = now_mode or current(robot)
+    if now_mode is None:
+        return []
+    mode, since = now_mode.mode, now_mode.since
+    found: list[Difference] = []
+    nodes = {n.name: n for n in ManagedNode.objects.filter(robot=robot, name__in=list(mode.nodes))}
+    for name, entry in list(mode.nodes.items())[:MAX_LISTED]:
+        node, want = nodes.get(name), entry.get("state")
+        key = node.key if node else ""
+        if want and (node is None or not node.alive):
+            found.append(Difference(name, "absent", want, None, node_id=key))
+            continue
+        if want and node.state_label != want:
+            found.append(Difference(name, "state", want, node.state_label, node_id=key))
+        wanted = entry.get("parameters") or {}
+        if not wanted or node is None:
+            continue
+        # A new process of the node since: its values are its defaults, but for those set since.
+        restarted = node.process_status == "restarted" and node.process_since and node.process_since > since
+        start = node.process_since if restarted else since
+        latest: dict[str, Any] = {p: UNKNOWN for p in wanted} if restarted else {}
+        for record in ParameterRecord.objects.filter(node=node, name__in=list(wanted), at__gte=start,
+                                                     outcome__in=("succeeded", "observed")).order_by("at", "id"):
+            latest[record.name] = record.new_value
+        found.extend(Difference(name, "parameter", wanted[p], value, parameter=p, node_id=key)
+                     for p, value in latest.items() if value != wanted[p])
+    return found
+
+
+def summary(robot: Robot) -> dict:
+    """The robot's mode and drift, as the API and the pages show it."""
+    now_mode = current(robot)
+    if now_mode is None:
+        return {"mode": None, "drift": []}
+    found = differences(robot, now_mode)
+    return {"mode": now_mode.mode.name, "since": now_mode.since.isoformat(),
+            "applied_by": now_mode.applied_by.get_username() if now_mode.applied_by else None,
+            "run": now_mode.run_id, "in_mode": not found,
+            "drift": [{**asdict(d), "message": d.words()} for d in found], **readiness.evaluate(now_mode)}

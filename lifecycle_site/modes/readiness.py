@@ -1,0 +1,91 @@
+"""Whether a robot is ready in its current mode: every predicate of the mode holds (a node in a
+state, a parameter equal to a value or within a range, a topic published at least N times a second
+as the gateway measures it). Not ready since when is kept on the robot's CurrentMode ("not ready
+for N s" is an alert rule kind). Parameters are known as drift.py knows them: from the records
+since the mode was applied."""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from datetime import timedelta
+from typing import Any
+
+from django.utils import timezone
+
+from lifecycle_site.audit.models import ParameterRecord
+from lifecycle_site.fleet.models import ManagedNode
+from lifecycle_site.modes.models import CurrentMode, TopicRate
+
+STALE_RATE_S = 10.0  # a rate older than this is not known any more (its gateway silent)
+
+
+@dataclass(frozen=True)
+class Check:
+    words: str  # "/scan at >= 5 Hz over 5 s"
+    holds: bool
+    now: str  # what it is: "2.1 Hz", "inactive", "unknown"
+
+
+def _parameter_values(now_mode: CurrentMode, node: ManagedNode | None, names: set[str]) -> dict[str, Any]:
+    if node is None or not names:
+        return {}
+    values: dict[str, Any] = {}
+    for record in ParameterRecord.objects.filter(node=node, name__in=names, at__gte=now_mode.since,
+                                                 outcome__in=("succeeded", "observed")).order_by("at", "id"):
+        values[record.name] = record.new_value
+    return values
+
+
+def checks(now_mode: CurrentMode) -> list[Check]:
+    robot, predicates = now_mode.robot, [p for p in now_mode.mode.ready_when if isinstance(p, dict)]
+    names = {p["node"] for p in predicates if "node" in p}
+    nodes = {n.name: n for n in ManagedNode.objects.filter(robot=robot, name__in=names)}
+    wanted = {}
+    for p in predicates:
+        if "parameter" in p:
+            wanted.setdefault(p["node"], set()).add(p["parameter"])
+    values = {name: _parameter_values(now_mode, nodes.get(name), params) for name, params in wanted.items()}
+    fresh = timezone.now() - timedelta(seconds=STALE_RATE_S)
+    rates = {r.topic: r for r in TopicRate.objects.filter(robot=robot, topic__in=[p.get("topic") for p in predicates])}
+    found = []
+    for p in predicates:
+        if "topic" in p:
+            rate = rates.get(p["topic"])
+            hz = rate.hz if rate is not None and rate.at >= fresh else None
+            now = "no publisher" if rate is not None and rate.at >= fresh and hz is None else (
+                "not measured yet" if hz is None else f"{hz:g} Hz")
+            found.append(Check(f"{p['topic']} at >= {p['min_hz']:g} Hz over {p.get('window_s', 5.0):g} s",
+                               hz is not None and hz >= p["min_hz"], now))
+            continue
+        node = nodes.get(p["node"])
+        if "state" in p:
+            state = node.state_label if node is not None and node.alive else "not running"
+            found.append(Check(f"{p['node']} {p['state']}", state == p["state"], state))
+            continue
+        value = values.get(p["node"], {}).get(p["parameter"], _UNKNOWN)
+        if "equals" in p:
+            words, holds = f"{p['node']} {p['parameter']} = {p['equals']!r}", value == p["equals"]
+        else:
+            low, high = p.get("min", float("-inf")), p.get("max", float("inf"))
+            words = f"{p['node']} {p['parameter']} within {p.get('min', '-')}..{p.get('max', '-')}"
+            holds = isinstance(value, (int, float)) and not isinstance(value, bool) and low <= value <= high
+        found.append(Check(words, holds, "unknown" if value is _UNKNOWN else repr(value)))
+    return found
+
+
+_UNKNOWN = object()
+
+
+def evaluate(now_mode: CurrentMode) -> dict:
+    """{"ready", "not_ready_since", "readiness": [checks]}; keeps not_ready_since on the row."""
+    found = checks(now_mode)
+    ready = all(c.holds for c in found)
+    since = now_mode.not_ready_since
+    if ready and since is not None:
+        since = None
+        CurrentMode.objects.filter(pk=now_mode.pk).update(not_ready_since=None)
+    elif not ready and since is None:
+        since = timezone.now()
+        CurrentMode.objects.filter(pk=now_mode.pk, not_ready_since__isnull=True).update(not_ready_since=since)
+    now_mode.not_ready_since = since
+    return {"ready": ready, "not_ready_since": since.isoformat() if since else None,
+            "readiness": [asdict(c) for c in found]}

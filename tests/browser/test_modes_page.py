@@ -1,0 +1,71 @@
+"""A robot's Modes page with real nodes: Apply asks first (cancelled: nothing is sent), then runs the
+mode as one run shown on the page; drift made behind its back appears without a reload; the page
+fits a phone."""
+from __future__ import annotations
+
+import pytest
+from playwright.sync_api import expect
+
+from lifecycle_site.fleet.models import GroupRun, ManagedNode
+from lifecycle_site.modes.models import CurrentMode, Mode
+from tests.browser.conftest import ARTIFACTS, PHONE, ROBOT, logged_in_page
+from tests.integration.conftest import transition
+
+WAIT_MS = 30_000
+MODE = "br-inspection"
+
+
+@pytest.fixture
+def mode(robot):
+    found = Mode.objects.create(name=MODE, description="Lidar scanning fast, camera ready", nodes={
+        "/lidar_driver": {"state": "active", "parameters": {"scan_rate_hz": 9.0}},
+        "/camera_driver": {"state": "inactive"},
+        "/flaky_node": {"state": None}})
+    found.robots.add(ManagedNode.objects.get(key=f"{ROBOT}.lidar_driver").robot)
+    yield found
+    # Later modules find the robot as the fixture made it: no mode, no desired states.
+    CurrentMode.objects.filter(robot__name=ROBOT).delete()
+    found.delete()
+    ManagedNode.objects.filter(robot__name=ROBOT).update(desired_state="")
+
+
+def test_apply_asks_first_runs_the_mode_and_drift_shows_without_a_reload(browser, site, robot, operator, api, mode):
+    with logged_in_page(browser, site) as page:
+        page.goto(f"{site}robots/{ROBOT}/modes/")
+        expect(page.locator("#modes-live")).to_contain_text("is in no mode yet")
+        article = page.locator(f"#mode-{MODE}")
+        expect(article).to_contain_text("scan_rate_hz=9.0")
+        runs = GroupRun.objects.filter(robot__name=ROBOT, operation="mode")
+        before = runs.count()
+
+        article.get_by_role("button", name=f"Apply {MODE}").click()
+        dialog = page.locator("dialog#confirm-dialog")
+        expect(dialog).to_contain_text(f"Apply mode {MODE} to {ROBOT}?")
+        dialog.get_by_role("button", name="Cancel").click()
+        expect(dialog).to_be_hidden()
+        page.wait_for_timeout(1_000)
+        assert runs.count() == before  # cancelled: nothing sent
+
+        article.get_by_role("button", name=f"Apply {MODE}").click()
+        dialog.get_by_role("button", name=f"Apply {MODE}").click()
+        expect(page.locator("#mode-result")).to_contain_text(f"Applying mode {MODE} to {ROBOT}", timeout=WAIT_MS)
+        live = page.locator("#modes-live")
+        expect(live).to_contain_text("Every node is as the mode says", timeout=WAIT_MS)
+        expect(live.locator(".run")).to_contain_text("succeeded", timeout=WAIT_MS)
+        expect(live.locator(".run")).to_contain_text("set parameters ✓")
+        assert runs.count() == before + 1
+
+        # Another hand deactivates the lidar: the page shows the difference at its next poll.
+        assert transition(api, f"{ROBOT}.lidar_driver", "deactivate").status_code == 200
+        row = live.locator("table.drift tr.drift-state")
+        expect(row).to_contain_text("/lidar_driver", timeout=10_000)
+        expect(row).to_contain_text("inactive")
+        expect(live).to_contain_text("1 difference")
+        assert page.console_errors == []
+
+    with logged_in_page(browser, site, viewport=PHONE, device_scale_factor=1, is_mobile=True,
+                        has_touch=True) as phone:
+        phone.goto(f"{site}robots/{ROBOT}/modes/")
+        expect(phone.locator("table.drift")).to_be_visible()
+        assert phone.evaluate("document.documentElement.scrollWidth") <= PHONE["width"]
+        phone.screenshot(path=ARTIFACTS / "phone-modes.png", full_page=True)
