@@ -1,19 +1,19 @@
 """How a robot differs from its current mode, node by node: a node not running, in another state,
 or with a parameter value other than the mode's (a change recorded since the mode was applied,
-or a new process of the node, whose values are its defaults again until the mode is applied)."""
+a value the mode's run did not set, or a new process of the node, whose values are its defaults
+again until the mode is applied: parameter_values.py)."""
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from lifecycle_site.audit.models import ParameterRecord
 from lifecycle_site.fleet.models import ManagedNode, Robot
-from lifecycle_site.modes import readiness
+from lifecycle_site.modes import parameter_values, readiness
 from lifecycle_site.modes.models import CurrentMode
 
 # Drift is listed for at most this many nodes of a robot (a mode holds at most definitions.MAX_NODES).
 MAX_LISTED = 500
-UNKNOWN = "unknown: its process was restarted"
+UNKNOWN, NOT_SET = parameter_values.UNKNOWN, parameter_values.NOT_SET
 
 
 @dataclass(frozen=True)
@@ -41,7 +41,7 @@ def differences(robot: Robot, now_mode: CurrentMode | None = None) -> list[Diffe
     now_mode = now_mode or current(robot)
     if now_mode is None:
         return []
-    mode, since = now_mode.mode, now_mode.since
+    mode = now_mode.mode
     found: list[Difference] = []
     nodes = {n.name: n for n in ManagedNode.objects.filter(robot=robot, name__in=list(mode.nodes))}
     for name, entry in list(mode.nodes.items())[:MAX_LISTED]:
@@ -55,15 +55,8 @@ def differences(robot: Robot, now_mode: CurrentMode | None = None) -> list[Diffe
         wanted = entry.get("parameters") or {}
         if not wanted or node is None:
             continue
-        # A new process of the node since: its values are its defaults, but for those set since.
-        restarted = node.process_status == "restarted" and node.process_since and node.process_since > since
-        start = node.process_since if restarted else since
-        latest: dict[str, Any] = {p: UNKNOWN for p in wanted} if restarted else {}
-        for record in ParameterRecord.objects.filter(node=node, name__in=list(wanted), at__gte=start,
-                                                     outcome__in=("succeeded", "observed")).order_by("at", "id"):
-            latest[record.name] = record.new_value
         found.extend(Difference(name, "parameter", wanted[p], value, parameter=p, node_id=key)
-                     for p, value in latest.items() if value != wanted[p])
+                     for p, value in parameter_values.known(now_mode, node, list(wanted)).items() if value != wanted[p])
     return found
 
 

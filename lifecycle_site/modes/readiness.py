@@ -1,18 +1,16 @@
 """Whether a robot is ready in its current mode: every predicate of the mode holds (a node in a
 state, a parameter equal to a value or within a range, a topic published at least N times a second
 as the gateway measures it). Not ready since when is kept on the robot's CurrentMode ("not ready
-for N s" is an alert rule kind). Parameters are known as drift.py knows them: from the records
-since the mode was applied."""
+for N s" is an alert rule kind). Parameters are known as drift.py knows them (parameter_values.py)."""
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 from datetime import timedelta
-from typing import Any
 
 from django.utils import timezone
 
-from lifecycle_site.audit.models import ParameterRecord
 from lifecycle_site.fleet.models import ManagedNode
+from lifecycle_site.modes import parameter_values
 from lifecycle_site.modes.models import CurrentMode, TopicRate
 
 STALE_RATE_S = 10.0  # a rate older than this is not known any more (its gateway silent)
@@ -25,16 +23,6 @@ class Check:
     now: str  # what it is: "2.1 Hz", "inactive", "unknown"
 
 
-def _parameter_values(now_mode: CurrentMode, node: ManagedNode | None, names: set[str]) -> dict[str, Any]:
-    if node is None or not names:
-        return {}
-    values: dict[str, Any] = {}
-    for record in ParameterRecord.objects.filter(node=node, name__in=names, at__gte=now_mode.since,
-                                                 outcome__in=("succeeded", "observed")).order_by("at", "id"):
-        values[record.name] = record.new_value
-    return values
-
-
 def checks(now_mode: CurrentMode) -> list[Check]:
     robot, predicates = now_mode.robot, [p for p in now_mode.mode.ready_when if isinstance(p, dict)]
     names = {p["node"] for p in predicates if "node" in p}
@@ -43,7 +31,8 @@ def checks(now_mode: CurrentMode) -> list[Check]:
     for p in predicates:
         if "parameter" in p:
             wanted.setdefault(p["node"], set()).add(p["parameter"])
-    values = {name: _parameter_values(now_mode, nodes.get(name), params) for name, params in wanted.items()}
+    values = {name: parameter_values.known(now_mode, nodes[name], sorted(params)) if name in nodes else {}
+              for name, params in wanted.items()}
     fresh = timezone.now() - timedelta(seconds=STALE_RATE_S)
     rates = {r.topic: r for r in TopicRate.objects.filter(robot=robot, topic__in=[p.get("topic") for p in predicates])}
     found = []
@@ -61,18 +50,16 @@ def checks(now_mode: CurrentMode) -> list[Check]:
             state = node.state_label if node is not None and node.alive else "not running"
             found.append(Check(f"{p['node']} {p['state']}", state == p["state"], state))
             continue
-        value = values.get(p["node"], {}).get(p["parameter"], _UNKNOWN)
+        value = values.get(p["node"], {}).get(p["parameter"], parameter_values.NOT_SET)
         if "equals" in p:
             words, holds = f"{p['node']} {p['parameter']} = {p['equals']!r}", value == p["equals"]
         else:
             low, high = p.get("min", float("-inf")), p.get("max", float("inf"))
             words = f"{p['node']} {p['parameter']} within {p.get('min', '-')}..{p.get('max', '-')}"
             holds = isinstance(value, (int, float)) and not isinstance(value, bool) and low <= value <= high
-        found.append(Check(words, holds, "unknown" if value is _UNKNOWN else repr(value)))
+        unknown = value in (parameter_values.NOT_SET, parameter_values.UNKNOWN)
+        found.append(Check(words, holds and not unknown, "unknown" if unknown else repr(value)))
     return found
-
-
-_UNKNOWN = object()
 
 
 def evaluate(now_mode: CurrentMode) -> dict:

@@ -49,7 +49,7 @@ def apply_mode(robot: Robot, mode: Mode, *, user, source: str, policy: str = Gro
                  nodes=list(mode.nodes), plan=plan_of(mode))
     with transaction.atomic():
         CurrentMode.objects.update_or_create(robot=robot, defaults={
-            "mode": mode, "since": run.created or timezone.now(), "run": run,
+            "mode": mode, "since": run.created or timezone.now(), "run": run, "not_ready_since": None,
             "applied_by": user if getattr(user, "pk", None) else None})
         for state in definitions.STATES:
             names = [name for name, target in mode.targets().items() if target == state]

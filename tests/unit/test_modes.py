@@ -121,6 +121,18 @@ def test_drift_is_a_node_not_running_in_another_state_or_with_another_value_sinc
     ]
     settings.LIFECYCLE_METRICS_ALLOW = [ip_network("127.0.0.1/32")]
     assert 'lifecycle_mode_drift{mode="mapping",robot="modes-agv"} 2.0' in client.get("/metrics").content.decode()
+    # The mode's own run sets a value: it counts whatever the gateway's clock said (a record "before"
+    # the mode by a skewed clock); a value the mode sets that nothing recorded is not known to be set.
+    Mode.objects.filter(pk=mode.pk).update(nodes={**mode.nodes, "/cam": {"state": "inactive",
+                                                                          "parameters": {"fps": 10.0}}})
+    cam = ManagedNode.objects.get(robot=robot, name="/cam")
+    assert ("/cam: fps is 'not set since the mode was applied', the mode sets 10.0"
+            in [d["message"] for d in drift.summary(robot)["drift"]])
+    ParameterRecord.objects.create(node=cam, robot_name=robot.name, node_name="/cam", name="fps", new_value=10.0,
+                                   outcome="succeeded", source="api", at=since - timedelta(seconds=2), run_id=run.id)
+    assert not [d for d in drift.summary(robot)["drift"] if d["node"] == "/cam"]
+    Mode.objects.filter(pk=mode.pk).update(nodes=mode.nodes)
+
     from lifecycle_site.dashboard import attention
 
     strip = [(i["node"], i["label"], i["reason"]) for i in attention._read(gateway_views=[])["items"]]
@@ -321,7 +333,7 @@ def test_a_mode_is_ready_only_while_every_predicate_holds_and_says_since_when_no
         ("/lidar active", True, "active"),
         ("/lidar scan_rate_hz within 5..20", False, "unknown"),
         ("/scan at >= 5 Hz over 2 s", False, "2.5 Hz")]
-    rule = Rule.objects.get(name="Mode not ready")  # made by migration alerts.0005
+    rule = Rule.objects.get(name="Mode not ready")  # (alerts/installed_rules.py)
     assert conditions.current(rule, timezone.now())["modes-agv"].summary == (
         "Robot modes-agv is not ready in mode scanning: /lidar scan_rate_hz within 5..20 (now unknown); "
         "/scan at >= 5 Hz over 2 s (now 2.5 Hz).")
