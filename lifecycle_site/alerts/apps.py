@@ -1,4 +1,5 @@
 from django.apps import AppConfig
+from django.db.models.signals import post_migrate
 
 
 class AlertsConfig(AppConfig):
@@ -11,3 +12,6 @@ class AlertsConfig(AppConfig):
         from lifecycle_site.ingest import watchers
 
         watchers.register(Evaluator)
+        from lifecycle_site.alerts.installed_rules import ensure_installed_rules
+
+        post_migrate.connect(ensure_installed_rules, sender=self, dispatch_uid="alerts.installed_rules")

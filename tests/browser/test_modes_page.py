@@ -3,16 +3,21 @@ mode as one run shown on the page; drift made behind its back appears without a 
 fits a phone."""
 from __future__ import annotations
 
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 from playwright.sync_api import expect
 
 from lifecycle_site.fleet.models import GroupRun, ManagedNode
 from lifecycle_site.modes.models import CurrentMode, Mode
+from tests import stack
 from tests.browser.conftest import ARTIFACTS, PHONE, ROBOT, logged_in_page
-from tests.integration.conftest import transition
 
 WAIT_MS = 30_000
 MODE = "br-inspection"
+ROS_CALL = Path(__file__).resolve().parents[1] / "integration" / "ros_call.py"
 
 
 @pytest.fixture
@@ -29,7 +34,7 @@ def mode(robot):
     ManagedNode.objects.filter(robot__name=ROBOT).update(desired_state="")
 
 
-def test_apply_asks_first_runs_the_mode_and_drift_shows_without_a_reload(browser, site, robot, operator, api, mode):
+def test_apply_asks_first_runs_the_mode_and_drift_shows_without_a_reload(browser, site, robot, operator, mode):
     with logged_in_page(browser, site) as page:
         page.goto(f"{site}robots/{ROBOT}/modes/")
         expect(page.locator("#modes-live")).to_contain_text("is in no mode yet")
@@ -55,8 +60,11 @@ def test_apply_asks_first_runs_the_mode_and_drift_shows_without_a_reload(browser
         expect(live.locator(".run")).to_contain_text("set parameters ✓")
         assert runs.count() == before + 1
 
-        # Another hand deactivates the lidar: the page shows the difference at its next poll.
-        assert transition(api, f"{ROBOT}.lidar_driver", "deactivate").status_code == 200
+        # Another tool (a process of the test's own, as `ros2 lifecycle set` is) deactivates the
+        # lidar: the page shows the difference without a reload.
+        done = subprocess.run([sys.executable, str(ROS_CALL), str(stack.domain(7)), "/lidar_driver", "4"],
+                              capture_output=True, text=True, timeout=60, env=stack.environment())
+        assert "success" in done.stdout, done.stdout + done.stderr
         row = live.locator("table.drift tr.drift-state")
         expect(row).to_contain_text("/lidar_driver", timeout=10_000)
         expect(row).to_contain_text("inactive")

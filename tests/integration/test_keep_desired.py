@@ -21,7 +21,7 @@ from tests.integration.conftest import register, transition, wait_node
 ROBOT = "it-keep"
 DOMAIN_OFFSET = 42
 HERE = Path(__file__).resolve().parent
-RULE = "Desired state not kept"  # made by the alerts' migration 0005
+RULE = "Desired state not kept"  # one of the rules every installation has (alerts/installed_rules.py)
 
 
 @pytest.fixture(scope="module")

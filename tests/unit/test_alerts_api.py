@@ -76,7 +76,7 @@ def test_admins_manage_rules_through_the_api(db):
                          content_type="application/json").json()["error"]
     assert unknown["code"] == "unknown_fields" and "severity" in unknown["message"]
     assert [r["name"] for r in operator.get("/api/v1/alert-rules").json()["rules"]] == [
-        "Desired state not kept", "Mode not ready", "agv errors"]  # (the first two made by migration 0005)
+        "Desired state not kept", "Mode not ready", "agv errors"]  # (the first two: alerts/installed_rules.py)
     assert operator.delete(f"/api/v1/alert-rules/{made['id']}").status_code == 403
     assert admin.delete(f"/api/v1/alert-rules/{made['id']}").json() == {"deleted": made["id"]}
     assert not Rule.objects.filter(name="agv errors").exists()

@@ -65,7 +65,7 @@ def test_a_fight_pauses_the_node_in_the_config_until_an_operator_resumes_it(oper
 
 
 def test_the_not_kept_rule_sees_drift_under_alert_or_enforce_and_a_fight(node):
-    rule = Rule.objects.get(name="Desired state not kept")  # made by migration alerts.0005
+    rule = Rule.objects.get(name="Desired state not kept")  # (alerts/installed_rules.py)
     found = conditions.current(rule, timezone.now())
     assert found[node.key].summary == ("Node /camera on robot keep-agv was moved to active; its desired state is "
                                        "inactive, kept against other tools.")

@@ -2,27 +2,6 @@
 
 from django.db import migrations, models
 
-DEFAULT_RULES = (
-    # A node whose policy is "alert" or "enforce" (docs/modes.md) is alerted on by this rule:
-    # without it, "alert" would alert nobody.
-    ("Desired state not kept", "not_kept", 5.0),
-    # A robot whose current mode names readiness predicates and has not met them for a minute.
-    ("Mode not ready", "mode_not_ready", 60.0),
-)
-
-
-def add_default_rules(apps, schema_editor):
-    """Made at installation; admins scope them, give them receivers or turn them off."""
-    Rule = apps.get_model("alerts", "Rule")
-    for name, kind, seconds in DEFAULT_RULES:
-        Rule.objects.get_or_create(name=name, defaults={"kind": kind, "for_seconds": seconds})
-
-
-def remove_default_rules(apps, schema_editor):
-    Rule = apps.get_model("alerts", "Rule")
-    for name, kind, _ in DEFAULT_RULES:
-        Rule.objects.filter(name=name, kind=kind).delete()
-
 
 class Migration(migrations.Migration):
 
@@ -36,5 +15,4 @@ class Migration(migrations.Migration):
             name='kind',
             field=models.CharField(choices=[('state', 'node is in a state'), ('gone', 'node vanished from the ROS graph'), ('not_desired', 'node is not in its desired state'), ('gateway_offline', 'gateway is offline or quarantined'), ('process_given_up', "a launch profile's process was given up (kept failing)"), ('not_kept', 'node kept in its desired state was moved, or another manager keeps moving it'), ('mode_not_ready', 'robot is not ready in its current mode')], max_length=16),
         ),
-        migrations.RunPython(add_default_rules, remove_default_rules),
-    ]
+        ]
