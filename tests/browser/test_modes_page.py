@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from django.utils import timezone
 from playwright.sync_api import expect
 
 from lifecycle_site.fleet.models import GroupRun, ManagedNode
@@ -77,3 +78,31 @@ def test_apply_asks_first_runs_the_mode_and_drift_shows_without_a_reload(browser
         expect(phone.locator("table.drift")).to_be_visible()
         assert phone.evaluate("document.documentElement.scrollWidth") <= PHONE["width"]
         phone.screenshot(path=ARTIFACTS / "phone-modes.png", full_page=True)
+
+
+def test_the_node_page_sets_the_keep_policy_and_resumes_a_node_left_alone(browser, site, robot, operator):
+    """The node page's "kept against other tools" select saves as it changes; a node its gateway
+    left alone after a fight says so with the gateway's words and a button that resumes it."""
+    key = f"{ROBOT}.camera_driver"
+    try:
+        with logged_in_page(browser, site) as page:
+            page.goto(f"{site}nodes/{key}/")
+            panel = page.locator("#desired-state")
+            panel.locator('select[name="keep_desired"]').select_option("enforce")
+            expect(panel).to_contain_text("Saved.", timeout=WAIT_MS)
+            assert ManagedNode.objects.get(key=key).keep_desired == "enforce"
+            # What the ingest stores when the gateway gives up (ros_gateway/desired_keeper.py).
+            ManagedNode.objects.filter(key=key).update(
+                enforcement_stopped=timezone.now(),
+                enforcement_note="another manager keeps changing /camera_driver (moved away 4 times in 10 min)")
+            page.reload()
+            panel = page.locator("#desired-state")
+            expect(panel).to_contain_text("another manager keeps changing /camera_driver")
+            panel.get_by_role("button", name="Resume keeping it").click()
+            expect(panel).to_contain_text("Saved.", timeout=WAIT_MS)
+            expect(panel).not_to_contain_text("another manager keeps changing")
+            node = ManagedNode.objects.get(key=key)
+            assert node.enforcement_stopped is None and node.enforcement_resumed is not None
+            assert page.console_errors == []
+    finally:
+        ManagedNode.objects.filter(key=key).update(keep_desired="", enforcement_stopped=None, enforcement_note="")
