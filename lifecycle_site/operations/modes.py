@@ -6,12 +6,11 @@ from __future__ import annotations
 from django.db import transaction
 from django.utils import timezone
 
-from lifecycle_site.fleet import roles
 from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
 from lifecycle_site.gateway_link.gateway_config import publish_on_commit
 from lifecycle_site.modes import definitions, yaml_files
 from lifecycle_site.modes.models import CurrentMode, Mode
-from lifecycle_site.operations.runs import launch
+from lifecycle_site.operations.runs import launch, may_start
 from lifecycle_site.refusal import Refusal, shown
 from ros_gateway.shared import operations
 
@@ -34,12 +33,7 @@ def plan_of(mode: Mode) -> dict:
 def apply_mode(robot: Robot, mode: Mode, *, user, source: str, policy: str = GroupRun.Policy.STOP,
                node_timeout: float = 5.0) -> GroupRun:
     """Start the mode's run; once the gateway took it, the mode is the robot's current one."""
-    if getattr(user, "pk", None) and not roles.may_act_as(user, MODE_RUN.role):
-        raise Refusal("forbidden", f"Applying a mode needs the {MODE_RUN.role} role.", 403)
-    if policy not in GroupRun.Policy.values:
-        raise Refusal("invalid_field", "policy must be 'stop' (at the first failure) or 'continue'.")
-    if not robot.enabled:
-        raise Refusal("robot_disabled", f"Robot {robot.name} is disabled; enable it first.", 409)
+    may_start(robot, MODE_RUN, "Applying a mode needs", user, policy)
     problems = definitions.problems(mode.nodes)
     if problems:
         raise Refusal("invalid_mode", f"Mode {mode.name} cannot be applied: {' '.join(problems[:3])}", 409)

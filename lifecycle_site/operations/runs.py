@@ -37,12 +37,7 @@ def start_run(
     if known is None or not known.startable:
         raise Refusal("unknown_operation", f"{operation!r} is not an operation; use one of "
                          f"{', '.join(operations.names())}.")
-    if getattr(user, "pk", None) and not roles.may_act_as(user, known.role):
-        raise Refusal("forbidden", f"{known.button} needs the {known.role} role.", 403)
-    if policy not in GroupRun.Policy.values:
-        raise Refusal("invalid_field", "policy must be 'stop' (at the first failure) or 'continue'.")
-    if not robot.enabled:
-        raise Refusal("robot_disabled", f"Robot {robot.name} is disabled; enable it first.", 409)
+    may_start(robot, known, f"{known.button} needs", user, policy)
     nodes = list(nodes or [])
     unknown = [n for n in nodes if not ManagedNode.objects.filter(robot=robot, name=n).exists()]
     if unknown:
@@ -50,6 +45,17 @@ def start_run(
     if known.scope == operations.NODE and len(nodes) != 1:
         raise Refusal("invalid_field", f"{operation} works on exactly one node.")
     return launch(robot, operation, user=user, source=source, policy=policy, node_timeout=node_timeout, nodes=nodes)
+
+
+def may_start(robot: Robot, known: operations.Operation, what: str, user, policy: str) -> None:
+    """A run of ``known`` on ``robot`` by ``user`` with ``policy``, or the Refusal saying why not
+    (``what``: how the refusal names the action, "Bring up needs")."""
+    if getattr(user, "pk", None) and not roles.may_act_as(user, known.role):
+        raise Refusal("forbidden", f"{what} the {known.role} role.", 403)
+    if policy not in GroupRun.Policy.values:
+        raise Refusal("invalid_field", "policy must be 'stop' (at the first failure) or 'continue'.")
+    if not robot.enabled:
+        raise Refusal("robot_disabled", f"Robot {robot.name} is disabled; enable it first.", 409)
 
 
 def launch(robot: Robot, operation: str, *, user, source: str, policy: str, node_timeout: float,
