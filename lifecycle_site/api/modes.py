@@ -8,38 +8,43 @@ from django.views.decorators.csrf import csrf_exempt
 
 from lifecycle_site.api.auth import api_view, error, json_body
 from lifecycle_site.api.operations import positive_seconds, run_answer
+from lifecycle_site.api.processes import robot_or_404
 from lifecycle_site.fleet.models import GroupRun, Robot
 from lifecycle_site.modes import definitions, drift, yaml_files
 from lifecycle_site.modes.models import MODE_NAME_VALIDATOR, Mode
 from lifecycle_site.operations.modes import apply_mode, import_modes, mode_of
-from lifecycle_site.refusal import shown
+from lifecycle_site.refusal import Refusal, shown
 
 OPERATE, DEFINE = "fleet.operate_node", "modes.change_mode"
 
 
-def _robot(name: str) -> Robot:
-    robot = Robot.objects.filter(name=name).first()
-    if robot is None:
-        raise Http404(f"There is no robot named {shown(name)}.")
-    return robot
+def _robots_named(names: object) -> list[Robot]:
+    """The robots a request names ("robots": [...]), or the Refusal saying which are not."""
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names) or len(names) > 1000:
+        raise Refusal("invalid_field", "'robots' must be a list of robot names.", 400)
+    robots = list(Robot.objects.filter(name__in=names))
+    unknown = sorted(set(names) - {r.name for r in robots})
+    if unknown:
+        raise Refusal("not_found", f"There is no robot named {', '.join(unknown[:5])}.", 404)
+    return robots
 
 
 @api_view()
 def robot_modes(request: HttpRequest, name: str) -> JsonResponse:
-    robot = _robot(name)
+    robot = robot_or_404(name)
     return JsonResponse({"robot": robot.name, **drift.summary(robot),
                          "modes": [m.as_dict() for m in robot.modes.prefetch_related("robots")]})
 
 
 @api_view()
 def robot_drift(request: HttpRequest, name: str) -> JsonResponse:
-    robot = _robot(name)
+    robot = robot_or_404(name)
     return JsonResponse({"robot": robot.name, **drift.summary(robot)})
 
 
 @api_view(methods=("POST",), permission=OPERATE)
 def apply(request: HttpRequest, name: str, mode: str) -> JsonResponse:
-    robot = _robot(name)
+    robot = robot_or_404(name)
     body = json_body(request, empty=b"{}", shape=dict)
     run = apply_mode(robot, mode_of(robot, mode), user=request.user, source="api",
                      policy=str(body.get("policy", GroupRun.Policy.STOP)),
@@ -84,14 +89,9 @@ def _mode_write(request: HttpRequest, name: str) -> JsonResponse:
     problems = definitions.problems(nodes) + definitions.readiness_problems(ready_when)
     if problems:
         return error("invalid_mode", " ".join(problems[:5]), 400, problems=problems[:50])
-    if not isinstance(robots, list) or not all(isinstance(r, str) for r in robots) or len(robots) > 1000:
-        return error("invalid_field", "'robots' must be a list of robot names.", 400)
+    found = _robots_named(robots)
     if not isinstance(description, str) or len(description) > 2000:
         return error("invalid_field", "'description' must be a text of at most 2000 characters.", 400)
-    found = list(Robot.objects.filter(name__in=robots))
-    unknown = sorted(set(robots) - {r.name for r in found})
-    if unknown:
-        return error("not_found", f"There is no robot named {', '.join(unknown[:5])}.", 404)
     with transaction.atomic():
         saved, created = Mode.objects.update_or_create(
             name=name, defaults={"nodes": nodes, "description": description, "ready_when": ready_when,
@@ -102,7 +102,7 @@ def _mode_write(request: HttpRequest, name: str) -> JsonResponse:
 
 @api_view()
 def robot_modes_yaml(request: HttpRequest, name: str) -> HttpResponse:
-    robot = _robot(name)
+    robot = robot_or_404(name)
     body = yaml_files.export([m.as_dict() for m in robot.modes.prefetch_related("robots")])
     response = HttpResponse(body, content_type="application/yaml; charset=utf-8")
     response["Content-Disposition"] = f'attachment; filename="{robot.name}-modes.yaml"'
@@ -117,11 +117,5 @@ def import_file(request: HttpRequest) -> JsonResponse:
     text, names = body.get("yaml"), body.get("robots", [])
     if not isinstance(text, str):
         return error("missing_field", "Send the file's text as 'yaml'.", 400)
-    if not isinstance(names, list) or not all(isinstance(n, str) for n in names) or len(names) > 1000:
-        return error("invalid_field", "'robots' must be a list of robot names.", 400)
-    robots = list(Robot.objects.filter(name__in=names))
-    unknown = sorted(set(names) - {r.name for r in robots})
-    if unknown:
-        return error("not_found", f"There is no robot named {', '.join(unknown[:5])}.", 404)
-    found = import_modes(text, robots, request.user, save=body.get("save") is True)
+    found = import_modes(text, _robots_named(names), request.user, save=body.get("save") is True)
     return JsonResponse(found, status=201 if found["saved"] else 200)

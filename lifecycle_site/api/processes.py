@@ -15,7 +15,7 @@ OPERATE = "fleet.operate_node"
 RECORDS_SHOWN = 20
 
 
-def _robot(name: str) -> Robot:
+def robot_or_404(name: str) -> Robot:
     robot = Robot.objects.select_related("gateway").filter(name=name).first()
     if robot is None:
         raise Http404(f"There is no robot named {shown(name)}.")
@@ -27,7 +27,7 @@ def robot_processes(request: HttpRequest, name: str) -> JsonResponse:
     """The robot's launch profiles with what its gateway last reported of each process, then its
     containers and units; with ``?usage=1`` each one's CPU and memory as its gateway measures them
     now (null for one not running, or when the gateway cannot tell)."""
-    robot = _robot(name)
+    robot = robot_or_404(name)
     records = ProcessRecord.objects.filter(robot_name=robot.name)[:RECORDS_SHOWN]
     found = [p.as_dict() for p in processes.robot_processes(robot)]
     if request.GET.get("usage") in ("1", "true"):  # CPU and memory, measured by the gateway now
@@ -44,6 +44,6 @@ def process_action(request: HttpRequest, name: str, process: str) -> JsonRespons
     body = json_body(request, shape=dict)
     if "action" not in body:
         raise Refusal("missing_field", 'Send {"action": "restart"} (start, stop or restart).')
-    robot = _robot(name)
+    robot = robot_or_404(name)
     record = processes.control(processes.profile_of(robot, process), body["action"], request.user, "api")
     return JsonResponse({"record": record.as_dict(), "process": processes.profile_of(robot, process).as_dict()})
