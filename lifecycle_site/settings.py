@@ -104,6 +104,7 @@ INSTALLED_APPS = [
     "lifecycle_site.alerts",
     "lifecycle_site.operations",
     "lifecycle_site.modes",
+    "lifecycle_site.diagnostics",
 ]
 
 MIDDLEWARE = [
@@ -283,6 +284,9 @@ LIFECYCLE = {
     # Bytes each gateway's Redis keys may hold before the site cuts it off (gateway_link/redis_guard.py);
     # None: an eighth of Redis's maxmemory, at most 64 MB (gateway_link.gateway_config.redis_quota).
     "GATEWAY_REDIS_QUOTA": env.megabytes("LIFECYCLE_GATEWAY_REDIS_QUOTA_MB"),
+    # A diagnostic status not heard for this long is stale (the gateway says so; diagnostic_aggregator's 5 s).
+    "DIAGNOSTICS_STALE_S": env.number("LIFECYCLE_DIAGNOSTICS_STALE_S", protocol.DEFAULT_DIAGNOSTICS_STALE_S,
+                                      above=0.5, maximum=3600),
 }
 
 # GET /metrics answers without an API token to these client addresses (comma-separated

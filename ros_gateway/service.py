@@ -26,6 +26,7 @@ from ros_gateway import budget, leftovers, tasks, topic_rates
 from ros_gateway.commands import CommandHandler, Parts
 from ros_gateway.config import GatewayConfig
 from ros_gateway.desired_keeper import DesiredKeeper
+from ros_gateway.diagnostics import Diagnostics
 from ros_gateway.discovery import Discovery
 from ros_gateway.domain import RosDomain
 from ros_gateway.groups import GroupRunner
@@ -87,6 +88,7 @@ class Gateway:
         self.recovery = Recovery(self.runs)
         self.keeper = DesiredKeeper(self.runs, self.registry)  # desired states kept against other tools
         self.rates = TopicRates(self.registry, self.domains, self.outbox)  # for the modes' readiness
+        self.diagnostics = Diagnostics(self.registry, self.domains, self.outbox)  # the robots' /diagnostics
         self.discovery.on_external = self.keeper.on_external
         # The robots' launch profiles: processes this gateway runs for them (its facts: audit records).
         self.owner = leftovers.owner(config.name, config.redis_url, config.prefix)  # (its processes' mark)
@@ -180,6 +182,7 @@ class Gateway:
               if self.liveness.enabled else []),
             self.logs.run(self._stopping),
             self.commands.run(self._stopping),
+            self.diagnostics.run(self._stopping),
         ]
         await self.refresh_robots()  # robots watched before the site hears this gateway is online
         await self.heartbeat()
@@ -266,6 +269,7 @@ class Gateway:
             await self.discovery.apply_config(config)
             self.keeper.on_settings()
             self.rates.apply(config)
+            self.diagnostics.apply(config)
             await self.supervisor.apply(self._profiles(config))
 
     def _profiles(self, config: dict) -> list[LaunchProfile]:

@@ -58,12 +58,12 @@ class RuleAdmin(admin.ModelAdmin):
     list_filter = ("kind", "enabled")
     filter_horizontal = ("receivers",)
     fields = ("name", "enabled", "kind", "state", "for_seconds", "keep_firing_seconds", "gateway", "robot",
-              "node_pattern", "receivers")
+              "node_pattern", "status_pattern", "level", "receivers")
 
     @admin.display(description="scope")
     def scope(self, rule: Rule) -> str:
         parts = [f"gateway {rule.gateway}" if rule.gateway_id else "", f"robot {rule.robot}" if rule.robot_id else "",
-                 rule.node_pattern]
+                 rule.node_pattern, rule.status_pattern]
         return ", ".join(p for p in parts if p) or "fleet"
 
 

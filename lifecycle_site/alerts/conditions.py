@@ -12,6 +12,8 @@ from datetime import datetime
 from django.db.models import F, Q
 
 from lifecycle_site.alerts.models import Rule
+from lifecycle_site.diagnostics.models import LEVEL_WORDS
+from lifecycle_site.diagnostics.models import Status as DiagnosticStatus
 from lifecycle_site.fleet.models import Gateway, ManagedNode, ProcessProfile
 from lifecycle_site.gateway_link import gateways
 from lifecycle_site.ingest.observations import GONE, Observation
@@ -34,6 +36,7 @@ class Condition:
 
 KEPT = ("alert", "enforce")  # the node policies (keep_desired) under which drift is alerted
 MODE_ROBOTS = 500  # robots whose readiness one evaluation works out
+DIAGNOSTIC_SUBJECTS = 1000  # statuses one diagnostic rule's evaluation looks at
 
 
 def _node_text(node: str, robot: str) -> str:
@@ -156,7 +159,37 @@ def mode_conditions(rule: Rule, now: datetime) -> dict[str, Condition]:
     return found
 
 
+def diagnostic_conditions(rule: Rule, now: datetime) -> dict[str, Condition]:
+    """Statuses at the rule's level (WARN or worse, ERROR, stale) without a break, since when."""
+    since_field = {Rule.Level.WARN: "warn_since", Rule.Level.ERROR: "error_since"}.get(rule.level, "stale_since")
+    rows = DiagnosticStatus.objects.filter(robot__enabled=True, **{f"{since_field}__isnull": False})
+    if rule.robot_id:
+        rows = rows.filter(robot_id=rule.robot_id)
+    if rule.gateway_id:
+        rows = rows.filter(robot__gateway_id=rule.gateway_id)
+    if rule.status_pattern and not any(c in rule.status_pattern for c in "*?"):
+        prefix = rule.status_pattern.rstrip("/")
+        rows = rows.filter(Q(name=rule.status_pattern) | Q(name__startswith=prefix + "/"))
+    found = {}
+    for name, robot, gateway, level, stale, message, since in rows.order_by(since_field).values_list(
+            "name", "robot__name", "robot__gateway__name", "level", "stale", "message", since_field
+    )[:DIAGNOSTIC_SUBJECTS]:
+        if not rule.matches_status(name):
+            continue
+        if stale:
+            summary = (f"Diagnostic status {name} of robot {robot} is stale: no update since before "
+                       f"{since:%H:%M:%S} UTC")
+        else:
+            summary = f"Diagnostic status {name} of robot {robot} is {LEVEL_WORDS.get(level, 'ERROR')}"
+        summary += f" (last message: {message})." if message else "."
+        subject = f"{robot}:{name}"
+        found[subject] = Condition(subject, since or now, summary[:2000], gateway, robot)
+    return found
+
+
 def current(rule: Rule, now: datetime) -> dict[str, Condition]:
+    if rule.kind == Rule.Kind.DIAGNOSTIC:
+        return diagnostic_conditions(rule, now)
     if rule.kind == Rule.Kind.PROCESS_GIVEN_UP:
         return process_conditions(rule, now)
     if rule.kind == Rule.Kind.MODE_NOT_READY:

@@ -104,6 +104,12 @@ class Rule(models.Model):
         PROCESS_GIVEN_UP = "process_given_up", "a launch profile's process was given up (kept failing)"
         NOT_KEPT = "not_kept", "node kept in its desired state was moved, or another manager keeps moving it"
         MODE_NOT_READY = "mode_not_ready", "robot is not ready in its current mode"
+        DIAGNOSTIC = "diagnostic", "a diagnostic status is at or above a level, or stale"
+
+    class Level(models.TextChoices):
+        WARN = "warn", "WARN or worse"
+        ERROR = "error", "ERROR"
+        STALE = "stale", "stale (not heard)"
 
     STATE_CHOICES = [(label, label) for state_id, label in sorted(sm.STATE_LABELS.items()) if state_id]
 
@@ -133,6 +139,13 @@ class Rule(models.Model):
         max_length=255, blank=True,
         help_text="Only nodes whose fully qualified name matches this pattern (* and ?, e.g. /agv1/*_driver).",
     )
+    status_pattern = models.CharField(
+        max_length=256, blank=True,
+        help_text="For diagnostic rules: a status name (with what is below it, e.g. /Robot/Sensors), or a pattern "
+        "with * and ? (e.g. lidar_driver: *); empty: every status.",
+    )
+    level = models.CharField(max_length=8, blank=True, choices=Level.choices,
+                             help_text="For diagnostic rules: the level that fires it.")
     receivers = models.ManyToManyField(Receiver, blank=True, related_name="rules")
     enabled = models.BooleanField(default=True)
     created = models.DateTimeField(auto_now_add=True)
@@ -153,6 +166,12 @@ class Rule(models.Model):
             raise ValidationError({"node_pattern": "A gateway rule has no node pattern."})
         if self.kind == self.Kind.MODE_NOT_READY and self.node_pattern:
             raise ValidationError({"node_pattern": "A mode rule has no node pattern (it watches robots)."})
+        if self.kind == self.Kind.DIAGNOSTIC and not self.level:
+            raise ValidationError({"level": "Choose the level this rule fires at (WARN or worse, ERROR, stale)."})
+        if self.kind == self.Kind.DIAGNOSTIC and self.node_pattern:
+            raise ValidationError({"node_pattern": "A diagnostic rule names statuses (status pattern), not nodes."})
+        if self.kind != self.Kind.DIAGNOSTIC and (self.level or self.status_pattern):
+            raise ValidationError({"level": "Only diagnostic rules take a level and a status pattern."})
         if self.kind == self.Kind.PROCESS_GIVEN_UP and self.node_pattern:
             raise ValidationError({"node_pattern": "A process rule has no node pattern (it watches every launch "
                                                    "profile of its robot or gateway)."})
@@ -164,9 +183,20 @@ class Rule(models.Model):
     def matches_node(self, name: str) -> bool:
         return not self.node_pattern or fnmatch.fnmatchcase(name, self.node_pattern)
 
+    def matches_status(self, name: str) -> bool:
+        """The status itself, what is below it in the tree, or a * and ? pattern."""
+        pattern = self.status_pattern
+        if not pattern or name == pattern:
+            return True
+        if "*" in pattern or "?" in pattern:
+            return fnmatch.fnmatchcase(name, pattern)
+        return name.startswith(pattern.rstrip("/") + "/")
+
     def describe(self) -> str:
         """'node is in a state errorprocessing, for 5 s'"""
         text = self.get_kind_display() + (f" {self.state}" if self.state else "")
+        if self.kind == self.Kind.DIAGNOSTIC:
+            text = f"diagnostic status {self.status_pattern or '(any)'} {self.get_level_display()}"
         return text + (f", for {self.for_seconds:g} s" if self.for_seconds else "")
 
     def as_dict(self) -> dict:
@@ -180,6 +210,8 @@ class Rule(models.Model):
             "gateway": self.gateway.name if self.gateway_id else None,
             "robot": self.robot.name if self.robot_id else None,
             "node_pattern": self.node_pattern,
+            "status_pattern": self.status_pattern,
+            "level": self.level or None,
             "receivers": sorted(r.name for r in self.receivers.all()),
             "enabled": self.enabled,
         }

@@ -14,7 +14,7 @@ from lifecycle_site.fleet.models import Gateway, Robot
 
 MAX_LIMIT = 1000
 RULE_FIELDS = ("name", "kind", "state", "for_seconds", "keep_firing_seconds", "gateway", "robot", "node_pattern",
-               "receivers", "enabled")
+               "status_pattern", "level", "receivers", "enabled")
 NEW_RULE = {"for_seconds": 0.0, "keep_firing_seconds": 0.0, "enabled": True}
 MANAGE_PERMISSIONS = {"POST": "alerts.add_rule", "PATCH": "alerts.change_rule", "DELETE": "alerts.delete_rule"}
 

@@ -1,6 +1,6 @@
 from django.urls import path, re_path
 
-from lifecycle_site.api import alerts, modes, operations, parameters, processes, timeline, views
+from lifecycle_site.api import alerts, diagnostics, modes, operations, parameters, processes, timeline, views
 from lifecycle_site.api.auth import not_found
 
 app_name = "api"
@@ -20,6 +20,8 @@ urlpatterns = [
     path("robots/<str:name>/modes.yaml", modes.robot_modes_yaml, name="robot-modes-yaml"),
     path("robots/<str:name>/modes/<str:mode>/apply", modes.apply, name="robot-mode-apply"),
     path("robots/<str:name>/drift", modes.robot_drift, name="robot-drift"),
+    path("robots/<str:name>/diagnostics", diagnostics.robot_diagnostics, name="robot-diagnostics"),
+    path("robots/<str:name>/diagnostics/history", diagnostics.status_history, name="robot-diagnostics-history"),
     path("modes", modes.modes, name="modes"),
     path("modes/import", modes.import_file, name="modes-import"),
     path("modes/<str:name>", modes.mode, name="mode"),

@@ -17,18 +17,22 @@ of the process; the fleet socket asks after node updates and every few seconds
 from __future__ import annotations
 
 from django.core.cache import cache
-from django.db.models import OuterRef, Subquery
+from django.db.models import OuterRef, Q, Subquery
 
 from lifecycle_site.alerts.models import Alert
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.dashboard import snapshots
+from lifecycle_site.diagnostics.models import ERROR, STALE
+from lifecycle_site.diagnostics.models import Status as DiagnosticStatus
 from lifecycle_site.fleet.models import ManagedNode
 from lifecycle_site.modes import drift
 from lifecycle_site.modes.models import CurrentMode
 
-FAILED, FIGHT, NOT_DESIRED, DRIFT, LOST, PROCESS_LOST, ALERT, GATEWAY = (
-    "failed", "fight", "not_desired", "drift", "lost", "process_lost", "alert", "gateway")
-RANK = {kind: i for i, kind in enumerate((GATEWAY, FAILED, FIGHT, NOT_DESIRED, DRIFT, LOST, PROCESS_LOST, ALERT))}
+FAILED, FIGHT, NOT_DESIRED, DRIFT, LOST, PROCESS_LOST, DIAGNOSTIC, ALERT, GATEWAY = (
+    "failed", "fight", "not_desired", "drift", "lost", "process_lost", "diagnostic", "alert", "gateway")
+RANK = {kind: i for i, kind in enumerate(
+    (GATEWAY, FAILED, FIGHT, NOT_DESIRED, DRIFT, LOST, PROCESS_LOST, DIAGNOSTIC, ALERT))}
+DIAGNOSTICS = 50  # ERROR and stale statuses the strip's count takes in (the worst, the latest first)
 MODE_ROBOTS = 100  # robots in a mode whose parameter drift the strip works out
 FAILED_OUTCOMES = (TransitionRecord.Outcome.FAILED, TransitionRecord.Outcome.TIMED_OUT)
 OUTCOME_LABELS = dict(TransitionRecord.Outcome.choices)
@@ -85,6 +89,7 @@ def _read(gateway_views: list[dict] | None) -> dict:
     items = [_node_item(key, nodes[key], found[key], records.get(nodes[key][9]), alerts.pop(key, []))
              for key in found]
     items += _parameter_drift(in_mode, set(found)) if in_mode else []
+    items += _diagnostics(alerts)
     for key, fired in alerts.items():  # alerts about nodes that show nothing else
         first = fired[0]
         if first["node_name"]:
@@ -126,6 +131,22 @@ def _parameter_drift(robots: set[str], listed: set[str]) -> list[dict]:
     return list(items.values())
 
 
+def _diagnostics(alerts: dict[str, list[dict]]) -> list[dict]:
+    """Diagnostic statuses in ERROR or stale (robots/<r>/diagnostics): one item each, with its message."""
+    items = []
+    rows = (DiagnosticStatus.objects.filter(robot__enabled=True).filter(Q(stale=True) | Q(level__gte=ERROR))
+            .order_by("-level_since").values_list("name", "robot__name", "robot__gateway__name", "level", "stale",
+                                                  "message", "level_since", "node")[:DIAGNOSTICS])
+    for name, robot, gateway, level, stale, message, since, node in rows:
+        fired = alerts.pop(f"{robot}:{name}", [])
+        items.append({"kind": DIAGNOSTIC, "label": "diagnostic stale" if stale or level == STALE else
+                      "diagnostic ERROR", "key": "", "robot": robot, "node": "", "status": name, "gateway": gateway,
+                      "reason": (message if not stale else f"not heard; last said: {message}")[:REASON_CHARS],
+                      "at": since.isoformat(), "also": [f"alert firing: {a['rule_name']}" for a in fired],
+                      "reporter": node})
+    return items
+
+
 def _node_item(key: str, row: tuple, kinds: list[tuple[str, str]], record: dict | None, fired: list[dict]) -> dict:
     _, name, robot, gateway, _, _, _, last_seen, _, _, _, _, fight, fight_note = row
     labels = []
@@ -150,12 +171,19 @@ def _node_item(key: str, row: tuple, kinds: list[tuple[str, str]], record: dict 
 
 def view(data: dict) -> dict:
     """What the strip's template takes: the items shown (with their links) and how many more."""
+    from urllib.parse import urlencode
+
     from django.urls import reverse
 
     fleet = reverse("dashboard:fleet")
     shown = []
     for item in data["items"][:SHOWN]:
-        url = reverse("dashboard:node", args=[item["key"]]) if item["key"] else f"{fleet}#gateway-{item['gateway']}"
+        if item.get("status"):
+            url = f'{reverse("dashboard:robot-diagnostic", args=[item["robot"]])}?{urlencode({"name": item["status"]})}'
+        elif item["key"]:
+            url = reverse("dashboard:node", args=[item["key"]])
+        else:
+            url = f"{fleet}#gateway-{item['gateway']}"
         shown.append({**item, "url": url})
     return {"count": data["count"], "shown": shown, "more": max(0, data["count"] - SHOWN),
             "keys": " ".join(data["keys"]), "gateways": " ".join(data["gateways"])}

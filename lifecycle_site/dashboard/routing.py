@@ -3,6 +3,7 @@ from django.urls import path
 
 from lifecycle_site.dashboard import consumers, node_consumers
 from lifecycle_site.dashboard.audit_consumer import AuditConsumer
+from lifecycle_site.dashboard.diagnostic_consumer import DiagnosticsConsumer
 from lifecycle_site.dashboard.mode_consumer import ModesConsumer
 
 websocket_urlpatterns = [
@@ -11,4 +12,5 @@ websocket_urlpatterns = [
     path("ws/logs/<str:scope>/<str:name>/", node_consumers.LogConsumer.as_asgi()),
     path("ws/audit/", AuditConsumer.as_asgi()),
     path("ws/robots/<str:robot>/modes/", ModesConsumer.as_asgi()),
+    path("ws/robots/<str:robot>/diagnostics/", DiagnosticsConsumer.as_asgi()),
 ]

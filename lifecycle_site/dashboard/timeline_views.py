@@ -12,6 +12,7 @@ from django.urls import reverse
 from lifecycle_site.dashboard.access import viewer_required
 from lifecycle_site.dashboard.timeline_drawing import drawing, duration, numbered, pattern, utc
 from lifecycle_site.dashboard.views import node_or_404
+from lifecycle_site.diagnostics import history as diagnostic_history
 from lifecycle_site.fleet.models import Robot
 from lifecycle_site.timelines import node as tl
 from lifecycle_site.timelines import windows as tw
@@ -71,7 +72,7 @@ def _field(moment: datetime) -> str:
     return moment.astimezone(timezone.utc).strftime("%Y-%m-%dT%H:%M")
 
 
-def _context(window: tw.Window, warning: str) -> dict:
+def window_context(window: tw.Window, warning: str) -> dict:
     return {"window": window, "windows": [(name, tw.LABELS[name]) for name in tw.WINDOWS], "warning": warning,
             "custom": window.name == tw.CUSTOM, "start": utc(window.start), "end": utc(window.end),
             "from_value": _field(window.start), "to_value": _field(window.end),
@@ -85,7 +86,7 @@ def node_timeline(request: HttpRequest, key: str) -> HttpResponse:
     timeline = tl.node_timeline(node, window)
     events = numbered([*timeline.outages, *timeline.events])
     return render(request, "dashboard/timeline_node.html", {
-        **_context(window, warning),
+        **window_context(window, warning),
         "summary": _summary(timeline),
         "timeline": timeline,
         "node": node,
@@ -94,6 +95,7 @@ def node_timeline(request: HttpRequest, key: str) -> HttpResponse:
         "events": _events(events),
         "events_capped": MAX_EVENTS if len(timeline.events) >= MAX_EVENTS else 0,
         "legend": legend([timeline]),
+        "diagnostics": diagnostic_history.node_lanes(node.robot, node.name, window.start, window.end),
     })
 
 
@@ -107,7 +109,7 @@ def robot_timeline(request: HttpRequest, robot: str) -> HttpResponse:
     availability = timelines.availability
     events = numbered([*timelines.outages, *timelines.events])
     return render(request, "dashboard/timeline_robot.html", {
-        **_context(window, warning),
+        **window_context(window, warning),
         "robot": found,
         "timelines": timelines,
         "availability": None if availability is None else 100 * availability,

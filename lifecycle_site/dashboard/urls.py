@@ -4,6 +4,7 @@ from django.urls import path
 
 from lifecycle_site.dashboard import (
     audit_views,
+    diagnostic_views,
     log_views,
     mode_views,
     operation_views,
@@ -31,6 +32,8 @@ urlpatterns = [
     path("robots/<str:robot>/modes/", mode_views.robot_modes, name="robot-modes"),
     path("robots/<str:robot>/modes/import", mode_views.import_file, name="robot-modes-import"),
     path("robots/<str:robot>/modes/<str:mode>/apply", mode_views.apply, name="robot-mode-apply"),
+    path("robots/<str:robot>/diagnostics/", diagnostic_views.robot_diagnostics, name="robot-diagnostics"),
+    path("robots/<str:robot>/diagnostics/status", diagnostic_views.status_detail, name="robot-diagnostic"),
     path("nodes/<str:key>/restart", operation_views.node_restart, name="node-restart"),
     path("nodes/<str:key>/desired-state", operation_views.desired_state, name="node-desired-state"),
     path("nodes/<str:key>/parameters", parameter_views.parameters, name="node-parameters"),

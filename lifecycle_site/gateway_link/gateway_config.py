@@ -51,7 +51,8 @@ def build_config(gateway_name: str) -> dict:
             for r in robots
         ],
     }
-    body["limits"] = {"redis_bytes": redis_quota()}
+    body["limits"] = {"redis_bytes": redis_quota(),
+                      "diagnostics_stale_s": settings.LIFECYCLE["DIAGNOSTICS_STALE_S"]}
     version = hashlib.sha256(protocol.encode(body).encode()).hexdigest()[:16]
     return {"gateway": gateway_name, "version": version, "robots": body["robots"], "limits": body["limits"]}
 

@@ -27,6 +27,7 @@ class Applied:
     created_parameters: list[ParameterRecord] = field(default_factory=list)  # made by this call
     created_processes: list[ProcessRecord] = field(default_factory=list)  # made by this call
     accepted: list[dict] = field(default_factory=list)  # the facts applied (not rejected), in order
+    pushes: list[tuple[str, dict]] = field(default_factory=list)  # for open pages, once committed
     rejected: int = 0
 
     def transition_record(self, facts: Iterable[dict]) -> TransitionRecord | None:

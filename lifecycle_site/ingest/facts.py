@@ -23,6 +23,7 @@ from lifecycle_site.gateway_link import gateway_input as checks
 from lifecycle_site.gateway_link.gateway_input import FactRejected
 from lifecycle_site.ingest import state_chain, verdicts
 from lifecycle_site.ingest.absences import node_back, node_left
+from lifecycle_site.ingest.diagnostic_facts import apply_diagnostics
 from lifecycle_site.ingest.fact_context import Applied, Hints, KnownRecords, save_once
 from lifecycle_site.ingest.keep_facts import apply_enforcement_stopped, apply_topic_rates
 from lifecycle_site.ingest.process_facts import apply_node_process, apply_process
@@ -391,4 +392,5 @@ HANDLERS = {
     protocol.NODE_PROCESS: apply_node_process,
     protocol.ENFORCEMENT_STOPPED: apply_enforcement_stopped,
     protocol.TOPIC_RATES: apply_topic_rates,
+    protocol.DIAGNOSTICS: apply_diagnostics,
 }

@@ -16,6 +16,7 @@ from prometheus_client.utils import floatToGoString
 
 from lifecycle_site.alerts import metrics as alert_metrics
 from lifecycle_site.audit.models import TransitionRecord
+from lifecycle_site.diagnostics import metrics as diagnostic_metrics
 from lifecycle_site.fleet.models import Gateway, GroupRun, ManagedNode
 from lifecycle_site.gateway_link import gateways
 from lifecycle_site.modes import drift, readiness
@@ -35,6 +36,7 @@ class FleetCollector(Collector):
         yield from self.runs()
         yield from self.modes()
         yield from alert_metrics.families()
+        yield from diagnostic_metrics.families()
 
     @staticmethod
     def nodes() -> Iterator[Metric]:

@@ -129,6 +129,20 @@ NODE_PROCESS = "node.process"  # robot, node, process: the launch profile whose 
 ENFORCEMENT_STOPPED = "enforcement.stopped"
 TOPIC_RATES = "topic.rates"  # robot, rates: [{topic, hz (None: no publisher), window_s}]: measured for the site
 MAX_RATE_TOPICS = 32  # per robot
+# robot, statuses: [{name, level, message, hardware_id, values: [[key, value]], topic, node, stale, age_s}]
+# (what changed, each status at most every DIAGNOSTICS_REFRESH_S unless its level or message changed),
+# heard: [names heard again, unchanged], left_out: statuses not kept since the gateway started (over
+# MAX_STATUSES): the robots' /diagnostics and /diagnostics_agg (ros_gateway/diagnostics.py).
+DIAGNOSTICS = "diagnostics"
+DIAGNOSTIC_TOPICS = ("diagnostics", "diagnostics_agg")  # in the robot's namespace
+DIAGNOSTIC_LEVELS = {0: "ok", 1: "warn", 2: "error", 3: "stale"}  # diagnostic_msgs/DiagnosticStatus
+DEFAULT_DIAGNOSTICS_STALE_S = 5.0  # no update for this long: stale (as diagnostic_aggregator's default)
+DIAGNOSTICS_REFRESH_S = 2.0
+# Bounds: statuses kept per robot, per fact; text and key/values per status (longer is cut, more left out).
+MAX_STATUSES = 1000
+MAX_STATUSES_PER_FACT = 100
+MAX_STATUS_NAME, MAX_STATUS_MESSAGE, MAX_HARDWARE_ID = 256, 256, 128
+MAX_STATUS_VALUES, MAX_VALUE_KEY, MAX_VALUE_TEXT = 32, 64, 256
 # A node's policy for its desired state (the site's config, per node): "off"; "alert" (drift raises
 # an alert, on the site); "enforce" (the gateway undoes changes by other tools); "paused" (enforce,
 # stopped after a fight until an operator resumes it).

@@ -342,7 +342,7 @@ class Ingest:
         else:
             self.shares.hand_over(seen)
         row.facts_rejected += applied.rejected
-        return record_messages(applied.created, applied.created_parameters)
+        return record_messages(applied.created, applied.created_parameters) + applied.pushes
 
     def store_logs(self, row: Gateway, entries: list) -> list[tuple[str, dict]]:
         pushes: list[tuple[str, dict]] = []

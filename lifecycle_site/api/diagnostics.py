@@ -1,0 +1,41 @@
+"""GET /api/v1/robots/{name}/diagnostics and .../diagnostics/history (docs/api.md, "Diagnostics"):
+a robot's statuses as its nodes report them, as a tree by name path with counts per level, and one
+status's level changes, newest first."""
+from __future__ import annotations
+
+from django.http import HttpRequest, JsonResponse
+
+from lifecycle_site.api.auth import api_view
+from lifecycle_site.api.processes import robot_or_404
+from lifecycle_site.diagnostics import history, tree
+from lifecycle_site.diagnostics.models import MAX_HISTORY, Intake, Status
+from lifecycle_site.refusal import Refusal, shown
+
+
+@api_view()
+def robot_diagnostics(request: HttpRequest, name: str) -> JsonResponse:
+    robot = robot_or_404(name)
+    statuses = list(Status.objects.filter(robot=robot))
+    intake = Intake.objects.filter(robot=robot).first()
+    return JsonResponse({
+        "robot": robot.name, "counts": tree.counts(statuses),
+        "left_out": (intake.left_out_by_gateway + intake.left_out_here) if intake else 0,
+        "tree": [{"path": b.path, "label": b.label, "depth": b.depth, "shown": b.word,
+                  "status": b.status.as_dict() if b.status else None} for b in tree.rows(tree.build(statuses))],
+    })
+
+
+@api_view()
+def status_history(request: HttpRequest, name: str) -> JsonResponse:
+    robot = robot_or_404(name)
+    status_name = request.GET.get("name", "")
+    status = Status.objects.filter(robot=robot, name=status_name).first()
+    if status is None:
+        raise Refusal("not_found", f"Robot {robot.name} has no diagnostic status named {shown(status_name)}; "
+                      f"GET /api/v1/robots/{robot.name}/diagnostics lists them.", 404)
+    try:
+        limit = min(max(int(request.GET.get("limit", MAX_HISTORY)), 1), MAX_HISTORY)
+    except ValueError:
+        raise Refusal("invalid_field", f"limit must be a whole number from 1 to {MAX_HISTORY}.", 400) from None
+    return JsonResponse({"robot": robot.name, "status": status.as_dict(),
+                         "changes": [c.as_dict() for c in history.changes(robot, status_name, limit)]})
