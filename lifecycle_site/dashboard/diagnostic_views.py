@@ -4,7 +4,6 @@ own page: its key/values and its level history, drawn over a window as the timel
 from __future__ import annotations
 
 import hashlib
-from datetime import datetime, timezone
 from urllib.parse import urlencode
 
 from django.http import Http404, HttpRequest, HttpResponse
@@ -51,7 +50,7 @@ def tree_context(robot: Robot) -> dict:
         })
     intake = Intake.objects.filter(robot=robot).first()
     return {"robot": robot, "rows": rows, "counts": tree.counts(statuses), "intake": intake,
-            "symbols": SYMBOLS, "now": datetime.now(timezone.utc)}
+            "symbols": SYMBOLS}
 
 
 @viewer_required

@@ -4,7 +4,6 @@ branch showing the worst of itself and what is below it, and the robot's counts 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from datetime import datetime
 from typing import Iterable
 
 from lifecycle_site.diagnostics.models import ERROR, LEVEL_WORDS, OK, STALE, WARN, Status
@@ -82,14 +81,3 @@ def counts(statuses: Iterable[Status]) -> dict[str, int]:
     for status in statuses:
         found[status.word] += 1
     return found
-
-
-def age_words(heard: datetime, now: datetime) -> str:
-    seconds = max(0, int((now - heard).total_seconds()))
-    if seconds < 90:
-        return f"{seconds} s ago"
-    if seconds < 90 * 60:
-        return f"{seconds // 60} min ago"
-    if seconds < 48 * 3600:
-        return f"{seconds // 3600} h ago"
-    return f"{seconds // 86400} days ago"

@@ -12,6 +12,10 @@
 * ``hang``: on_configure never returns (a driver that never answers): the node stays
   ``configuring``, and its process does not even end on SIGINT (the stuck thread keeps it), so
   only restarting the process helps, with SIGKILL after the stop signal's grace.
+
+Its diagnostics status ``flaky_node: Driver`` follows ``failure_mode``: ``none`` is OK; a failing
+mode is WARN at first and ERROR once it lasted `ESCALATE_AFTER_S`; ``slow_configure`` (slow, but it
+succeeds) stays WARN.
 """
 
 from __future__ import annotations
@@ -20,14 +24,24 @@ import os
 import sys
 import threading
 import time
-from typing import Any
+from typing import Any, Optional
 
 from rcl_interfaces.msg import SetParametersResult
 
 from .base import FAILURE, SUCCESS, DemoLifecycleNode, LifecycleState, TransitionCallbackReturn
+from .diagnostics import ERROR, OK, WARN, Report, StatusPublisher
 
 FAILURE_MODES = ("none", "fail_configure", "raise_activate", "error_in_error", "crash", "slow_configure", "hang")
 CRASH_EXIT_CODE = 3
+ESCALATE_AFTER_S = 3.0
+FAILURE_REASONS = {
+    "fail_configure": "hardware not found on /dev/ttyFLAKY",
+    "raise_activate": "driver fault while activating",
+    "error_in_error": "driver fault, error recovery failing",
+    "crash": "motor driver unstable, process may crash",
+    "slow_configure": "slow firmware upload",
+    "hang": "driver not answering",
+}
 
 
 class FlakyNode(DemoLifecycleNode):
@@ -45,6 +59,11 @@ class FlakyNode(DemoLifecycleNode):
             "slow_seconds", 8.0, "Duration of on_configure in slow_configure mode", min_value=0.0, max_value=120.0
         )
         self._beats = 0
+        self._seen_mode: Optional[str] = None
+        self._mode_since = 0.0
+        self.diagnostics = StatusPublisher(
+            self, "/dev/ttyFLAKY", {"Driver": self._driver_status}, alive=lambda: self.state_label != "finalized"
+        )
         self.get_logger().info(f"created (unconfigured), failure_mode={self.mode}")
 
     @property
@@ -135,3 +154,16 @@ class FlakyNode(DemoLifecycleNode):
     def _heartbeat(self) -> None:
         self._beats += 1
         self.get_logger().debug(f"heartbeat #{self._beats}, failure_mode={self.mode}")
+
+    def _driver_status(self) -> Report:
+        now, mode = time.monotonic(), self.mode
+        if mode != self._seen_mode:
+            self._seen_mode, self._mode_since = mode, now
+        values: dict[str, Any] = {"failure_mode": mode, "state": self.state_label, "failing_for_s": 0.0}
+        if mode == "none":
+            return OK, "driver OK", values
+        failing = now - self._mode_since
+        values["failing_for_s"] = failing
+        # (- 0.1: the status seen 3 ticks after the change may come a few ms early)
+        level = ERROR if mode != "slow_configure" and failing >= ESCALATE_AFTER_S - 0.1 else WARN
+        return level, f"{FAILURE_REASONS.get(mode, 'driver failing')} (failure_mode={mode})", values

@@ -10,6 +10,11 @@ exits 0 on SIGINT/SIGTERM. Arguments after ``--ros-args`` go to rclpy unchanged.
 Each demo node gets its own executor thread by default (``--executor shared`` for one
 MultiThreadedExecutor); a slow transition of one node never blocks another.
 If ``ROS_AUTOMATIC_DISCOVERY_RANGE`` is unset it defaults to ``LOCALHOST`` here.
+
+Diagnostics (``diagnostics``, relative to the namespace): the lidar and flaky nodes publish
+statuses, and a plain ``battery_monitor`` node (not in the ready line; ``--no-battery`` leaves it
+out, for a robot split over several processes) a simulated battery; ``--diagnostics-agg`` adds a
+``diagnostic_aggregator`` node publishing ``diagnostics_agg``.
 """
 
 from __future__ import annotations
@@ -34,6 +39,8 @@ from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
 
 from .base import DemoLifecycleNode
+from .diagnostics import BatteryMonitor
+from .diagnostics_agg import DiagnosticAggregator
 from .generic import GenericNode
 from .nodes import DEFAULT_NODES, NODE_CLASSES
 
@@ -116,6 +123,16 @@ def parse_args(argv: Sequence[str]) -> tuple[argparse.Namespace, list[str]]:
         "this costs far less CPU); shared: one MultiThreadedExecutor",
     )
     parser.add_argument("--threads", type=int, default=4, help="worker threads of the shared executor (default 4)")
+    parser.add_argument(
+        "--diagnostics-agg",
+        action="store_true",
+        help=f"also run a {DiagnosticAggregator.NAME} node: the robot's diagnostics as a tree on diagnostics_agg",
+    )
+    parser.add_argument(
+        "--no-battery",
+        action="store_true",
+        help=f"no {BatteryMonitor.NAME} node (for a further process of a robot whose battery another one reports)",
+    )
     opts = parser.parse_args(argv)
     names = [n.strip() for n in opts.nodes.split(",") if n.strip()]
     unknown = [n for n in names if n not in NODE_CLASSES]
@@ -128,7 +145,9 @@ def parse_args(argv: Sequence[str]) -> tuple[argparse.Namespace, list[str]]:
     if not names and not opts.generic:
         parser.error("no nodes to run")
     opts.node_names = names + [f"{opts.generic_prefix}_{i:03d}" for i in range(opts.generic)]
-    missing = {n for n, _, _ in opts.param} - set(opts.node_names) - {"*"}
+    opts.helper_classes = [c for c, on in ((BatteryMonitor, not opts.no_battery),
+                                           (DiagnosticAggregator, opts.diagnostics_agg)) if on]
+    missing = {n for n, _, _ in opts.param} - set(opts.node_names) - {c.NAME for c in opts.helper_classes} - {"*"}
     if missing:
         parser.error(f"--param for node(s) not started: {', '.join(sorted(missing))}")
     if opts.domain is None:
@@ -256,6 +275,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     )
     severity = getattr(LoggingSeverity, opts.log_level.upper())
     nodes: list[Node] = []
+    # plain helper nodes (battery, aggregator): spun and shut down with the demo nodes, but not
+    # in the ready line, which names the demo nodes only
+    helpers: list[Node] = []
     try:
         for name in opts.node_names:
             overrides = [Parameter(p, value=v) for n, p, v in opts.param if n in (name, "*")]
@@ -263,14 +285,20 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             node = cls(name, namespace=opts.namespace, context=ctx, parameter_overrides=overrides)
             node.get_logger().set_level(severity)
             nodes.append(node)
+        for helper in opts.helper_classes:
+            name = helper.NAME
+            overrides = [Parameter(p, value=v) for n, p, v in opts.param if n == name]
+            node = helper(name, namespace=opts.namespace, context=ctx, parameter_overrides=overrides)
+            node.get_logger().set_level(severity)
+            helpers.append(node)
     except Exception as exc:  # noqa: BLE001 - e.g. a parameter override out of range
         print(f"demo robot: cannot create node {name!r}: {type(exc).__name__}: {exc}", file=sys.stderr, flush=True)
-        for node in nodes:
+        for node in nodes + helpers:
             node.destroy_node()
         rclpy.shutdown(context=ctx)
         return 2
 
-    executors = make_executors(nodes, opts)
+    executors = make_executors(nodes + helpers, opts)
     if opts.autostart != "none":
         for node in nodes:
             if isinstance(node, LifecycleNode):
@@ -284,7 +312,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     print("demo robot ready: " + ",".join(n.get_fully_qualified_name() for n in nodes), flush=True)
     while not stop.wait(0.5):
         pass
-    shut_down(ctx, nodes, executors, threads)
+    shut_down(ctx, nodes + helpers, executors, threads)
     return 0
 
 

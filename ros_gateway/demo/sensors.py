@@ -5,6 +5,7 @@ from __future__ import annotations
 import array
 import math
 import random
+import time
 from typing import Any, Optional
 
 import numpy as np
@@ -12,6 +13,10 @@ from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import Image, LaserScan
 
 from .base import SUCCESS, LifecycleState, PeriodicNode, TransitionCallbackReturn
+from .diagnostics import ERROR, OK, WARN, EventWindow, Report, StatusPublisher
+
+SCAN_RATE_TOLERANCE = 0.1  # diagnostic_updater's FrequencyStatus default: +-10 %
+DROPPED_POINTS_WARN = 10  # points lost within the window above which the scan status warns
 
 
 def room_ranges(
@@ -52,6 +57,12 @@ class LidarDriver(PeriodicNode):
         self._rng = random.Random()
         self._base: Optional[np.ndarray] = None
         self._scans = 0
+        self._scan_times = EventWindow()
+        self._dropped = EventWindow()
+        self._discarded = 0
+        self.diagnostics = StatusPublisher(
+            self, "sim_lidar_2d", {"Scan rate": self._scan_status}, alive=lambda: self.state_label != "finalized"
+        )
         self.get_logger().info("created (unconfigured)")
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -94,6 +105,7 @@ class LidarDriver(PeriodicNode):
         rng = self._rng
         if rng.random() < 0.002:
             log.error("scan packet checksum mismatch: frame discarded (simulated)")
+            self._discarded += 1
             return
         n = len(self._base)
         ranges = self._base + np.float32(rng.gauss(0.0, 0.01))
@@ -104,6 +116,7 @@ class LidarDriver(PeriodicNode):
             start = rng.randrange(n)
             idx = (np.arange(dropped) + start) % n
             ranges[idx] = np.nan
+            self._dropped.add(dropped)
             log.warn(f"dropped {dropped} points (simulated packet loss)")
         msg = LaserScan()
         msg.header.stamp = self.get_clock().now().to_msg()
@@ -119,9 +132,56 @@ class LidarDriver(PeriodicNode):
         msg.ranges = array.array("f", ranges.tobytes())
         self._pub.publish(msg)
         self._scans += 1
+        self._scan_times.add()
         log.debug(
             f"scan #{self._scans}: {n} points, nearest {float(np.nanmin(ranges)):.2f} m", throttle_duration_sec=5.0
         )
+
+    def start_ticking(self) -> None:
+        # a new rate (or a fresh activation) starts a new measurement window
+        super().start_ticking()
+        self._scan_times.restart()
+        self._dropped.restart()
+
+    def _scan_status(self) -> Report:
+        """Scan rate against ``scan_rate_hz`` and points lost in the last window."""
+        now = time.monotonic()
+        expected = float(self.param("scan_rate_hz"))
+        values: dict[str, Any] = {
+            "frequency_hz": 0.0,
+            "expected_hz": expected,
+            "tolerance_pct": SCAN_RATE_TOLERANCE * 100,
+            "dropped_points": 0,
+            "dropped_points_warn": DROPPED_POINTS_WARN,
+            "discarded_scans": self._discarded,
+            "scans": self._scans,
+            "state": self.state_label,
+        }
+        if self.state_label != "active":
+            # Not publishing is commanded (the lifecycle manager keeps the driver inactive), not a
+            # fault: like a diagnostic_updater driver that reports OK while idle, so that an idle
+            # robot does not show up yellow in the aggregate. The lifecycle state tells the rest.
+            return OK, f"not active ({self.state_label}): not publishing scans", values
+        frequency = self._scan_times.frequency(now)
+        last = self._scan_times.last(now)
+        silent = now - (last if last is not None else self._scan_times.since)
+        dropped = int(self._dropped.total(now))
+        values.update(frequency_hz=frequency, dropped_points=dropped)
+        level, problems = OK, []
+        # the interval estimate cannot see a silence (FrequencyStatus: "No events recorded")
+        if silent > max(3.0 / expected, 1.0):
+            values["frequency_hz"] = 0.0
+            level, problems = ERROR, [f"no scan for {silent:.1f} s"]
+        elif frequency and frequency < expected * (1 - SCAN_RATE_TOLERANCE):
+            level, problems = WARN, ["scan rate too low"]
+        elif frequency > expected * (1 + SCAN_RATE_TOLERANCE):
+            level, problems = WARN, ["scan rate too high"]
+        if dropped > DROPPED_POINTS_WARN:
+            level = max(level, WARN)
+            problems.append(f"{dropped} points dropped in {self._dropped.window_s:.0f} s")
+        if problems:
+            return level, "; ".join(problems), values
+        return OK, f"scanning at {frequency:.1f} Hz" if frequency else "starting to scan", values
 
 
 class CameraDriver(PeriodicNode):

@@ -181,8 +181,11 @@ class Command(BaseCommand):
         for name, domain, autostart in DEMO_ROBOTS:
             robot = Robot.objects.get(name=name)
             common = ["-m", "ros_gateway.demo.robot", "--domain", str(domain)]
-            for process, args in (("nodes", [*common, "--nodes", MAIN_NODES, "--autostart", autostart]),
-                                  ("flaky_node", [*common, "--nodes", "flaky_node"])):
+            # Both publish diagnostics; the battery monitor runs beside the main nodes, and agv-2 also
+            # has an aggregator's /diagnostics_agg (a tree by subsystem, as diagnostic_aggregator makes).
+            main = [*common, "--nodes", MAIN_NODES, "--autostart", autostart,
+                    *(["--diagnostics-agg"] if name == "agv-2" else [])]
+            for process, args in (("nodes", main), ("flaky_node", [*common, "--nodes", "flaky_node", "--no-battery"])):
                 ProcessProfile.objects.update_or_create(robot=robot, name=process, defaults={
                     "command": sys.executable, "args": args, "cwd": str(settings.BASE_DIR), "enabled": not no_robots,
                     "env": {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}, "stop_grace_s": 3.0})
