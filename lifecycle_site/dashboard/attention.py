@@ -9,10 +9,11 @@ its robot is in one), one whose parameters differ from its robot's mode, a node 
 answering, a process lost, an alert firing; each with the node's own reason (the failure text of
 its last audit record) and a link.
 
-Cheap at size: three queries whatever the fleet's size (the nodes with their last record's
-outcome, the firing alerts, the last records of the nodes listed), and for robots in a mode one
-more and a few per robot whose mode sets parameters (at most MODE_ROBOTS), kept KEEP_S for every page
-of the process; the fleet socket asks after node updates and every few seconds
+Cheap at size: four queries whatever the fleet's size (the nodes with their last record's
+outcome, the firing alerts, the last records of the nodes listed, diagnostics in ERROR or stale),
+and for robots in a mode one more and a few per robot whose mode sets parameters (at most
+MODE_ROBOTS), kept KEEP_S for every page of the process; the fleet socket asks after node updates
+and every few seconds
 (consumers.FleetConsumer), and sends the strip only when it changed."""
 from __future__ import annotations
 

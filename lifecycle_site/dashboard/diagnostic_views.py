@@ -45,6 +45,7 @@ def tree_context(robot: Robot) -> dict:
         rows.append({
             "id": row_id(branch.path), "label": branch.label, "depth": min(branch.depth, 8), "word": branch.word,
             "symbol": SYMBOLS[branch.word], "status": status, "below": branch.below(),
+            "own": status.word if status else "",
             "url": status_url(robot, status.name) if status else "",
             "node_url": links.get(status.node, "") if status else "",
         })

@@ -9,6 +9,7 @@ from __future__ import annotations
 from datetime import datetime, timedelta
 from typing import Any
 
+from django.conf import settings
 from django.db.models import F
 
 from lifecycle_site.diagnostics.models import ERROR, MAX_HISTORY, STALE, WARN, Intake, LevelChange, Status, page_group
@@ -132,3 +133,28 @@ def _prune(robot: Any, name: str) -> None:
     cutoff = list(oldest_kept)
     if cutoff:
         LevelChange.objects.filter(robot=robot, name=name, at__lt=cutoff[0]).delete()
+
+
+# The gateway says when a status goes stale; should it not (it restarted and never heard the status
+# again, or it is offline), the site marks statuses not heard for this much longer stale itself.
+SILENT_MARGIN_S = protocol.DIAGNOSTICS_REFRESH_S + 3.0
+SILENT_BATCH = 1000
+
+
+def mark_silent(now: datetime) -> list[tuple[str, dict]]:
+    """Statuses not heard for the stale time and more, not marked stale by their gateway: stale now,
+    on record. The pushes for the pages that show them."""
+    limit = now - timedelta(seconds=settings.LIFECYCLE["DIAGNOSTICS_STALE_S"] + SILENT_MARGIN_S)
+    silent = list(Status.objects.filter(stale=False, heard__lt=limit)[:SILENT_BATCH])
+    history, names = [], {}
+    for status in silent:
+        status.stale = True
+        status.level_since = max(now, status.level_since)
+        history.append(LevelChange(robot_id=status.robot_id, name=status.name, level=STALE, message=status.message,
+                                   at=status.level_since))
+        _since(status, status.level_since)
+        names.setdefault(status.robot_id, []).append(status.name)
+    Status.objects.bulk_update(silent, ["stale", "level_since", "warn_since", "error_since", "stale_since"])
+    LevelChange.objects.bulk_create(history)
+    return [(page_group(robot_id), {"type": "diagnostics.changed", "names": found[:200], "more": len(found) > 200})
+            for robot_id, found in names.items()]

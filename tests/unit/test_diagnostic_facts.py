@@ -91,3 +91,21 @@ def test_history_is_bounded_per_status(part, monkeypatch):
         report(part, entry("flapping", index % 2))
     levels = list(LevelChange.objects.filter(name="flapping").order_by("at", "id").values_list("level", flat=True))
     assert len(levels) == 5 and levels[-1] == 1
+
+
+def test_statuses_their_gateway_no_longer_reports_are_marked_stale_by_the_site(part):
+    from datetime import timedelta
+
+    from django.utils import timezone
+
+    from lifecycle_site.ingest.diagnostic_facts import mark_silent
+
+    report(part, entry("quiet", 1, message="warm"), entry("chatty"))
+    now = timezone.now()
+    Status.objects.filter(name="quiet").update(heard=now - timedelta(seconds=30))
+    pushes = mark_silent(now)
+    quiet, chatty = Status.objects.get(name="quiet"), Status.objects.get(name="chatty")
+    assert quiet.stale and quiet.stale_since == now and quiet.warn_since is None and not chatty.stale
+    assert LevelChange.objects.filter(name="quiet").latest("at").level == dm.STALE
+    assert pushes == [(page_group(quiet.robot_id), {"type": "diagnostics.changed", "names": ["quiet"], "more": False})]
+    assert mark_silent(now) == []  # once

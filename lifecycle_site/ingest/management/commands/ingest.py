@@ -29,6 +29,7 @@ import redis
 from django.conf import settings
 from django.core.management.base import BaseCommand
 from django.db import DatabaseError, InterfaceError, OperationalError, connection, transaction
+from django.utils import timezone
 
 from lifecycle_site.fleet.models import Gateway
 from lifecycle_site.gateway_link import gateways as gw
@@ -36,7 +37,7 @@ from lifecycle_site.gateway_link import quarantine
 from lifecycle_site.gateway_link.gateway_input import FactRejected
 from lifecycle_site.gateway_link.redis_guard import RedisGuard
 from lifecycle_site.gateway_link.stream_entries import count_gap, decode, entry_id, is_after, replied, text
-from lifecycle_site.ingest import state_chain, watchers
+from lifecycle_site.ingest import diagnostic_facts, state_chain, watchers
 from lifecycle_site.ingest.absences import prune_absences
 from lifecycle_site.ingest.duties import SiteDuties
 from lifecycle_site.ingest.facts import apply_facts
@@ -151,6 +152,7 @@ class Ingest:
                 self.duties.publish_configs(self.gateways)
                 fail_runs_of_silent_gateways()
                 push(record_messages(state_chain.settle()))
+                push(diagnostic_facts.mark_silent(timezone.now()))
             if self.is_due("users", USERS_S):
                 self.duties.keep_users()
             if self.is_due("prune", PRUNE_S):
