@@ -34,12 +34,13 @@ test: system-packages setup
 # Debian's postgresql, started and removed by the run (tests/postgres.py), ~4 min. Left out:
 # what is about DDS, TLS and process handling only, whose database use the others cover
 # (network namespaces, DDS settings, Redis TLS, the demo's hard stop, a gateway killed,
-# stopped or cut off by Redis, the two one-minute outages). Unit tests of what differs there:
+# stopped or cut off by Redis, the two one-minute outages, processes found by their pid, probes
+# of hung hosts, the gateway keeping desired states). Unit tests of what differs there:
 # the log store (COPY) and values PostgreSQL refuses. A JUnit report asked for in PYTEST_ARGS
 # goes to junit-postgres.xml beside the first run's. POSTGRES_ONLY: what concurrent
 # transactions do to row locks, which SQLite (one writer at a time) does not have.
 POSTGRES_LEAVE_OUT := test_networks test_dds_settings test_redis_tls test_demo_hard_stop test_killed_gateway_runs \
-	test_run_verdicts test_stranger_gateway
+	test_run_verdicts test_stranger_gateway test_crash_local_processes test_liveness test_keep_desired
 POSTGRES_DESELECT := test_gateways.py::test_nothing_is_lost_while_the_ingest_process_is_stopped_for_a_minute \
 	test_gateways.py::test_a_gateway_that_loses_redis_for_a_minute_delivers_what_happened_meanwhile
 POSTGRES_ONLY := tests/unit/test_fact_conflicts.py
