@@ -29,6 +29,8 @@ def robot_diagnostics(request: HttpRequest, name: str) -> JsonResponse:
 def status_history(request: HttpRequest, name: str) -> JsonResponse:
     robot = robot_or_404(name)
     status_name = request.GET.get("name", "")
+    if not status_name:
+        raise Refusal("missing_field", "Name the status: ?name=/Robot/Sensors/Lidar (its full name).", 400)
     status = Status.objects.filter(robot=robot, name=status_name).first()
     if status is None:
         raise Refusal("not_found", f"Robot {robot.name} has no diagnostic status named {shown(status_name)}; "

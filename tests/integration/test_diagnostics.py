@@ -128,3 +128,15 @@ def test_metrics_have_a_gauge_per_status_and_counts_per_level(api, sources):
     assert f'lifecycle_diagnostic_level{{name="/DG/Power/Battery",robot="{ROBOT}"}} 0.0' in text, text[-3000:]
     assert f'lifecycle_diagnostic_statuses{{level="ok",robot="{ROBOT}"}}' in text
     assert "lifecycle_diagnostic_series_left_out" in text
+
+
+def test_the_api_answers_bad_requests_in_words(api, sources):
+    missing = api.get(f"/api/v1/robots/{ROBOT}/diagnostics/history")
+    assert missing.status_code == 400 and missing.json()["error"]["code"] == "missing_field"
+    unknown = api.get(f"/api/v1/robots/{ROBOT}/diagnostics/history", {"name": "no such"})
+    assert unknown.status_code == 404 and "no diagnostic status named 'no such'" in unknown.json()["error"]["message"]
+    limit = api.get(f"/api/v1/robots/{ROBOT}/diagnostics/history", {"name": "/DG", "limit": "lots"})
+    assert limit.status_code == 400 and limit.json()["error"]["code"] == "invalid_field"
+    assert api.get("/api/v1/robots/nobody/diagnostics").status_code == 404
+    page = api.get(f"/robots/{ROBOT}/diagnostics/status", {"name": "no such"})
+    assert page.status_code == 404

@@ -33,8 +33,9 @@ def fleet(db):
 def test_fleet_overview_renders_200_nodes_in_a_fixed_number_of_queries(viewer_client, fleet,
                                                                         django_assert_max_num_queries):
     # Session, user, 2 permission reads, gateways, robots, nodes, runs, the alerts badge, and
-    # the "needs attention" strip: nodes with their last record's outcome, firing alerts.
-    with django_assert_max_num_queries(11):
+    # the "needs attention" strip: nodes with their last record's outcome, firing alerts,
+    # diagnostic statuses in ERROR or stale.
+    with django_assert_max_num_queries(12):
         response = viewer_client.get("/")
     assert response.status_code == 200
     page = response.content.decode()
