@@ -13,6 +13,7 @@ key/values per status, statuses per fact.
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import threading
 import time
@@ -31,6 +32,7 @@ URGENT_GATHER_S = 0.02  # level changes this close together go in one fact
 TICK_S = 0.5  # how often staleness and refreshes are looked at
 PUBLISHERS_S = 5.0  # how often the topics' publishers are read from the graph
 MAX_ARRAY = 2 * protocol.MAX_STATUSES  # statuses read of one message
+FACT_BYTES = protocol.MAX_FACT_BYTES // 2  # statuses' JSON per fact (the names heard again come on top)
 # Best effort matches every publisher (diagnostic_updater's are reliable); a local burst of 20
 # arrays is far more than 1-10 Hz needs.
 QOS = QoSProfile(depth=20, reliability=ReliabilityPolicy.BEST_EFFORT)
@@ -162,6 +164,21 @@ class _Robot:
         return send, heard, urgent
 
 
+def parts(statuses: list[dict]) -> list[list[dict]]:
+    """The statuses in facts of at most MAX_STATUSES_PER_FACT and FACT_BYTES each (a status with every
+    text and key/value at its limit takes about 11 KB; the site refuses a fact over MAX_FACT_BYTES)."""
+    found: list[list[dict]] = []
+    size = 0
+    for entry in statuses:
+        length = len(json.dumps(entry))
+        if not found or len(found[-1]) >= protocol.MAX_STATUSES_PER_FACT or size + length > FACT_BYTES:
+            found.append([])
+            size = 0
+        found[-1].append(entry)
+        size += length
+    return found
+
+
 class Diagnostics:
     def __init__(self, registry: NodeRegistry, domains: dict, outbox: Outbox) -> None:
         self.registry, self.domains, self.outbox = registry, domains, outbox
@@ -244,10 +261,9 @@ class Diagnostics:
                 continue
             self.left_out_sent[robot.info.id] = left_out
             statuses = [self._entry(robot, name, status, now) for name, status in send]
-            step = protocol.MAX_STATUSES_PER_FACT
-            for start in range(0, max(len(statuses), 1), step):
-                self.outbox.emit(protocol.DIAGNOSTICS, robot=robot.info.name, statuses=statuses[start:start + step],
-                                 heard=heard if start == 0 else [], left_out=left_out)
+            for index, part in enumerate(parts(statuses) or [[]]):
+                self.outbox.emit(protocol.DIAGNOSTICS, robot=robot.info.name, statuses=part,
+                                 heard=heard if index == 0 else [], left_out=left_out)
 
     def _read_publishers(self, robot: _Robot) -> None:
         domain = self.domains.get(robot.info.domain_id)

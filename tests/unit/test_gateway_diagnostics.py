@@ -4,6 +4,8 @@ the site's time, text and key/values cut, statuses per robot bounded and the res
 that reports a status found as diagnostic_updater names it."""
 from __future__ import annotations
 
+import json
+
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
 from ros_gateway import diagnostics
@@ -91,3 +93,12 @@ def test_the_reporting_node_is_found_by_name_or_as_the_only_publisher():
     assert r.publisher("/R1/Sensors", "/r1/diagnostics_agg") == ""  # the aggregator's own summary
     r.publishers["/r1/diagnostics"] = ["/r1/battery_monitor"]
     assert r.publisher("Battery", "/r1/diagnostics") == "/r1/battery_monitor"
+
+
+def test_facts_stay_well_under_what_the_site_reads():
+    big = {"name": "n" * protocol.MAX_STATUS_NAME, "message": "m" * protocol.MAX_STATUS_MESSAGE,
+           "values": [["k" * protocol.MAX_VALUE_KEY, "v" * protocol.MAX_VALUE_TEXT]] * protocol.MAX_STATUS_VALUES}
+    split = diagnostics.parts([big] * 100)
+    assert sum(len(p) for p in split) == 100 and len(split) > 1
+    assert all(len(json.dumps(p)) < protocol.MAX_FACT_BYTES // 2 + 12_000 for p in split)
+    assert [len(p) for p in diagnostics.parts([{"name": "x"}] * 250)] == [100, 100, 50]
