@@ -4,13 +4,12 @@ page shows (the whole tree when statuses came or went), with the counts. Changes
 drawn once: a level change within GATHER_S, a freshness-only update within QUIET_S."""
 from __future__ import annotations
 
-import asyncio
-
 from channels.db import database_sync_to_async
 from django.template.loader import render_to_string
 
 from lifecycle_site.dashboard.consumers import LiveConsumer
 from lifecycle_site.dashboard.diagnostic_views import tree_context
+from lifecycle_site.dashboard.gathered import GatheredDraws
 from lifecycle_site.diagnostics.models import page_group
 from lifecycle_site.fleet.models import Robot
 from lifecycle_site.prefix import script_prefix
@@ -19,7 +18,7 @@ GATHER_S = 0.03
 QUIET_S = 1.0
 
 
-class DiagnosticsConsumer(LiveConsumer):
+class DiagnosticsConsumer(GatheredDraws, LiveConsumer):
     async def prepare(self) -> bool:
         name = self.scope["url_route"]["kwargs"]["robot"]
         self.robot = await database_sync_to_async(Robot.objects.select_related("gateway").filter(name=name).first)()
@@ -28,26 +27,13 @@ class DiagnosticsConsumer(LiveConsumer):
         self.groups_to_join = [page_group(self.robot.id)]
         self.shown: dict[str, str] | None = None  # row id -> its HTML, as the page has it
         self.counts = ""
-        self.pending: asyncio.Task | None = None
-        self.again = False
         return True
 
     async def send_snapshot(self) -> None:
         await self.draw()  # what changed since the page was drawn
 
     async def diagnostics_changed(self, event: dict) -> None:
-        urgent = bool(event.get("names"))
-        if self.pending is None or self.pending.done():
-            self.pending = asyncio.ensure_future(self._gathered(GATHER_S if urgent else QUIET_S))
-        else:
-            self.again = True
-
-    async def _gathered(self, wait: float) -> None:
-        await asyncio.sleep(wait)
-        await self.draw()
-        while self.again:
-            self.again = False
-            await self.draw()
+        self.soon(GATHER_S if event.get("names") else QUIET_S)
 
     async def draw(self) -> None:
         def render() -> tuple[list[tuple[str, str]], str, str]:
@@ -75,6 +61,5 @@ class DiagnosticsConsumer(LiveConsumer):
             await self.send(text_data="".join(parts))
 
     async def disconnect(self, code: int) -> None:
-        if self.pending is not None:
-            self.pending.cancel()
+        self.stop_drawing()
         await super().disconnect(code)

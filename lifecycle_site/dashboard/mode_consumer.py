@@ -4,12 +4,11 @@ seconds for what has no push (parameter values, topic rates). A burst of node up
 applied to 50 nodes) is drawn once: updates that come while one is being drawn make one more."""
 from __future__ import annotations
 
-import asyncio
-
 from channels.db import database_sync_to_async
 from django.template.loader import render_to_string
 
 from lifecycle_site.dashboard.consumers import LiveConsumer
+from lifecycle_site.dashboard.gathered import GatheredDraws
 from lifecycle_site.dashboard.mode_views import live_context
 from lifecycle_site.fleet.models import Robot
 from lifecycle_site.prefix import script_prefix
@@ -18,7 +17,7 @@ from ros_gateway.shared import protocol
 GATHER_S = 0.05  # node updates this close together are drawn once
 
 
-class ModesConsumer(LiveConsumer):
+class ModesConsumer(GatheredDraws, LiveConsumer):
     async def prepare(self) -> bool:
         name = self.scope["url_route"]["kwargs"]["robot"]
         self.robot = await database_sync_to_async(Robot.objects.select_related("gateway").filter(name=name).first)()
@@ -26,8 +25,6 @@ class ModesConsumer(LiveConsumer):
             return False
         self.groups_to_join = [protocol.robot_group(self.robot.id)]
         self.sent: str | None = None
-        self.pending: asyncio.Task | None = None
-        self.again = False
         return True
 
     async def send_snapshot(self) -> None:
@@ -37,23 +34,10 @@ class ModesConsumer(LiveConsumer):
         await self.draw()
 
     async def node_state(self, event: dict) -> None:
-        self.soon()
+        self.soon(GATHER_S)
 
     async def run_progress(self, event: dict) -> None:
-        self.soon()
-
-    def soon(self) -> None:
-        if self.pending is None or self.pending.done():
-            self.pending = asyncio.ensure_future(self._gathered())
-        else:
-            self.again = True
-
-    async def _gathered(self) -> None:
-        await asyncio.sleep(GATHER_S)
-        await self.draw()
-        while self.again:
-            self.again = False
-            await self.draw()
+        self.soon(GATHER_S)
 
     async def draw(self) -> None:
         def render() -> tuple[str, str]:
@@ -67,6 +51,5 @@ class ModesConsumer(LiveConsumer):
             await self.send(text_data=html)
 
     async def disconnect(self, code: int) -> None:
-        if self.pending is not None:
-            self.pending.cancel()
+        self.stop_drawing()
         await super().disconnect(code)
