@@ -23,8 +23,9 @@ os.environ.setdefault("REDIS_URL", f"redis://127.0.0.1:{_free_port()}/0")
 if "LIFECYCLE_TEST_DOMAIN_BASE" not in os.environ:  # the run's first process claims them
     from tests import domains
 
-    # Offsets 0-49 (tests.stack.domain): one block of 50 of the domains 30-209, held for the run's life.
-    os.environ["LIFECYCLE_TEST_DOMAIN_BASE"] = str(domains.claim_block(30, 210, 50))
+    # Offsets 0-44 (tests.stack.domain): one of two blocks of 45 of the domains 30-119, held for the
+    # run's life (the benchmarks take 120-131, and may run beside a test run).
+    os.environ["LIFECYCLE_TEST_DOMAIN_BASE"] = str(domains.claim_block(30, 120, 45))
 os.environ.setdefault("LIFECYCLE_CHANNEL_PREFIX", "lifecycle-test")
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.setdefault("ROS_DOMAIN_ID", os.environ["LIFECYCLE_TEST_DOMAIN_BASE"])

@@ -17,6 +17,7 @@ from pathlib import Path
 from types import ModuleType
 
 from tests.benchmarks import (
+    diagnostics,
     fleet,
     flood,
     load,
@@ -36,7 +37,8 @@ from tests.benchmarks.system import loadavg
 from tests.benchmarks.template import DATABASES, Template
 
 SCENARIOS: dict[str, ModuleType] = {
-    m.NAME: m for m in (transition, push, scale, flood, networks, load, quiet, timeline, fleet, supervised, modes)
+    m.NAME: m for m in (transition, push, scale, flood, networks, load, quiet, timeline, fleet, supervised, modes,
+                      diagnostics)
 }
 ON_REQUEST = {quiet.NAME}  # long: run only with --only
 

@@ -17,7 +17,7 @@ from tests.integration.diagnostics_publisher import Source
 
 ROBOT = "it-diag"
 NAMESPACE = "/dg"
-DOMAIN_OFFSET = 45
+DOMAIN_OFFSET = 40
 AGG = ["/DG", "/DG/Sensors", "/DG/Sensors/Lidar", "/DG/Power", "/DG/Power/Battery"]
 
 
