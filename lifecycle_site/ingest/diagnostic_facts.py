@@ -10,6 +10,7 @@ from datetime import datetime, timedelta
 from typing import Any
 
 from django.conf import settings
+from django.db import connection
 from django.db.models import F
 
 from lifecycle_site.diagnostics.models import ERROR, MAX_HISTORY, STALE, WARN, Intake, LevelChange, Status, page_group
@@ -119,11 +120,27 @@ def _store(robot: Any, reports: dict[str, dict], at: datetime) -> list[str]:
         updated.append(status)
         changed.append(name)
     Status.objects.bulk_create(new)
-    Status.objects.bulk_update(updated, FIELDS)
+    _update(updated)
     LevelChange.objects.bulk_create(history)
     for name in {change.name for change in history} - {status.name for status in new}:
         _prune(robot, name)
     return changed
+
+
+def _update(statuses: list[Status]) -> None:
+    """The rows written again, in one prepared statement run for each: a status's key/values change
+    with every message (a measured frequency), so a busy fleet sends hundreds a second, and
+    Django's bulk_update (a CASE per field and row) took ~4 ms per row."""
+    if not statuses:
+        return
+    fields = [Status._meta.get_field(name) for name in FIELDS]
+    quote = connection.ops.quote_name
+    sql = (f"UPDATE {quote(Status._meta.db_table)} SET {', '.join(f'{quote(f.column)} = %s' for f in fields)} "
+           f"WHERE {quote(Status._meta.pk.column)} = %s")
+    rows = [[f.get_db_prep_save(getattr(status, f.attname), connection) for f in fields] + [status.pk]
+            for status in statuses]
+    with connection.cursor() as cursor:
+        cursor.executemany(sql, rows)
 
 
 def _prune(robot: Any, name: str) -> None:

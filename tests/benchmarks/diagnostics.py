@@ -1,12 +1,14 @@
 """Scenario 13: diagnostics at fleet size. 10 robots (ROS domain 131, namespaces /bd0 ... /bd9) with
 one DiagnosticArray publisher process each (tests/integration/diagnostics_publisher.py, 100 statuses,
-as a robot's nodes publish /diagnostics), first at 1 Hz, the usual rate, then at 10 Hz.
+as a robot's nodes publish /diagnostics, a key/value of each changing with every message as a
+measured frequency does), first at 1 Hz, the usual rate, then at 10 Hz.
 
 At each rate, once settled, with one robot's diagnostics page open (its WebSocket):
 1. a steady window: the CPU of the gateway and of the site (the ingest process plus daphne), in %
    of one core, and what reached the site: facts per second (the gateway's facts stream in Redis:
    entries added), the statuses in them (sent when they changed: none while nothing changes) and
-   the names of statuses heard again unchanged (read beside the ingest process as they are added);
+   the names of statuses heard again unchanged (read beside the ingest process as they are added;
+   with key/values changing with every message, none: each status is sent every refresh, 2 s);
 2. status change -> page: one status of robot 0 changed (level and a message text of its own) by its
    publisher, from the wall time of the first publication carrying it to the page's socket message
    containing that text, repeated with a pause between changes; split where the gateway added the
@@ -76,7 +78,7 @@ def start_publishers(stack: Stack, sources: list[Source]) -> None:
     stops, whatever happens) once it publishes."""
     for robot, _ in ROBOTS:
         sources.append(Publisher(DOMAIN, stack.env, "--namespace", NAMESPACES[robot], "--statuses", str(STATUSES),
-                                 "--rate", f"{RATES_HZ[0]:g}"))
+                                 "--rate", f"{RATES_HZ[0]:g}", "--churn"))
 
 
 def wait_statuses(stack: Stack, timeout: float) -> float:

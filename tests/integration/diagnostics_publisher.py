@@ -3,7 +3,8 @@ its namespace's ``diagnostics`` (or ``diagnostics_agg``) at a rate, steered thro
 
     python tests/integration/diagnostics_publisher.py DOMAIN --namespace /r1 --statuses 100 --rate 1
 
-Statuses are named "<node>: check N" (diagnostic_updater's way) unless set by name. Each stdin line
+Statuses are named "<node>: check N" (diagnostic_updater's way) unless set by name; with --churn
+a key/value "seq" of each changes with every message. Each stdin line
 is a JSON object: {"name": N, "level": 0-3, "message": M, "values": [[k, v]]} sets (or adds) a status,
 {"drop": N} stops publishing it, {"rate": HZ} changes the rate. After each line it prints one JSON
 line {"published": N, "at": <wall time of the first message that carried it>} for a set or drop.
@@ -74,6 +75,8 @@ def main() -> int:
     parser.add_argument("--topic", default="diagnostics")
     parser.add_argument("--statuses", type=int, default=3)
     parser.add_argument("--rate", type=float, default=1.0)
+    parser.add_argument("--churn", action="store_true",
+                        help="a key/value of every status changes with each message (a measured frequency does)")
     args = parser.parse_args()
     context = rclpy.context.Context()
     rclpy.init(context=context, domain_id=args.domain)
@@ -87,12 +90,18 @@ def main() -> int:
                                           hardware_id=f"hw{index}", values=[KeyValue(key="index", value=str(index))])
     announce: list[str] = []  # names whose next publication is reported
     rate = [args.rate]
+    sequence = [0]
     stop = threading.Event()
 
     def publish_loop() -> None:
         while not stop.is_set():
             began = time.monotonic()
             with lock:
+                sequence[0] += 1
+                if args.churn:
+                    for status in statuses.values():
+                        status.values = [v for v in status.values if v.key != "seq"] + [
+                            KeyValue(key="seq", value=str(sequence[0]))]
                 message = DiagnosticArray(status=list(statuses.values()))
                 message.header.stamp = node.get_clock().now().to_msg()
                 reported, announce[:] = list(announce), []
