@@ -20,8 +20,7 @@ def robot_diagnostics(request: HttpRequest, name: str) -> JsonResponse:
     return JsonResponse({
         "robot": robot.name, "counts": tree.counts(statuses),
         "left_out": (intake.left_out_by_gateway + intake.left_out_here) if intake else 0,
-        "tree": [{"path": b.path, "label": b.label, "depth": b.depth, "shown": b.word,
-                  "status": b.status.as_dict() if b.status else None} for b in tree.rows(tree.build(statuses))],
+        "tree": tree.as_dicts(tree.rows(tree.build(statuses))),
     })
 
 

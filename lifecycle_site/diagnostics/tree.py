@@ -81,3 +81,9 @@ def counts(statuses: Iterable[Status]) -> dict[str, int]:
     for status in statuses:
         found[status.word] += 1
     return found
+
+
+def as_dicts(branches: list[Branch]) -> list[dict]:
+    """The rows as the API and the CLI's --json give them."""
+    return [{"path": b.path, "label": b.label, "depth": b.depth, "shown": b.word,
+             "status": b.status.as_dict() if b.status else None} for b in branches]

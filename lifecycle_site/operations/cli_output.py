@@ -38,6 +38,10 @@ VERBS: dict[str, tuple[str, str]] = {
              "per node (its state, its parameters); mode apply ROBOT MODE: one run, one line per node as it\n"
              "is done (exit 0 only if it succeeded); mode drift ROBOT: one line per difference (exit 0 when\n"
              "there is none, 1 when there is)."),
+    "diagnostics": ("print a robot's diagnostic statuses as a tree",
+                    "One line per status by name path, indented: 'ERROR  Lidar: no scans for 3 s (/lidar_driver,\n"
+                    "4 s ago)'; a branch shows the worst below it. --problems: only ERROR, WARN and stale ones.\n"
+                    "Exit 0 when none is in ERROR or stale, 1 when one is (for scripts and health checks)."),
     "process": ("list a robot's supervised processes, or start, stop or restart one",
                 "Without PROCESS: one line per launch profile ('drivers: running, pid 4242, 2 restarts').\n"
                 "With PROCESS ACTION (start, stop, restart): done by the robot's gateway, its supervisor; prints\n"
@@ -68,7 +72,8 @@ examples:
   manage.py lifecycle list agv-1.joy_to_vel -a
   manage.py lifecycle bringup agv-1 --policy continue --timeout 10 --json
   manage.py lifecycle process agv-1 drivers restart
-  manage.py lifecycle mode apply agv-1 production"""
+  manage.py lifecycle mode apply agv-1 production
+  manage.py lifecycle diagnostics agv-2 --problems"""
 
 NODE_HELP = "node id (agv-1.joy_to_vel), or with --robot its ROS name (/joy_to_vel)"
 # How many known names an "unknown node/robot" message lists.
@@ -138,6 +143,8 @@ def add_verbs(parser: argparse.ArgumentParser) -> None:
     sub["mode"].add_argument("action", choices=MODE_ACTIONS, metavar="ACTION", help=", ".join(MODE_ACTIONS))
     sub["mode"].add_argument("robot_name", metavar="ROBOT", help="the robot")
     sub["mode"].add_argument("mode", nargs="?", metavar="MODE", help="the mode (show, apply)")
+    sub["diagnostics"].add_argument("robot_name", metavar="ROBOT", help="the robot")
+    sub["diagnostics"].add_argument("--problems", action="store_true", help="only statuses in WARN, ERROR or stale")
     sub["process"].add_argument("robot_name", metavar="ROBOT", help="the robot")
     sub["process"].add_argument("process", nargs="?", metavar="PROCESS", help="a launch profile's name")
     sub["process"].add_argument("action", nargs="?", choices=protocol.PROCESS_ACTIONS, metavar="ACTION",
@@ -303,3 +310,20 @@ def mode_node_lines(mode: dict) -> list[str]:
         lines.append(f"{name}: {entry.get('state') or 'left alone'}" + (f"; {values}" if values else ""))
     return lines
 
+
+
+def diagnostic_lines(rows: list[dict], robot: str, now: Any) -> list[str]:
+    """``ERROR  Lidar: no scans (/lidar_driver, 4 s ago)``, indented by depth (the API's tree rows)."""
+    from datetime import datetime
+
+    lines = []
+    for row in rows:
+        status = row["status"]
+        text = f"{'  ' * row['depth']}{row['shown']:<5}  {row['label']}"
+        if status is None:
+            lines.append(text)
+            continue
+        heard = int((now - datetime.fromisoformat(status["heard"])).total_seconds())
+        where = ", ".join(filter(None, (status["node"], f"{max(heard, 0)} s ago")))
+        lines.append(f"{text}: {status['message'] or '-'} ({where})")
+    return lines or [f"No diagnostics heard from {robot} yet."]

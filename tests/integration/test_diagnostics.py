@@ -140,3 +140,27 @@ def test_the_api_answers_bad_requests_in_words(api, sources):
     assert api.get("/api/v1/robots/nobody/diagnostics").status_code == 404
     page = api.get(f"/robots/{ROBOT}/diagnostics/status", {"name": "no such"})
     assert page.status_code == 404
+
+
+def test_the_cli_prints_the_tree_and_exits_1_while_a_status_is_in_error(sources):
+    from tests.integration.test_cli import cli
+
+    raw, agg = sources
+    agg.send(name="/DG/Power/Battery", level=0, message="82 %")
+    wait_status("/DG/Power/Battery", level=0, message="82 %")
+    Status.objects.filter(robot__name=ROBOT, level=2).update(level=0)  # as if all were fine
+    Status.objects.filter(robot__name=ROBOT, stale=True).update(stale=False)
+    done = cli("diagnostics", ROBOT)
+    assert done.code == 0, done.err
+    battery = next(line for line in done.lines if "Battery:" in line)
+    assert battery.startswith("    OK     Battery: 82 % (") and "s ago)" in battery  # depth 2, indented
+
+    agg.send(name="/DG/Power/Battery", level=2, message="9 %")
+    wait_status("/DG/Power/Battery", level=2)
+    problems = cli("diagnostics", ROBOT, "--problems")
+    assert problems.code == 1
+    assert [line.split()[0] for line in problems.lines] == ["ERROR"] * 3  # /DG, /DG/Power, Battery
+    assert "Battery: 9 %" in problems.out
+    as_json = cli("diagnostics", ROBOT, "--json", "--problems")
+    assert as_json.code == 1 and '"shown": "ERROR"' in as_json.out
+    assert cli("diagnostics", "nobody").code == 2

@@ -14,7 +14,10 @@ from django.contrib.auth import get_user_model
 from django.core.management.base import BaseCommand, CommandError
 from django.db import DatabaseError
 from django.db.models import Q
+from django.utils import timezone
 
+from lifecycle_site.diagnostics import tree
+from lifecycle_site.diagnostics.models import Status
 from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
 from lifecycle_site.gateway_link.gateway_client import GatewayError, GatewayOffline, call_gateway
 from lifecycle_site.modes import drift
@@ -71,7 +74,7 @@ class Command(BaseCommand):
     def handle(self, *args: Any, verb: str, **options: Any) -> None:
         opts = SimpleNamespace(verb=verb, **options)
         handlers = {"nodes": self.do_nodes, "get": self.do_get, "set": self.do_set, "list": self.do_list,
-                    "process": self.do_process, "mode": self.do_mode}
+                    "process": self.do_process, "mode": self.do_mode, "diagnostics": self.do_diagnostics}
         code = handlers.get(verb, self.do_group)(opts)
         if code:
             raise CliExit(code)
@@ -235,6 +238,19 @@ class Command(BaseCommand):
         except Refusal as exc:
             raise refused_exit(exc) from None
         return self.follow(opts, run, modes.MODE_RUN)
+
+    def do_diagnostics(self, opts: SimpleNamespace) -> int:
+        """A robot's diagnostic statuses as a tree; exit 1 while one is in ERROR or stale."""
+        robot = self.robot(opts.robot_name)
+        statuses = list(Status.objects.filter(robot=robot))
+        branches = tree.rows(tree.build(statuses))
+        if opts.problems:
+            branches = [b for b in branches if b.word != "OK"]
+        rows = tree.as_dicts(branches)
+        counts = tree.counts(statuses)
+        self.emit(opts, {"robot": robot.name, "counts": counts, "tree": rows},
+                  out.diagnostic_lines(rows, robot.name, timezone.now()))
+        return EXIT_FAILED if counts["ERROR"] or counts["STALE"] else EXIT_OK
 
     def follow(self, opts: SimpleNamespace, run: GroupRun, operation: operations.Operation) -> int:
         """Print the run's nodes as they are done, then its summary; its exit status."""
