@@ -128,14 +128,24 @@ class _Robot:
                 (f"{i.node_namespace.rstrip('/')}/{i.node_name}") for i in found
                 if not i.node_name.startswith("lifecycle_gateway_")})[:64]
         with self.lock:
+            by_hardware: dict[str, str] = {}  # hardware id -> node, of the statuses not aggregated
             for name, status in self.statuses.items():
-                node = self.publisher(name, status.topic)
+                if status.hardware_id and not status.topic.endswith("_agg"):
+                    found = self.publisher(name, status.topic)
+                    by_hardware[status.hardware_id] = found if by_hardware.get(status.hardware_id, found) == found \
+                        else ""  # (two nodes, one id: not known)
+            for name, status in self.statuses.items():
+                node = self.publisher(name, status.topic, status.hardware_id, by_hardware)
                 if node != status.node:
                     status.node, status.changed = node, True
 
-    def publisher(self, name: str, topic: str) -> str:
+    def publisher(self, name: str, topic: str, hardware_id: str = "", by_hardware: dict | None = None) -> str:
         """The node that reports a status, where known: named as diagnostic_updater does ("node: task",
-        also as an aggregated path's last part) among the nodes publishing diagnostics, or the only one."""
+        also as an aggregated path's last part) among the nodes publishing diagnostics; for an aggregated
+        status, the node of the status it sums up (diagnostic_aggregator keeps its hardware id); or the
+        only node publishing the topic."""
+        if by_hardware and by_hardware.get(hardware_id) and topic.endswith("_agg"):
+            return by_hardware[hardware_id]
         direct = self.publishers.get(topic, [])
         reporters = direct + [n for t, nodes in self.publishers.items() if t != topic for n in nodes]
         prefix = name.rsplit("/", 1)[-1].split(":", 1)[0].strip() if ":" in name else ""

@@ -312,7 +312,7 @@ def mode_node_lines(mode: dict) -> list[str]:
 
 
 
-def diagnostic_lines(rows: list[dict], robot: str, now: Any) -> list[str]:
+def diagnostic_lines(rows: list[dict], robot: str, now: Any, statuses: int) -> list[str]:
     """``ERROR  Lidar: no scans (/lidar_driver, 4 s ago)``, indented by depth (the API's tree rows)."""
     from datetime import datetime
 
@@ -326,4 +326,6 @@ def diagnostic_lines(rows: list[dict], robot: str, now: Any) -> list[str]:
         heard = int((now - datetime.fromisoformat(status["heard"])).total_seconds())
         where = ", ".join(filter(None, (status["node"], f"{max(heard, 0)} s ago")))
         lines.append(f"{text}: {status['message'] or '-'} ({where})")
+    if not lines and statuses:
+        return [f"Every diagnostic status of {robot} is OK ({statuses})."]
     return lines or [f"No diagnostics heard from {robot} yet."]

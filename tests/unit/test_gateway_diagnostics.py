@@ -102,3 +102,24 @@ def test_facts_stay_well_under_what_the_site_reads():
     assert sum(len(p) for p in split) == 100 and len(split) > 1
     assert all(len(json.dumps(p)) < protocol.MAX_FACT_BYTES // 2 + 12_000 for p in split)
     assert [len(p) for p in diagnostics.parts([{"name": "x"}] * 250)] == [100, 100, 50]
+
+
+def test_an_aggregated_status_belongs_to_the_node_of_the_status_with_its_hardware_id():
+    r = robot()
+    r.publishers = {"/r1/diagnostics": ["/r1/lidar_driver", "/r1/battery_monitor"],
+                    "/r1/diagnostics_agg": ["/r1/aggregator"]}
+
+    class Domain:
+        class node:  # noqa: N801 - the graph as rclpy's node answers it
+            @staticmethod
+            def get_publishers_info_by_topic(topic):
+                raise RuntimeError("the graph is not asked here")
+
+    r.take(DiagnosticArray(status=[DiagnosticStatus(name="lidar_driver: Scan rate", hardware_id="sim_lidar"),
+                                   DiagnosticStatus(name="Battery", hardware_id="bms")]), TOPIC, lambda: None)
+    r.take(DiagnosticArray(status=[DiagnosticStatus(name="/R1/Sensors/Lidar", hardware_id="sim_lidar"),
+                                   DiagnosticStatus(name="/R1/Power/Battery", hardware_id="bms")]),
+           "/r1/diagnostics_agg", lambda: None)
+    r.read_publishers(Domain)
+    assert r.statuses["/R1/Sensors/Lidar"].node == "/r1/lidar_driver" and r.statuses["/R1/Sensors/Lidar"].changed
+    assert r.statuses["/R1/Power/Battery"].node == ""  # its own status's node is not known either

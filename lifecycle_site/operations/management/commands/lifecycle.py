@@ -249,7 +249,7 @@ class Command(BaseCommand):
         rows = tree.as_dicts(branches)
         counts = tree.counts(statuses)
         self.emit(opts, {"robot": robot.name, "counts": counts, "tree": rows},
-                  out.diagnostic_lines(rows, robot.name, timezone.now()))
+                  out.diagnostic_lines(rows, robot.name, timezone.now(), len(statuses)))
         return EXIT_FAILED if counts["ERROR"] or counts["STALE"] else EXIT_OK
 
     def follow(self, opts: SimpleNamespace, run: GroupRun, operation: operations.Operation) -> int:
