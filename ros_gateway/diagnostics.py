@@ -95,22 +95,23 @@ class _Robot:
                 level, text = level_of(raw.level), _cut(raw.message, protocol.MAX_STATUS_MESSAGE)
                 values = tuple((_cut(v.key, protocol.MAX_VALUE_KEY), _cut(v.value, protocol.MAX_VALUE_TEXT))
                                for v in raw.values[:protocol.MAX_STATUS_VALUES])
+                hardware_id = _cut(raw.hardware_id, protocol.MAX_HARDWARE_ID)
                 status = self.statuses.get(name)
                 if status is None:
                     if len(self.statuses) >= protocol.MAX_STATUSES:
                         self.left_out += 1
                         continue
-                    self.statuses[name] = _Status(level, text, _cut(raw.hardware_id, protocol.MAX_HARDWARE_ID),
-                                                  values, topic, now, self.publisher(name, topic))
+                    self.statuses[name] = _Status(level, text, hardware_id, values, topic, now,
+                                                  self.publisher(name, topic))
                     urgent = True
                     continue
                 status.heard = now
                 if status.level != level or status.message != text or status.stale:
                     status.level, status.message, status.stale = level, text, False
-                    status.values, status.topic = values, topic
+                    status.values, status.topic, status.hardware_id = values, topic, hardware_id
                     status.changed = status.urgent = urgent = True
-                elif status.values != values or status.topic != topic:
-                    status.values, status.topic, status.changed = values, topic, True
+                elif status.values != values or status.topic != topic or status.hardware_id != hardware_id:
+                    status.values, status.topic, status.hardware_id, status.changed = values, topic, hardware_id, True
                 else:
                     status.heard_again = True
         if urgent:

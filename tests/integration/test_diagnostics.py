@@ -58,6 +58,10 @@ def test_statuses_arrive_with_their_reporting_node_and_the_tree_sums_up(api, sou
     wait_status("diag_source: check 0", node=f"{NAMESPACE}/diag_source")  # its publisher, from the graph
     for name in AGG:
         wait_status(name, topic=f"{NAMESPACE}/diagnostics_agg")
+    # An aggregated status keeps the hardware id of the status it sums up: so it has its node.
+    agg.send(name="/DG/Sensors/Lidar", level=0, message="fine", hardware_id="hw0")
+    wait_status("/DG/Sensors/Lidar", node=f"{NAMESPACE}/diag_source")
+    assert status("/DG/Sensors").node == ""  # the aggregator's own summary: no node
 
     agg.send(name="/DG/Sensors/Lidar", level=1, message="scan rate low", values=[["frequency_hz", "4.1"]])
     wait_status("/DG/Sensors/Lidar", level=1, message="scan rate low")
