@@ -243,8 +243,11 @@ def result_line(result: dict) -> str:
 
 
 def summary_line(run: GroupRun) -> str:
-    """``bringup agv-1: succeeded (2 succeeded, 1 skipped) in 1.2 s``."""
-    line = f"{run.operation} {run.robot.name}: {run.get_status_display()}"
+    """``bringup agv-1: succeeded (2 succeeded, 1 skipped) in 1.2 s``; a mode's run names the mode
+    (``mode mapping on agv-1: ...``)."""
+    mode = run.plan.get("mode") if isinstance(run.plan, dict) else None
+    what = f"mode {mode} on {run.robot.name}" if mode else f"{run.operation} {run.robot.name}"
+    line = f"{what}: {run.get_status_display()}"
     if run.message:
         line += f" ({run.message})"
     if run.started and run.finished:
