@@ -19,6 +19,7 @@ from redis.exceptions import RedisError
 
 from lifecycle_site.dashboard import attention, fragments, runs, snapshots, socket_checks
 from lifecycle_site.dashboard.collapse import CollapsedRobots
+from lifecycle_site.fleet.models import Robot
 from lifecycle_site.prefix import forwarded_prefix, script_prefix
 from ros_gateway.shared import protocol
 
@@ -120,6 +121,11 @@ class LiveConsumer(AsyncWebsocketConsumer):
 
     async def prepare(self) -> bool:
         return True
+
+    async def route_robot(self) -> Robot | None:
+        """The robot a page's route names (ws/robots/<robot>/...), with its gateway; None if none is."""
+        name = self.scope["url_route"]["kwargs"]["robot"]
+        return await database_sync_to_async(Robot.objects.select_related("gateway").filter(name=name).first)()
 
     async def send_snapshot(self) -> None:
         pass

@@ -11,7 +11,6 @@ from lifecycle_site.dashboard.consumers import LiveConsumer
 from lifecycle_site.dashboard.diagnostic_views import tree_context
 from lifecycle_site.dashboard.gathered import GatheredDraws
 from lifecycle_site.diagnostics.models import page_group
-from lifecycle_site.fleet.models import Robot
 from lifecycle_site.prefix import script_prefix
 
 GATHER_S = 0.03
@@ -20,8 +19,7 @@ QUIET_S = 1.0
 
 class DiagnosticsConsumer(GatheredDraws, LiveConsumer):
     async def prepare(self) -> bool:
-        name = self.scope["url_route"]["kwargs"]["robot"]
-        self.robot = await database_sync_to_async(Robot.objects.select_related("gateway").filter(name=name).first)()
+        self.robot = await self.route_robot()
         if self.robot is None:
             return False
         self.groups_to_join = [page_group(self.robot.id)]

@@ -10,7 +10,6 @@ from django.template.loader import render_to_string
 from lifecycle_site.dashboard.consumers import LiveConsumer
 from lifecycle_site.dashboard.gathered import GatheredDraws
 from lifecycle_site.dashboard.mode_views import live_context
-from lifecycle_site.fleet.models import Robot
 from lifecycle_site.prefix import script_prefix
 from ros_gateway.shared import protocol
 
@@ -19,8 +18,7 @@ GATHER_S = 0.05  # node updates this close together are drawn once
 
 class ModesConsumer(GatheredDraws, LiveConsumer):
     async def prepare(self) -> bool:
-        name = self.scope["url_route"]["kwargs"]["robot"]
-        self.robot = await database_sync_to_async(Robot.objects.select_related("gateway").filter(name=name).first)()
+        self.robot = await self.route_robot()
         if self.robot is None:
             return False
         self.groups_to_join = [protocol.robot_group(self.robot.id)]
