@@ -356,7 +356,7 @@ def test_every_dashboard_query_returns_data(monitored_site):
     real = builtins(model, interval)
     options = resolve_variables(prometheus, model, real)
     assert {GATEWAY_ONLINE, GATEWAY_SILENT} <= set(options["gateway"]), "(and the gateway local of the migrations)"
-    assert set(options["robot"]) == {ROBOT_A, ROBOT_B}
+    assert {ROBOT_A, ROBOT_B} <= set(options["robot"]), "(and robots other deploy tests of the run left)"
     everything = {**builtins(model, interval), **{v["name"]: v["allValue"] for v in model["templating"]["list"]}}
     empty, checked, answers = [], 0, []
     for panel in query_panels(model):
