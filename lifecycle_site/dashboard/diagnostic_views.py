@@ -4,21 +4,24 @@ own page: its key/values and its level history, drawn over a window as the timel
 from __future__ import annotations
 
 import hashlib
+import logging
 from urllib.parse import urlencode
 
 from django.http import Http404, HttpRequest, HttpResponse
 from django.shortcuts import render
 from django.urls import reverse
+from django.views.decorators.http import require_POST
 
-from lifecycle_site.dashboard.access import viewer_required
+from lifecycle_site.dashboard.access import operator_required, viewer_required
 from lifecycle_site.dashboard.process_views import robot_or_404
 from lifecycle_site.dashboard.timeline_views import window_context
 from lifecycle_site.diagnostics import history, tree
-from lifecycle_site.diagnostics.models import Intake, Status
+from lifecycle_site.diagnostics.models import Intake, LevelChange, Status
 from lifecycle_site.fleet.models import ManagedNode, Robot
 from lifecycle_site.timelines import windows as tw
 from ros_gateway.shared import protocol
 
+log = logging.getLogger(__name__)
 SYMBOLS = {"OK": "✓", "WARN": "▲", "ERROR": "✕", "STALE": "?"}  # besides the word: told apart without colour
 
 
@@ -59,7 +62,23 @@ def robot_diagnostics(request: HttpRequest, robot: str) -> HttpResponse:
     robot_obj = robot_or_404(robot)
     base = robot_obj.namespace.rstrip("/")
     return render(request, "dashboard/diagnostics.html", {
-        **tree_context(robot_obj), "topics": [f"{base}/{t}" for t in protocol.DIAGNOSTIC_TOPICS]})
+        **tree_context(robot_obj), "topics": [f"{base}/{t}" for t in protocol.DIAGNOSTIC_TOPICS],
+        "can_operate": request.user.has_perm("fleet.operate_node")})
+
+
+@operator_required
+@require_POST
+def forget_stale(request: HttpRequest, robot: str) -> HttpResponse:
+    """An operator forgets the robot's stale statuses, with their history (a node removed for good
+    would otherwise stay stale in the tree and in "needs attention"); one that is heard again comes
+    back as new. The tree is redrawn."""
+    robot_obj = robot_or_404(robot)
+    names = list(Status.objects.filter(robot=robot_obj, stale=True).values_list("name", flat=True))
+    Status.objects.filter(robot=robot_obj, name__in=names).delete()
+    LevelChange.objects.filter(robot=robot_obj, name__in=names).delete()
+    log.info("%s forgot %d stale diagnostic status(es) of %s: %s", request.user.get_username(), len(names),
+             robot_obj.name, ", ".join(names[:20]))
+    return render(request, "dashboard/_diagnostic_forgotten.html", {**tree_context(robot_obj), "forgotten": names})
 
 
 @viewer_required

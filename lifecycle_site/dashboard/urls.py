@@ -34,6 +34,8 @@ urlpatterns = [
     path("robots/<str:robot>/modes/<str:mode>/apply", mode_views.apply, name="robot-mode-apply"),
     path("robots/<str:robot>/diagnostics/", diagnostic_views.robot_diagnostics, name="robot-diagnostics"),
     path("robots/<str:robot>/diagnostics/status", diagnostic_views.status_detail, name="robot-diagnostic"),
+    path("robots/<str:robot>/diagnostics/forget-stale", diagnostic_views.forget_stale,
+         name="robot-diagnostics-forget-stale"),
     path("nodes/<str:key>/restart", operation_views.node_restart, name="node-restart"),
     path("nodes/<str:key>/desired-state", operation_views.desired_state, name="node-desired-state"),
     path("nodes/<str:key>/parameters", parameter_views.parameters, name="node-parameters"),

@@ -65,4 +65,25 @@ def test_the_tree_at_phone_size_follows_a_status_to_error_and_to_its_history(bro
         page.goto(site)
         expect(page.locator("#attention")).to_contain_text("diagnostic ERROR", timeout=WAIT_MS)
         expect(page.locator("#attention")).to_contain_text("/BR/Sensors/Lidar")
+
+        # A status nobody reports any more goes stale; an operator forgets it (asked first).
+        aggregator.send(drop="/BR/Power/Battery")
+        stack.wait_for(lambda: Status.objects.filter(robot__name=ROBOT, name="/BR/Power/Battery", stale=True).exists(),
+                       20, "the battery's status stale")
+        page.goto(f"{site}robots/{ROBOT}/diagnostics/")
+        wait_live(page)
+        battery = page.locator("#diagnostics-live li.diag-row.depth-2", has_text="Battery")
+        expect(battery.locator(".diag-level")).to_have_text("? STALE")
+        forget = page.get_by_role("button", name="Forget stale statuses")
+        forget.click()
+        dialog = page.locator("dialog#confirm-dialog")
+        expect(dialog).to_contain_text(f"Forget the stale diagnostic statuses of {ROBOT}?")
+        dialog.get_by_role("button", name="Cancel").click()
+        page.wait_for_timeout(500)
+        assert Status.objects.filter(robot__name=ROBOT, name="/BR/Power/Battery").exists()  # cancelled: kept
+        forget.click()
+        dialog.get_by_role("button", name="Forget them").click()
+        expect(page.locator("#diagnostics-forgotten")).to_contain_text("Forgot 1 stale status: /BR/Power/Battery")
+        expect(battery).to_have_count(0)
+        assert not Status.objects.filter(robot__name=ROBOT, name="/BR/Power/Battery").exists()
         assert page.console_errors == []

@@ -1,6 +1,7 @@
 """A status's level over a window (lifecycle_site/diagnostics/history.py): opened by the change
 before it, one segment per level, and a node's lanes in two queries however many statuses; the
-tree by name path with each branch showing the worst below it (diagnostics/tree.py)."""
+tree by name path with each branch showing the worst below it (diagnostics/tree.py); stale
+statuses forgotten by an operator only."""
 from __future__ import annotations
 
 from datetime import datetime, timedelta, timezone
@@ -66,3 +67,17 @@ def test_the_tree_sums_up_the_worst_below(robot):
                      "/R/Sensors": (1, "STALE", True), "/R/Sensors/Camera": (2, "STALE", True),
                      "/R/Sensors/Lidar": (2, "WARN", True), "joystick: link": (0, "OK", True)}
     assert [row.path for row in rows][:4] == ["joystick: link", "/R", "/R/Power", "/R/Power/Battery"]  # by name
+
+
+def test_an_operator_forgets_stale_statuses_a_viewer_may_not(robot, operator_client, viewer_client):
+    status(robot, "gone: driver", stale=True)
+    change(robot, "gone: driver", 1, STALE)
+    status(robot, "alive: driver")
+    url = f"/robots/{robot.name}/diagnostics/forget-stale"
+    assert viewer_client.post(url).status_code == 403
+    assert Status.objects.filter(robot=robot).count() == 2
+    answer = operator_client.post(url)
+    assert answer.status_code == 200 and "Forgot 1 stale status: gone: driver" in answer.content.decode()
+    assert list(Status.objects.filter(robot=robot).values_list("name", flat=True)) == ["alive: driver"]
+    assert not LevelChange.objects.filter(robot=robot, name="gone: driver").exists()
+    assert operator_client.get(url).status_code == 405
