@@ -76,29 +76,32 @@ def apply_diagnostics(known: KnownRecords, fact: dict, at: datetime, applied: Ap
     base = robot.namespace.rstrip("/")
     topics = tuple(f"{base}/{name}" for name in protocol.DIAGNOSTIC_TOPICS)
     reports = {s["name"]: s for s in (_status(item, topics) for item in statuses)}
-    changed = _store(robot, reports, at)
+    changed, not_kept = _store(robot, reports, at)
     if heard:
         Status.objects.filter(robot=robot, name__in=heard, stale=False).update(heard=at)
-    if left_out:
+    if left_out or not_kept:
         Intake.objects.get_or_create(robot=robot)
-        Intake.objects.filter(robot=robot).update(left_out_by_gateway=left_out)
+        Intake.objects.filter(robot=robot).update(left_out_here=F("left_out_here") + not_kept,
+                                                  **({"left_out_by_gateway": left_out} if left_out else {}))
     if changed or heard:
         applied.pushes.append((page_group(robot.id), {"type": "diagnostics.changed", "names": changed[:200],
                                                  "more": len(changed) > 200 or bool(heard)}))
 
 
-def _store(robot: Any, reports: dict[str, dict], at: datetime) -> list[str]:
-    """The reports written; the names of the statuses whose level, message or key/values changed."""
+def _store(robot: Any, reports: dict[str, dict], at: datetime) -> tuple[list[str], int]:
+    """The reports written: the names of the statuses whose level, message or key/values changed,
+    and how many new ones were not kept (over MAX_STATUSES)."""
     existing = {s.name: s for s in Status.objects.filter(robot=robot, name__in=list(reports))}
-    room = protocol.MAX_STATUSES - Status.objects.filter(robot=robot).count()
+    room = protocol.MAX_STATUSES - Status.objects.filter(robot=robot).count() \
+        if any(name not in existing for name in reports) else 0
     new, updated, history, changed = [], [], [], []
+    not_kept = 0
     for name, report in reports.items():
-        heard_at = min(at, at - timedelta(seconds=report.pop("age_s")))
+        heard_at = at - timedelta(seconds=report.pop("age_s"))  # (age_s is checked: not negative)
         status = existing.get(name)
         if status is None:
             if room <= 0:
-                Intake.objects.get_or_create(robot=robot)
-                Intake.objects.filter(robot=robot).update(left_out_here=F("left_out_here") + 1)
+                not_kept += 1
                 continue
             room -= 1
             status = Status(robot=robot, heard=heard_at, level_since=heard_at, **report)
@@ -124,7 +127,7 @@ def _store(robot: Any, reports: dict[str, dict], at: datetime) -> list[str]:
     LevelChange.objects.bulk_create(history)
     for name in {change.name for change in history} - {status.name for status in new}:
         _prune(robot, name)
-    return changed
+    return changed, not_kept
 
 
 def _update(statuses: list[Status]) -> None:
