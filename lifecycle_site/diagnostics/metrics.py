@@ -26,11 +26,6 @@ def families() -> Iterator[Metric]:
     for robot, name, value in rows[:SERIES_LIMIT]:
         level.add_metric([robot, name], value)
     yield level
-    total = Status.objects.filter(robot__enabled=True).count()
-    left_out = GaugeMetricFamily("lifecycle_diagnostic_series_left_out", "Statuses without a "
-                                 f"lifecycle_diagnostic_level series in this scrape (over {SERIES_LIMIT}).")
-    left_out.add_metric([], max(0, total - SERIES_LIMIT))
-    yield left_out
     counts = GaugeMetricFamily("lifecycle_diagnostic_statuses", "Diagnostic statuses per robot and shown level.",
                                labels=["robot", "level"])
     found: dict[tuple[str, str], int] = {}
@@ -41,6 +36,10 @@ def families() -> Iterator[Metric]:
     for robot in {r for r, _ in found}:
         for word in (LEVEL_WORDS[v].lower() for v in (OK, WARN, ERROR, STALE)):
             found.setdefault((robot, word), 0)
+    left_out = GaugeMetricFamily("lifecycle_diagnostic_series_left_out", "Statuses without a "
+                                 f"lifecycle_diagnostic_level series in this scrape (over {SERIES_LIMIT}).")
+    left_out.add_metric([], max(0, sum(found.values()) - SERIES_LIMIT))  # (the counts hold every status)
+    yield left_out
     for labels, n in sorted(found.items()):
         counts.add_metric(list(labels), n)
     yield counts
