@@ -17,6 +17,7 @@ from csp.constants import NONE, SELF
 from django.core.exceptions import ImproperlyConfigured
 
 from lifecycle_site.alerts.destinations import Allow, parse_allow
+from lifecycle_site.sign_in import config as sign_in_config
 from ros_gateway.shared import environment as env
 from ros_gateway.shared import protocol
 
@@ -105,6 +106,7 @@ INSTALLED_APPS = [
     "lifecycle_site.operations",
     "lifecycle_site.modes",
     "lifecycle_site.diagnostics",
+    "lifecycle_site.sign_in",
 ]
 
 MIDDLEWARE = [
@@ -127,6 +129,19 @@ MIDDLEWARE = [
 # or from one client address, logins of that account / from that address are refused for
 # LIFECYCLE_LOGIN_LOCKOUT_MINUTES (a right password included), on /login/ and /admin/login/.
 AUTHENTICATION_BACKENDS = ["axes.backends.AxesStandaloneBackend", "django.contrib.auth.backends.ModelBackend"]
+# Company sign-in beside the local accounts (docs/sign-in.md): LDAP / Active Directory through the
+# login form, OpenID Connect through its own button. Each is on when its variables are set.
+_LDAP = sign_in_config.ldap_settings()
+_OIDC = sign_in_config.oidc_settings()
+LDAP_ON, OIDC_ON = bool(_LDAP), bool(_OIDC)
+globals().update(_LDAP)
+globals().update(_OIDC)
+if LDAP_ON:
+    AUTHENTICATION_BACKENDS.append("lifecycle_site.sign_in.ldap.Backend")
+if OIDC_ON:
+    AUTHENTICATION_BACKENDS.append("lifecycle_site.sign_in.oidc.Backend")
+    if OIDC_OP_END_SESSION_URL:  # noqa: F821 (set just above): Log out (a form) redirects there
+        CONTENT_SECURITY_POLICY["DIRECTIVES"]["form-action"].append(sign_in_config.origin(OIDC_OP_END_SESSION_URL))  # noqa: F821
 AXES_FAILURE_LIMIT = env.whole("LIFECYCLE_LOGIN_FAILURES", 5, minimum=1, unit="failed logins")
 AXES_COOLOFF_TIME = timedelta(minutes=env.number("LIFECYCLE_LOGIN_LOCKOUT_MINUTES", 15, above=0, unit="minutes"))
 AXES_LOCKOUT_PARAMETERS = ["username", "ip_address"]

@@ -1,16 +1,19 @@
 from django.contrib import admin
-from django.contrib.auth import views as auth_views
 from django.urls import include, path
 
-from lifecycle_site.login_form import LoginForm
 from lifecycle_site.monitoring import views as monitoring
+from lifecycle_site.sign_in import oidc
+from lifecycle_site.sign_in import views as sign_in
 
 admin.site.site_header = "ROS 2 lifecycle manager"
 admin.site.site_title = "Lifecycle manager admin"
 
 urlpatterns = [
-    path("login/", auth_views.LoginView.as_view(authentication_form=LoginForm), name="login"),
-    path("logout/", auth_views.LogoutView.as_view(), name="logout"),
+    path("login/", sign_in.Login.as_view(), name="login"),
+    path("logout/", sign_in.Logout.as_view(), name="logout"),
+    # Named as mozilla-django-oidc looks them up; they answer 404 while OIDC is not configured.
+    path("oidc/authenticate/", oidc.start, name="oidc_authentication_init"),
+    path("oidc/callback/", oidc.callback, name="oidc_authentication_callback"),
     path("admin/", admin.site.urls),
     path("healthz", monitoring.healthz, name="healthz"),
     path("readyz", monitoring.readyz, name="readyz"),

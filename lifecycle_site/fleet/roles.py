@@ -49,6 +49,7 @@ ADMINISTER = OPERATE + [
     "alerts.change_receiver",
     "alerts.delete_receiver",
     "alerts.view_delivery",
+    "sign_in.view_directoryaccount",
 ]
 ROLES: dict[str, list[str]] = {"viewer": VIEW, "operator": OPERATE, "admin": ADMINISTER}
 ADMIN_ROLE = "admin"

@@ -1,0 +1,48 @@
+"""A directory user's account here: refused for local names, its role from its groups at every
+sign-in (a group removed in the directory takes the role away at the next one)."""
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+from django.contrib.auth import get_user_model
+from django.contrib.auth.models import AbstractBaseUser, Group
+from django.db import transaction
+from django.utils import timezone
+
+from lifecycle_site.fleet.roles import ROLES
+from lifecycle_site.sign_in.config import ROLE_ORDER
+from lifecycle_site.sign_in.models import DirectoryAccount
+
+GROUPS_KEPT = 2000  # characters of the group list kept for the admin to see
+
+
+def role_for(groups: Iterable[str], mapping: dict[str, str]) -> str | None:
+    """The highest role any of ``groups`` maps to (names compared in lower case), or None."""
+    roles = {mapping.get(str(group).strip().lower()) for group in groups}
+    return max((r for r in roles if r), key=ROLE_ORDER.index, default=None)
+
+
+def is_local(username: str) -> bool:
+    """Whether ``username`` belongs to an account that did not come from the directory."""
+    return get_user_model().objects.filter(username=username, directory_account__isnull=True).exists()
+
+
+def user_of(source: str, subject: str) -> AbstractBaseUser | None:
+    account = DirectoryAccount.objects.select_related("user").filter(source=source, subject=subject).first()
+    return account.user if account is not None else None
+
+
+@transaction.atomic
+def signed_in(user: AbstractBaseUser, source: str, subject: str, role: str, groups: Iterable[str]) -> None:
+    """Record the sign-in and give ``user`` exactly ``role`` among the product's roles (its other
+    groups stay). admins_are_staff (fleet/roles.py) follows the admin role with the staff flag."""
+    DirectoryAccount.objects.update_or_create(
+        user=user, defaults={"source": source, "subject": subject, "role": role,
+                             "groups": ", ".join(sorted(str(g) for g in groups))[:GROUPS_KEPT],
+                             "last_sign_in": timezone.now()})
+    wanted = Group.objects.get(name=role)
+    others = list(user.groups.filter(name__in=[r for r in ROLES if r != role]))
+    if others:
+        user.groups.remove(*others)
+    if not user.groups.filter(pk=wanted.pk).exists():
+        user.groups.add(wanted)

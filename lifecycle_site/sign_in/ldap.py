@@ -1,0 +1,130 @@
+"""Sign-in with the company's LDAP directory or Active Directory (django-python3-ldap on ldap3,
+pure Python: nothing to compile on an edge device). The library binds as the user, reads the
+user's entry and creates or updates the account; this module adds what a plant needs:
+
+- a local account's name is never taken over by the directory (``clean_user_data``);
+- the role comes from the user's groups at every sign-in, and no mapped group means no login
+  (``give_role``, which searches the groups that name the user as ``member``);
+- a directory that cannot be reached is told apart from a wrong password (``Backend``).
+"""
+from __future__ import annotations
+
+import logging
+
+import ldap3
+from django.conf import settings
+from django.db import transaction
+from django.http import HttpRequest
+from django_python3_ldap import ldap as library
+from django_python3_ldap.auth import LDAPBackend
+from ldap3.core.exceptions import LDAPException
+from ldap3.utils.conv import escape_filter_chars
+
+from lifecycle_site.sign_in import accounts, problems
+from lifecycle_site.sign_in.models import DirectoryAccount
+
+log = logging.getLogger("lifecycle.sign_in")
+MAX_GROUPS = 500  # groups read per user: a directory answer is bounded like any other input
+FIELD_LENGTHS = {"username": 150, "first_name": 150, "last_name": 150, "email": 254}
+
+
+class Refused(Exception):
+    def __init__(self, problem: problems.Problem) -> None:
+        super().__init__(problem.code)
+        self.problem = problem
+
+
+def clean_user_data(fields: dict) -> dict:
+    """LDAP_AUTH_CLEAN_USER_DATA: before the library writes the account. Refuses a name that
+    belongs to a local account (the directory's spelling, which may differ in case from what was
+    typed), and cuts the directory's values to what the user table holds."""
+    fields = {name: str(value)[:FIELD_LENGTHS.get(name, 150)] for name, value in fields.items()}
+    if accounts.is_local(fields.get("username", "")):
+        raise Refused(problems.LOCAL_NAME)
+    return fields
+
+
+def groups_of(connection: ldap3.Connection, dn: str, attributes: dict) -> list[str]:
+    """The names (cn) and DNs of the groups that list ``dn`` as a member, plus any memberOf."""
+    found: list[str] = [str(g) for g in (attributes.get("memberOf") or [])][:MAX_GROUPS]
+    try:
+        connection.search(search_base=settings.LIFECYCLE_LDAP_GROUP_BASE,
+                          search_filter=f"(member={escape_filter_chars(dn)})", search_scope=ldap3.SUBTREE,
+                          attributes=["cn"], size_limit=MAX_GROUPS)
+    except LDAPException as error:  # raised out of the library's connection(), which re-yields on its own errors
+        log.warning("company directory: the groups of %s could not be read: %s", dn, error)
+        raise Refused(problems.DIRECTORY_UNREACHABLE) from error
+    for entry in connection.response or []:
+        if entry.get("type") != "searchResEntry":
+            continue
+        found.append(str(entry.get("dn", "")))
+        found.extend(str(cn) for cn in (entry.get("attributes", {}).get("cn") or []))
+    names = set(found)
+    for group_dn in list(names):  # "cn=operators,ou=groups,..." also counts as "operators"
+        first = group_dn.split(",", 1)[0]
+        if first.lower().startswith("cn="):
+            names.add(first[3:])
+    return sorted(names)
+
+
+def give_role(user, attributes: dict, *, connection: ldap3.Connection, dn: str) -> None:
+    """LDAP_AUTH_SYNC_USER_RELATIONS: the role from the groups, or no login at all."""
+    groups = groups_of(connection, dn, attributes)
+    role = accounts.role_for(groups, settings.LIFECYCLE_LDAP_ROLES)
+    if role is None:
+        log.warning("directory user %s has no mapped group (groups: %s)", user.username, ", ".join(groups) or "none")
+        raise Refused(problems.NO_ROLE)
+    accounts.signed_in(user, DirectoryAccount.LDAP, user.username, role, groups)
+
+
+def reachable() -> bool:
+    """Whether one of the directory's servers answers with TLS (anonymously, no password sent)."""
+    for url in settings.LDAP_AUTH_URL:
+        server_args = dict(settings.LDAP_AUTH_CONNECT_ARGS, connect_timeout=settings.LDAP_AUTH_CONNECT_TIMEOUT,
+                           get_info=ldap3.NONE, use_ssl=settings.LDAP_AUTH_CONNECT_USE_SSL)
+        if settings.LDAP_AUTH_USE_TLS:
+            server_args["tls"] = ldap3.Tls(**settings.LDAP_AUTH_TLS_ARGS)
+        connection = ldap3.Connection(ldap3.Server(url, **server_args), raise_exceptions=True,
+                                      receive_timeout=settings.LDAP_AUTH_RECEIVE_TIMEOUT)
+        try:
+            connection.open()
+            if settings.LDAP_AUTH_USE_TLS:
+                connection.start_tls(read_server_info=False)
+            return True
+        except LDAPException as error:
+            log.warning("company directory %s not usable: %s", url, error)
+        finally:
+            try:
+                connection.unbind()
+            except LDAPException:  # nothing left to close
+                pass
+    return False
+
+
+class Backend(LDAPBackend):
+    """Tried after the local accounts (AUTHENTICATION_BACKENDS)."""
+
+    def authenticate(self, request: HttpRequest | None, username: str | None = None, password: str | None = None,
+                     **kwargs):
+        if not username or not password or accounts.is_local(username):
+            return None  # not a directory sign-in, or a local account's (ModelBackend answered)
+        try:
+            with transaction.atomic():  # a refusal in give_role takes back the account just made
+                user = library.authenticate(username=username, password=password)
+        except Refused as refusal:
+            problems.note(request, refusal.problem)
+            return None
+        except LDAPException as error:  # the library's closing unbind fails on a socket TLS already closed
+            log.warning("company directory not usable for the sign-in of %s: %s", username, error)
+            problems.note(request, problems.DIRECTORY_UNREACHABLE)
+            return None
+        if user is None:
+            if not reachable():
+                problems.note(request, problems.DIRECTORY_UNREACHABLE)
+            return None
+        return user if self.user_can_authenticate(user) else None
+
+    async def aauthenticate(self, request, **kwargs):  # no async login path here; keep the same rules
+        from asgiref.sync import sync_to_async
+
+        return await sync_to_async(self.authenticate)(request, **kwargs)

@@ -1,0 +1,29 @@
+"""Which accounts came from the company directory, and as whom.
+
+A local account (made in the admin, with a password) never becomes a directory account: an
+LDAP or OIDC login whose name matches a local account is refused, so the directory cannot take
+over ``admin``. An OIDC account is found again by the provider's subject, not by e-mail or name
+(both can change or be reused)."""
+from __future__ import annotations
+
+from django.conf import settings
+from django.db import models
+
+
+class DirectoryAccount(models.Model):
+    LDAP = "ldap"
+    OIDC = "oidc"
+    SOURCES = [(LDAP, "LDAP / Active Directory"), (OIDC, "OpenID Connect")]
+
+    user = models.OneToOneField(settings.AUTH_USER_MODEL, on_delete=models.CASCADE, related_name="directory_account")
+    source = models.CharField(max_length=8, choices=SOURCES)
+    subject = models.CharField(max_length=255, help_text="the provider's 'sub', or the directory's user name")
+    role = models.CharField(max_length=16, blank=True, help_text="the role its groups gave at the last sign-in")
+    groups = models.TextField(blank=True, help_text="the groups it had at the last sign-in (at most 2,000 characters)")
+    last_sign_in = models.DateTimeField(null=True, blank=True)
+
+    class Meta:
+        constraints = [models.UniqueConstraint(fields=["source", "subject"], name="one_account_per_directory_subject")]
+
+    def __str__(self) -> str:
+        return f"{self.user} ({self.get_source_display()})"

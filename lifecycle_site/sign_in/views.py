@@ -1,0 +1,40 @@
+"""The login page (local accounts, and the company directory where configured) and logging out
+(which also ends the OIDC provider's session when it has an end-session address)."""
+from __future__ import annotations
+
+from urllib.parse import urlencode
+
+from django.conf import settings
+from django.contrib.auth import views as auth_views
+from django.http import HttpResponseRedirect
+from django.shortcuts import resolve_url
+
+from lifecycle_site.login_form import LoginForm
+from lifecycle_site.sign_in import problems
+
+
+class Login(auth_views.LoginView):
+    authentication_form = LoginForm
+
+    def get_context_data(self, **kwargs):
+        context = super().get_context_data(**kwargs)
+        code = self.request.session.pop(problems.SESSION_KEY, None) if self.request.method == "GET" else None
+        context.update(
+            sign_in_problem=problems.BY_CODE.get(code) if code else None,
+            oidc_name=getattr(settings, "LIFECYCLE_OIDC_NAME", "") if settings.OIDC_ON else "",
+            ldap_on=settings.LDAP_ON,
+        )
+        return context
+
+
+class Logout(auth_views.LogoutView):
+    def post(self, request, *args, **kwargs):
+        id_token = request.session.get("oidc_id_token")
+        response = super().post(request, *args, **kwargs)
+        end_session = getattr(settings, "OIDC_OP_END_SESSION_URL", "")
+        if not (id_token and end_session):
+            return response
+        back = request.build_absolute_uri(resolve_url(settings.LOGOUT_REDIRECT_URL))
+        query = urlencode({"id_token_hint": id_token, "post_logout_redirect_uri": back,
+                           "client_id": settings.OIDC_RP_CLIENT_ID})
+        return HttpResponseRedirect(f"{end_session}{'&' if '?' in end_session else '?'}{query}")

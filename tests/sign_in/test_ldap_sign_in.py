@@ -1,0 +1,166 @@
+"""Signing in with the company directory: a real OpenLDAP (Debian's slapd, started by the test)
+over StartTLS and LDAPS, the real login page and backends. Roles come from the directory's
+groups at every sign-in; refusals are in words and on record; a down or frozen directory is a
+bounded refusal, not a hang; local accounts are never taken over and still work."""
+from __future__ import annotations
+
+import time
+
+import pytest
+from django.contrib.auth import get_user_model
+from django.test import Client, override_settings
+
+from lifecycle_site.audit.models import AccessDenial
+from lifecycle_site.sign_in import config, problems
+from lifecycle_site.sign_in.models import DirectoryAccount
+from tests import stack
+from tests.conftest import make_user
+from tests.sign_in.slapd import Directory, start_directory
+
+ROLES = "viewer=plant-staff;operator=lifecycle-operators;admin=plant-it"
+TIMEOUT_S = 2
+PASSWORD = "correct horse battery staple"
+
+
+@pytest.fixture(scope="module")
+def directory(tmp_path_factory) -> Directory:
+    directory = start_directory(tmp_path_factory.mktemp("slapd"))
+    try:
+        yield directory
+    finally:
+        directory.stop()
+
+
+def directory_settings(directory: Directory, *, url: str | None = None, ca_file: str | None = None):
+    """The site's settings for ``directory``, read from environment variables as in production."""
+    ldap = config.ldap_settings({
+        "LIFECYCLE_LDAP_URL": url or directory.url, "LIFECYCLE_LDAP_CA_FILE": ca_file or directory.ca_file,
+        "LIFECYCLE_LDAP_USER_BASE": directory.people, "LIFECYCLE_LDAP_GROUP_BASE": directory.groups,
+        "LIFECYCLE_LDAP_ROLES": ROLES, "LIFECYCLE_LDAP_TIMEOUT": str(TIMEOUT_S)})
+    return override_settings(**ldap, LDAP_ON=True, AUTHENTICATION_BACKENDS=[
+        "axes.backends.AxesStandaloneBackend", "django.contrib.auth.backends.ModelBackend",
+        "lifecycle_site.sign_in.ldap.Backend"])
+
+
+def log_in(username: str, password: str = PASSWORD) -> tuple[Client, object]:
+    client = Client()
+    return client, client.post("/login/", {"username": username, "password": password})
+
+
+def refused_with(answer, problem: problems.Problem) -> None:
+    assert answer.status_code == 200, answer.status_code  # the login page again
+    assert f'data-problem="{problem.code}"' in answer.text, answer.text
+    assert problem.words in answer.text
+
+
+def last_denial() -> AccessDenial:
+    return AccessDenial.objects.order_by("-id").first()
+
+
+@pytest.mark.django_db
+def test_an_operator_signs_in_over_starttls_and_gets_the_role_of_their_group(directory):
+    directory.add_user("dora", PASSWORD, groups=["lifecycle-operators"], mail="dora@plant.example",
+                       given_name="Dora", surname="Schmidt")
+    with directory_settings(directory):
+        client, answer = log_in("dora")
+        assert answer.status_code == 302 and answer["Location"] == "/", answer
+        assert client.get("/").status_code == 200
+    user = get_user_model().objects.get(username="dora")
+    assert (user.email, user.first_name, user.last_name) == ("dora@plant.example", "Dora", "Schmidt")
+    assert not user.has_usable_password()  # the directory checks it, never this site
+    assert list(user.groups.values_list("name", flat=True)) == ["operator"]
+    account = user.directory_account
+    assert (account.source, account.role) == (DirectoryAccount.LDAP, "operator")
+    assert "lifecycle-operators" in account.groups
+
+
+@pytest.mark.django_db
+def test_the_role_follows_the_directory_at_every_sign_in(directory):
+    dn = directory.add_user("ines", PASSWORD, groups=["plant-it", "plant-staff"])
+    with directory_settings(directory, url=directory.tls_url):  # LDAPS, certificate checked
+        assert log_in("ines")[1].status_code == 302
+        user = get_user_model().objects.get(username="ines")
+        assert list(user.groups.values_list("name", flat=True)) == ["admin"] and user.is_staff  # the highest
+
+        directory.leave_group(dn, "plant-it")
+        assert log_in("ines")[1].status_code == 302
+        user.refresh_from_db()
+        assert list(user.groups.values_list("name", flat=True)) == ["viewer"] and not user.is_staff
+
+        directory.leave_group(dn, "plant-staff")
+        _client, answer = log_in("ines")
+        refused_with(answer, problems.NO_ROLE)
+    denial = last_denial()
+    assert (denial.code, denial.username, denial.detail) == ("login_failed", "ines", problems.NO_ROLE.summary)
+
+
+@pytest.mark.django_db
+def test_no_mapped_group_no_account(directory):
+    directory.add_user("visitor", PASSWORD, groups=["visitors"])
+    with directory_settings(directory):
+        refused_with(log_in("visitor")[1], problems.NO_ROLE)
+    assert not get_user_model().objects.filter(username="visitor").exists()  # taken back with the refusal
+
+
+@pytest.mark.django_db
+def test_a_local_account_is_never_taken_over_by_the_directory(directory):
+    local = make_user("lena", "viewer")  # local password: a-test-password-123
+    directory.add_user("lena", PASSWORD, groups=["plant-it"])
+    with directory_settings(directory):
+        _client, answer = log_in("lena")  # the local account's name: its own password only
+        assert answer.status_code == 200 and "did not match" in answer.text
+        # The directory matches names without regard to case and answers "lena": refused before any write.
+        refused_with(log_in("LENA")[1], problems.LOCAL_NAME)
+        assert log_in("lena", "a-test-password-123")[1].status_code == 302
+    local.refresh_from_db()
+    assert list(local.groups.values_list("name", flat=True)) == ["viewer"] and not local.is_staff
+    assert not DirectoryAccount.objects.filter(user=local).exists()
+    assert local.has_usable_password()
+
+
+@pytest.mark.django_db
+def test_a_wrong_password_is_on_record_and_throttled(directory, settings):
+    directory.add_user("wanda", PASSWORD, groups=["plant-staff"])
+    with directory_settings(directory):
+        for _ in range(settings.AXES_FAILURE_LIMIT - 1):
+            _client, answer = log_in("wanda", "not her password")
+            assert answer.status_code == 200 and "did not match" in answer.text
+            assert last_denial().detail == "wrong user name or password"
+        assert log_in("wanda", "not her password")[1].status_code == 429  # the last one allowed
+        _client, answer = log_in("wanda")  # the right one, too late
+        assert answer.status_code == 429 and "Login blocked" in answer.text
+    assert not get_user_model().objects.filter(username="wanda").exists()
+
+
+@pytest.mark.django_db
+def test_a_directory_that_is_down_or_frozen_is_a_bounded_refusal_in_words(directory):
+    directory.add_user("otto", PASSWORD, groups=["lifecycle-operators"])
+    make_user("local-admin", "admin")
+    with directory_settings(directory):
+        directory.stop()
+        try:
+            started = time.monotonic()
+            refused_with(log_in("otto")[1], problems.DIRECTORY_UNREACHABLE)
+            assert time.monotonic() - started < 2 * TIMEOUT_S + 2
+            assert last_denial().detail == problems.DIRECTORY_UNREACHABLE.summary
+            assert log_in("local-admin", "a-test-password-123")[1].status_code == 302  # local accounts still work
+        finally:
+            directory.start()
+        assert log_in("otto")[1].status_code == 302
+
+        with stack.frozen(directory.pid):  # accepts connections, answers nothing
+            started = time.monotonic()
+            refused_with(log_in("otto")[1], problems.DIRECTORY_UNREACHABLE)
+            waited = time.monotonic() - started
+        assert waited < 3 * TIMEOUT_S + 3, waited
+        assert log_in("otto")[1].status_code == 302
+
+
+@pytest.mark.django_db
+def test_a_directory_certificate_not_signed_by_the_given_ca_is_refused(directory):
+    directory.add_user("theo", PASSWORD, groups=["plant-staff"])
+    system_cas = "/etc/ssl/certs/ca-certificates.crt"  # trusted CAs, none of which signed the test directory
+    for url in (directory.url, directory.tls_url):
+        with directory_settings(directory, url=url, ca_file=system_cas):
+            refused_with(log_in("theo")[1], problems.DIRECTORY_UNREACHABLE)
+    assert not get_user_model().objects.filter(username="theo").exists()

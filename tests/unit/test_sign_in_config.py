@@ -1,0 +1,73 @@
+"""Company sign-in settings from the environment: the role mapping, what is required, TLS always."""
+from __future__ import annotations
+
+import ssl
+
+import pytest
+
+from lifecycle_site.sign_in import config
+from lifecycle_site.sign_in.accounts import role_for
+from ros_gateway.shared.environment import SettingError
+
+OIDC = {
+    "LIFECYCLE_OIDC_CLIENT_ID": "lifecycle", "LIFECYCLE_OIDC_CLIENT_SECRET": "s3cret",
+    "LIFECYCLE_OIDC_AUTHORIZATION_URL": "https://idp.plant/auth", "LIFECYCLE_OIDC_TOKEN_URL": "https://idp.plant/token",
+    "LIFECYCLE_OIDC_USERINFO_URL": "https://idp.plant/userinfo", "LIFECYCLE_OIDC_JWKS_URL": "https://idp.plant/jwks",
+    "LIFECYCLE_OIDC_ROLES": "operator=Shift-Leads,operators;admin=plant-it",
+}
+
+
+def test_role_mapping_is_case_blind_and_refuses_what_it_cannot_read():
+    mapping = config.role_mapping("R", {"R": " admin = Plant-IT ; operator=ops, shift ;viewer=staff;"})
+    assert mapping == {"plant-it": "admin", "ops": "operator", "shift": "operator", "staff": "viewer"}
+    with pytest.raises(SettingError, match="roles viewer, operator and admin"):
+        config.role_mapping("R", {"R": "superuser=plant-it"})
+    with pytest.raises(SettingError, match="roles viewer, operator and admin"):
+        config.role_mapping("R", {"R": "plant-it"})
+    with pytest.raises(SettingError, match="mapped to two roles"):
+        config.role_mapping("R", {"R": "admin=ops;operator=OPS"})
+
+
+def test_the_highest_mapped_role_wins_and_no_mapped_group_means_none():
+    mapping = {"staff": "viewer", "ops": "operator", "plant-it": "admin"}
+    assert role_for(["Staff", "OPS"], mapping) == "operator"
+    assert role_for(["staff", "plant-it", "ops"], mapping) == "admin"
+    assert role_for(["visitors"], mapping) is None
+    assert role_for([], mapping) is None
+
+
+def test_oidc_is_off_without_a_client_and_complete_with_one():
+    assert config.oidc_settings({}) == {}
+    settings = config.oidc_settings(OIDC)
+    assert settings["OIDC_USE_PKCE"] is True and settings["OIDC_PKCE_CODE_CHALLENGE_METHOD"] == "S256"
+    assert settings["OIDC_RP_SIGN_ALGO"] == "RS256" and settings["OIDC_VERIFY_SSL"] is True
+    assert settings["LIFECYCLE_OIDC_ROLES"] == {"shift-leads": "operator", "operators": "operator", "plant-it": "admin"}
+    with pytest.raises(SettingError, match="LIFECYCLE_OIDC_TOKEN_URL"):
+        config.oidc_settings({k: v for k, v in OIDC.items() if k != "LIFECYCLE_OIDC_TOKEN_URL"})
+
+
+def test_ldap_always_checks_the_directory_certificate(tmp_path):
+    base = {"LIFECYCLE_LDAP_USER_BASE": "ou=people,dc=plant", "LIFECYCLE_LDAP_ROLES": "operator=ops"}
+    assert config.ldap_settings({}) == {}
+    plain = config.ldap_settings({**base, "LIFECYCLE_LDAP_URL": "ldap://dir.plant"})
+    assert plain["LDAP_AUTH_USE_TLS"] is True and plain["LDAP_AUTH_CONNECT_USE_SSL"] is False  # StartTLS
+    assert plain["LDAP_AUTH_TLS_ARGS"]["validate"] == ssl.CERT_REQUIRED
+    assert plain["LDAP_AUTH_POOL_ACTIVE"] == 1  # one pass over the servers, not for ever
+    tls = config.ldap_settings({**base, "LIFECYCLE_LDAP_URL": "ldaps://dir.plant"})
+    assert tls["LDAP_AUTH_CONNECT_USE_SSL"] is True
+    assert tls["LDAP_AUTH_CONNECT_ARGS"]["tls"].validate == ssl.CERT_REQUIRED
+    ad = config.ldap_settings({**base, "LIFECYCLE_LDAP_URL": "ldaps://dc1.plant",
+                               "LIFECYCLE_LDAP_AD_DOMAIN": "plant.local"})
+    assert ad["LDAP_AUTH_USER_FIELDS"]["username"] == "sAMAccountName" and ad["LDAP_AUTH_OBJECT_CLASS"] == "user"
+    with pytest.raises(SettingError, match="all of one kind"):
+        config.ldap_settings({**base, "LIFECYCLE_LDAP_URL": "ldaps://a,ldap://b"})
+    with pytest.raises(SettingError, match="expected ldaps://"):
+        config.ldap_settings({**base, "LIFECYCLE_LDAP_URL": "http://dir.plant"})
+    with pytest.raises(SettingError, match="no such file"):
+        config.ldap_settings({**base, "LIFECYCLE_LDAP_URL": "ldaps://a", "LIFECYCLE_LDAP_CA_FILE": str(tmp_path / "x")})
+    with pytest.raises(SettingError, match="LIFECYCLE_LDAP_ROLES"):
+        config.ldap_settings({"LIFECYCLE_LDAP_URL": "ldaps://a", "LIFECYCLE_LDAP_USER_BASE": "ou=people"})
+
+
+def test_origin_of_an_end_session_address():
+    assert config.origin("https://idp.plant:8443/realms/x/logout?y=1") == "https://idp.plant:8443"
