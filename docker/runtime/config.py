@@ -6,11 +6,22 @@ Industrial Edge Management writes from the JSON-Forms template (docker/edge/cfg-
     {
       "admin":  {"username": "admin", "password": "...", "email": ""},
       "site":   {"allowedHosts": "ied-1.plant.local", "csrfTrustedOrigins": "", "urlPrefix": "/lifecycle",
-                 "behindTlsProxy": true, "timeZone": "Europe/Berlin", "logLevel": "INFO"},
+                 "behindTlsProxy": true, "timeZone": "Europe/Berlin", "logLevel": "INFO", "language": "de"},
       "ros":    {"discoveryRange": "SUBNET", "staticPeers": "", "discoveryServer": "", "superClient": true,
                  "serviceTimeout": 5},
-      "robots": [{"name": "agv-1", "domainId": 21, "namespace": "", "description": "", "enabled": true}]
+      "robots": [{"name": "agv-1", "domainId": 21, "namespace": "", "description": "", "enabled": true}],
+      "signIn": {"oidc": {"clientId": "lifecycle", "clientSecret": "...", "authorizationUrl": "https://...",
+                          "tokenUrl": "https://...", "userinfoUrl": "https://...", "jwksUrl": "https://...",
+                          "logoutUrl": "", "roles": {"operator": ["lifecycle-operators"], "admin": ["plant-it"]},
+                          "groupsClaim": "groups", "buttonName": "", "caCertificate": ""},
+                 "ldap": {"url": "ldaps://dir.plant:636", "caCertificate": "-----BEGIN CERTIFICATE-----...",
+                          "userBase": "ou=people,dc=plant", "groupBase": "", "roles": "admin=plant-it",
+                          "adDomain": "", "bindUser": "", "bindPassword": ""}}
     }
+
+`site.language` (en, de) is LIFECYCLE_LANGUAGE; `signIn` sets the LIFECYCLE_OIDC_* and
+LIFECYCLE_LDAP_* variables of docs/sign-in.md (roles as `role=group,group;role=group` or as an
+object of role: [groups]); a caCertificate is written to /tmp and LIFECYCLE_*_CA_FILE names it.
 
 A gateway of its own (docker/edge-cell: no site, it dials out to the central site's Redis)
 takes its name and Redis from two more parts, which only the gateway role reads:
@@ -56,7 +67,13 @@ def log(message: str) -> None:
 
 def cmd_env(role: str = "web") -> None:
     config = read_config()
-    env = settings_env(config)
+    # The sign-in CA certificates (signIn.*.caCertificate) are written where the sign-in settings
+    # go (web and its `setup`, manage): each container has its own /tmp, and the site's settings
+    # refuse an LDAP CA file that is not there. Nothing secret: a CA's certificate.
+    env = settings_env(config, write_files=True)
+    if role in ("ingest", "gateway"):
+        # They sign nobody in: the client secret and the bind password stay with web (and manage).
+        env = {k: v for k, v in env.items() if not k.startswith(("LIFECYCLE_OIDC_", "LIFECYCLE_LDAP_"))}
     if role == "gateway":
         env.update(gateway_env(config, write_files=True))
     robots_wanted(config)  # refuse a bad robot list now, in every container, with the reason
