@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 # DDS discovery stays on this machine unless you say otherwise (see README).
 export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 
-.PHONY: setup system-packages demo test test-postgres test-deploy bench images edge-package edge-cell-package clean
+.PHONY: setup system-packages demo test test-postgres test-deploy bench images edge-package edge-cell-package translations clean
 
 $(BIN)/.installed: requirements.txt requirements-dev.txt
 	@$(PYTHON) -c 'import sys; assert sys.version_info[:2] == (3, 11), "Python 3.11 is needed (the ROS 2 Jazzy wheels are built for it); set PYTHON=/path/to/python3.11"'
@@ -69,6 +69,13 @@ edge-cell-package:
 # Speed and memory, measured side by side in one run (not part of `make test`).
 bench: setup
 	$(BIN)/python -m tests.benchmarks
+
+# After marking text (docs/translation.md): the German catalogues brought up to date with every
+# marked string (new ones empty, to be translated; parts under locale/de/parts/ merged in), then
+# compiled. The .mo files are committed: running the product needs no gettext tools.
+translations: setup
+	@.ci/system-packages gettext
+	$(BIN)/python -m tests.translations update
 
 clean:
 	rm -rf $(VENV) .pytest_cache tests/artifacts

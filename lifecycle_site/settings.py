@@ -107,6 +107,7 @@ INSTALLED_APPS = [
     "lifecycle_site.modes",
     "lifecycle_site.diagnostics",
     "lifecycle_site.sign_in",
+    "lifecycle_site.languages",
 ]
 
 MIDDLEWARE = [
@@ -116,9 +117,11 @@ MIDDLEWARE = [
     "lifecycle_site.prefix.ForwardedPrefixMiddleware",
     "lifecycle_site.no_store.NoStoreMiddleware",
     "django.contrib.sessions.middleware.SessionMiddleware",
+    "django.middleware.locale.LocaleMiddleware",  # the language cookie, else Accept-Language
     "django.middleware.common.CommonMiddleware",
     "django.middleware.csrf.CsrfViewMiddleware",
     "django.contrib.auth.middleware.AuthenticationMiddleware",
+    "lifecycle_site.languages.middleware.UserLanguageMiddleware",  # a signed-in user's own choice wins
     "django.contrib.messages.middleware.MessageMiddleware",
     "django.middleware.clickjacking.XFrameOptionsMiddleware",
     "django_htmx.middleware.HtmxMiddleware",
@@ -253,7 +256,16 @@ LOGIN_URL = "login"
 LOGIN_REDIRECT_URL = "dashboard:fleet"
 LOGOUT_REDIRECT_URL = "login"
 
-LANGUAGE_CODE = "en-us"
+# German and English (docs/translation.md). Pages: the user's choice, else the browser's; e-mails,
+# webhooks and the CLI: LIFECYCLE_LANGUAGE (also the pages' fallback).
+LANGUAGES = [("en", "English"), ("de", "Deutsch")]
+LANGUAGE_CODE = env.text("LIFECYCLE_LANGUAGE", "en").lower()
+if LANGUAGE_CODE not in dict(LANGUAGES):
+    raise ImproperlyConfigured(f"LIFECYCLE_LANGUAGE={LANGUAGE_CODE!r}: expected one of {', '.join(dict(LANGUAGES))}.")
+LOCALE_PATHS = [BASE_DIR / "locale"]
+FORMAT_MODULE_PATH = ["lifecycle_site.formats"]  # German numbers keep the decimal point (formats/de)
+LANGUAGE_COOKIE_HTTPONLY = True
+LANGUAGE_COOKIE_SAMESITE = "Lax"
 TIME_ZONE = os.environ.get("TZ", "UTC")
 USE_I18N = True
 USE_TZ = True

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 from django import forms
 from django.contrib import admin
+from django.utils.translation import gettext as _
+from django.utils.translation import gettext_lazy
 
 from lifecycle_site.alerts import destinations
 from lifecycle_site.alerts.models import Alert, Delivery, Receiver, Rule
@@ -14,17 +16,17 @@ class ReceiverForm(forms.ModelForm):
 
     secret = forms.CharField(
         required=False, strip=True, widget=forms.PasswordInput(render_value=False),
-        help_text="Key of the HMAC-SHA256 signature (X-Lifecycle-Signature). Left empty, the stored key "
-        "is kept; it is never shown again.",
+        help_text=gettext_lazy("Key of the HMAC-SHA256 signature (X-Lifecycle-Signature). Left empty, the stored "
+                               "key is kept; it is never shown again."),
     )
-    clear_secret = forms.BooleanField(required=False, help_text="Remove the stored key: send unsigned.")
+    clear_secret = forms.BooleanField(required=False, help_text=gettext_lazy("Remove the stored key: send unsigned."))
 
     class Meta:
         model = Receiver
         fields = ["name", "kind", "url", "secret", "clear_secret", "emails", "enabled"]
-        help_texts = {"url": "http:// or https:// address that takes a JSON POST (redirects are not followed). "
-                             "Internal addresses only as LIFECYCLE_WEBHOOK_ALLOW lists them; no user name or "
-                             "password in it (the secret signs each request)."}
+        help_texts = {"url": gettext_lazy("http:// or https:// address that takes a JSON POST (redirects are not "
+                                          "followed). Internal addresses only as LIFECYCLE_WEBHOOK_ALLOW lists them; "
+                                          "no user name or password in it (the secret signs each request).")}
 
     def save(self, commit: bool = True) -> Receiver:
         receiver = super().save(commit=False)
@@ -43,11 +45,11 @@ class ReceiverAdmin(admin.ModelAdmin):
     list_display = ("name", "kind", "target", "signed", "enabled", "delivered", "failed", "dropped")
     readonly_fields = ("delivered", "failed", "dropped")
 
-    @admin.display(description="sends to")
+    @admin.display(description=gettext_lazy("sends to"))
     def target(self, receiver: Receiver) -> str:
         return destinations.redact(receiver.url) if receiver.kind == Receiver.Kind.WEBHOOK else receiver.emails
 
-    @admin.display(boolean=True)
+    @admin.display(boolean=True, description=gettext_lazy("signed"))
     def signed(self, receiver: Receiver) -> bool:
         return bool(receiver.secret)
 
@@ -60,11 +62,12 @@ class RuleAdmin(admin.ModelAdmin):
     fields = ("name", "enabled", "kind", "state", "for_seconds", "keep_firing_seconds", "gateway", "robot",
               "node_pattern", "status_pattern", "level", "receivers")
 
-    @admin.display(description="scope")
+    @admin.display(description=gettext_lazy("scope"))
     def scope(self, rule: Rule) -> str:
-        parts = [f"gateway {rule.gateway}" if rule.gateway_id else "", f"robot {rule.robot}" if rule.robot_id else "",
+        parts = [_("gateway %(gateway)s") % {"gateway": rule.gateway} if rule.gateway_id else "",
+                 _("robot %(robot)s") % {"robot": rule.robot} if rule.robot_id else "",
                  rule.node_pattern, rule.status_pattern]
-        return ", ".join(p for p in parts if p) or "fleet"
+        return ", ".join(p for p in parts if p) or _("fleet")
 
 
 @admin.register(Alert)

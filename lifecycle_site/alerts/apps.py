@@ -1,10 +1,11 @@
 from django.apps import AppConfig
 from django.db.models.signals import post_migrate
+from django.utils.translation import gettext_lazy
 
 
 class AlertsConfig(AppConfig):
     name = "lifecycle_site.alerts"
-    verbose_name = "Alerts"
+    verbose_name = gettext_lazy("Alerts")
 
     def ready(self) -> None:
         # The ingest process hands the rules what it stores (ingest/watchers.py).

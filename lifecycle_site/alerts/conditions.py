@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from datetime import datetime
 
 from django.db.models import F, Q
+from django.utils.translation import gettext as _
 
 from lifecycle_site.alerts.models import Rule
 from lifecycle_site.diagnostics.models import LEVEL_WORDS
@@ -39,15 +40,16 @@ MODE_ROBOTS = 500  # robots whose readiness one evaluation works out
 DIAGNOSTIC_SUBJECTS = 1000  # statuses one diagnostic rule's evaluation looks at
 
 
-def _node_text(node: str, robot: str) -> str:
-    return f"Node {node} on robot {robot}"
+# Summaries are stored with the alert and sent as they are: written in the site's language
+# (LIFECYCLE_LANGUAGE, engine.Engine.evaluate), like its e-mails and webhooks.
 
 
 def _gone_text(node: str, robot: str, reason: str) -> str:
     if reason == "unreachable":
-        return (f"{_node_text(node, robot)} stopped answering the gateway's probes: its process may hang, "
-                "or its host or network link may be down.")
-    return f"{_node_text(node, robot)} left the ROS graph: its process ended or was stopped."
+        return _("Node %(node)s on robot %(robot)s stopped answering the gateway's probes: its process may hang, "
+                 "or its host or network link may be down.") % {"node": node, "robot": robot}
+    return _("Node %(node)s on robot %(robot)s left the ROS graph: its process ended or was stopped.") % {
+        "node": node, "robot": robot}
 
 
 def node_conditions(rule: Rule, now: datetime) -> dict[str, Condition]:
@@ -79,24 +81,31 @@ def node_conditions(rule: Rule, now: datetime) -> dict[str, Condition]:
             continue
         node, robot = row["name"], row["robot__name"]
         if rule.kind == Rule.Kind.STATE:
-            since, summary = row["state_changed"], f"{_node_text(node, robot)} is {rule.state}."
+            since, summary = row["state_changed"], _("Node %(node)s on robot %(robot)s is %(state)s.") % {
+                "node": node, "robot": robot, "state": rule.state}
         elif rule.kind == Rule.Kind.GONE:
             since, summary = row["last_seen"], _gone_text(node, robot, row["gone_reason"])
         elif row["enforcement_stopped"] and rule.kind == Rule.Kind.NOT_KEPT:
-            since, summary = row["enforcement_stopped"], f"{_node_text(node, robot)}: {row['enforcement_note']}."
+            since, summary = row["enforcement_stopped"], _("Node %(node)s on robot %(robot)s: %(note)s.") % {
+                "node": node, "robot": robot, "note": row["enforcement_note"]}
         elif rule.kind == Rule.Kind.NOT_KEPT:
             since = row["state_changed"]
-            summary = (f"{_node_text(node, robot)} was moved to {row['state_label']}; its desired state is "
-                       f"{row['desired_state']}, kept against other tools.")
+            summary = _("Node %(node)s on robot %(robot)s was moved to %(state)s; its desired state is "
+                        "%(desired)s, kept against other tools.") % {
+                "node": node, "robot": robot, "state": row["state_label"], "desired": row["desired_state"]}
         elif not row["alive"]:
             since = row["last_seen"]
-            how = "is not answering" if row["gone_reason"] == "unreachable" else "is not running (lost)"
-            summary = (f"{_node_text(node, robot)} {how}, last known {row['state_label']}; its desired state is "
-                       f"{row['desired_state']}.")
+            values = {"node": node, "robot": robot, "state": row["state_label"], "desired": row["desired_state"]}
+            if row["gone_reason"] == "unreachable":
+                summary = _("Node %(node)s on robot %(robot)s is not answering, last known %(state)s; its desired "
+                            "state is %(desired)s.") % values
+            else:
+                summary = _("Node %(node)s on robot %(robot)s is not running (lost), last known %(state)s; its "
+                            "desired state is %(desired)s.") % values
         else:
             since = row["state_changed"]
-            summary = (f"{_node_text(node, robot)} is {row['state_label']}; its desired state is "
-                       f"{row['desired_state']}.")
+            summary = _("Node %(node)s on robot %(robot)s is %(state)s; its desired state is %(desired)s.") % {
+                "node": node, "robot": robot, "state": row["state_label"], "desired": row["desired_state"]}
         found[row["key"]] = Condition(row["key"], since or now, summary, row["robot__gateway__name"], robot, node)
     return found
 
@@ -112,10 +121,14 @@ def gateway_conditions(rule: Rule, now: datetime) -> dict[str, Condition]:
     for row, status in zip(rows, gateways.statuses(rows), strict=True):
         if status.online or status.state == gateways.NEVER:  # one that never ran is not alerted
             continue
-        what = "quarantined" if status.state == gateways.QUARANTINED else "offline"
         # (the reason without "N s ago": a stored message would say it for ever)
         why = status.reason(ago=False)
-        summary = f"Gateway {row.name} is {what} ({why}): its robots cannot be reached or operated."
+        values = {"gateway": row.name, "why": why}
+        if status.state == gateways.QUARANTINED:
+            summary = _("Gateway %(gateway)s is quarantined (%(why)s): its robots cannot be reached or operated.") \
+                % values
+        else:
+            summary = _("Gateway %(gateway)s is offline (%(why)s): its robots cannot be reached or operated.") % values
         found[row.name] = Condition(row.name, status.last_beat or now, summary, row.name)
     return found
 
@@ -131,8 +144,9 @@ def process_conditions(rule: Rule, now: datetime) -> dict[str, Condition]:
     for name, robot, gateway, since in rows.values_list("name", "robot__name", "robot__gateway__name",
                                                         "status_since"):
         subject = f"{robot}:{name}"
-        summary = (f"Process {name} of robot {robot} kept ending and is no longer started again by its gateway; "
-                   "start it from the robot's Processes page once the cause is fixed.")
+        summary = _("Process %(process)s of robot %(robot)s kept ending and is no longer started again by its "
+                    "gateway; start it from the robot's Processes page once the cause is fixed.") % {
+            "process": name, "robot": robot}
         found[subject] = Condition(subject, since or now, summary, gateway, robot)
     return found
 
@@ -151,9 +165,11 @@ def mode_conditions(rule: Rule, now: datetime) -> dict[str, Condition]:
         result = readiness.evaluate(now_mode)
         if result["ready"]:
             continue
-        failing = "; ".join(f"{c['words']} (now {c['now']})" for c in result["readiness"] if not c["holds"])
+        failing = "; ".join(_("%(condition)s (now %(now)s)") % {"condition": c["words"], "now": c["now"]}
+                            for c in result["readiness"] if not c["holds"])
         robot = now_mode.robot
-        summary = f"Robot {robot.name} is not ready in mode {now_mode.mode.name}: {failing}."
+        summary = _("Robot %(robot)s is not ready in mode %(mode)s: %(failing)s.") % {
+            "robot": robot.name, "mode": now_mode.mode.name, "failing": failing}
         found[robot.name] = Condition(robot.name, now_mode.not_ready_since or now, summary[:2000],
                                       robot.gateway.name, robot.name)
     return found
@@ -176,12 +192,19 @@ def diagnostic_conditions(rule: Rule, now: datetime) -> dict[str, Condition]:
     )[:DIAGNOSTIC_SUBJECTS]:
         if not rule.matches_status(name):
             continue
-        if stale:
-            summary = (f"Diagnostic status {name} of robot {robot} is stale: no update since before "
-                       f"{since:%H:%M:%S} UTC")
+        values = {"name": name, "robot": robot, "time": f"{since:%H:%M:%S}" if since else "?",
+                  "level": LEVEL_WORDS.get(level, "ERROR"), "message": message}
+        if stale and message:
+            summary = _("Diagnostic status %(name)s of robot %(robot)s is stale: no update since before %(time)s "
+                        "UTC (last message: %(message)s).") % values
+        elif stale:
+            summary = _("Diagnostic status %(name)s of robot %(robot)s is stale: no update since before %(time)s "
+                        "UTC.") % values
+        elif message:
+            summary = _("Diagnostic status %(name)s of robot %(robot)s is %(level)s (last message: %(message)s).") \
+                % values
         else:
-            summary = f"Diagnostic status {name} of robot {robot} is {LEVEL_WORDS.get(level, 'ERROR')}"
-        summary += f" (last message: {message})." if message else "."
+            summary = _("Diagnostic status %(name)s of robot %(robot)s is %(level)s.") % values
         subject = f"{robot}:{name}"
         found[subject] = Condition(subject, since or now, summary[:2000], gateway, robot)
     return found
@@ -214,7 +237,8 @@ def from_facts(rule: Rule, observations: list[Observation]) -> dict[str, Conditi
         if wanted == GONE:
             summary = _gone_text(seen.node, seen.robot, seen.reason)
         else:
-            summary = f"{_node_text(seen.node, seen.robot)} entered {wanted}."
+            summary = _("Node %(node)s on robot %(robot)s entered %(state)s.") % {
+                "node": seen.node, "robot": seen.robot, "state": wanted}
         key = protocol.node_key(seen.robot, seen.node)
         found.setdefault(key, Condition(key, seen.at, summary, seen.gateway, seen.robot, seen.node))
     return found

@@ -25,6 +25,7 @@ from datetime import datetime, timezone
 
 from django.conf import settings
 from django.core.mail import EmailMessage, get_connection
+from django.utils import translation
 
 from lifecycle_site.alerts import destinations
 
@@ -143,7 +144,13 @@ def _proxied(scheme: str, host: str) -> bool:
 
 def post_webhook(job: Job, timeout: float) -> tuple[int | None, str, bool]:
     """POST the job's body to the checked address: (status code, error text, worth retrying).
-    The URL in error texts is redacted (destinations.redact): no password reaches the log."""
+    The URL in error texts is redacted (destinations.redact): no password reaches the log. The
+    error text is stored in the delivery log: in English, whatever the site's language."""
+    with translation.override("en"):
+        return _post_webhook(job, timeout)
+
+
+def _post_webhook(job: Job, timeout: float) -> tuple[int | None, str, bool]:
     shown = destinations.redact(job.url)
     headers = {"Content-Type": "application/json", "User-Agent": USER_AGENT,
                "X-Lifecycle-Event": job.event, "X-Lifecycle-Delivery": job.delivery_id}

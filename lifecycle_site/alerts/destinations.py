@@ -22,6 +22,14 @@ from dataclasses import dataclass
 from urllib.parse import SplitResult, urlsplit
 
 from django.conf import settings
+from django.utils.translation import gettext as _
+from django.utils.translation import gettext_lazy
+
+
+def gettext_noop(text: str) -> str:
+    """Marks ``text`` for the catalogue (makemessages knows the name). Django's own gettext_noop
+    reads the settings, which are not loaded yet when settings.py calls parse_allow."""
+    return text
 
 IPAddress = ipaddress.IPv4Address | ipaddress.IPv6Address
 IPNetwork = ipaddress.IPv4Network | ipaddress.IPv6Network
@@ -29,13 +37,14 @@ SETTING = "LIFECYCLE_WEBHOOK_ALLOW"
 LOOPBACK = (ipaddress.ip_network("127.0.0.0/8"), ipaddress.ip_network("::1/128"))
 NAT64 = ipaddress.ip_network("64:ff9b::/96")
 HOST_NAME = re.compile(r"(?=.{1,253}$)([a-z0-9]([a-z0-9-]{0,61}[a-z0-9])?)(\.[a-z0-9]([a-z0-9-]{0,61}[a-z0-9])?)*")
-CREDENTIALS = ("a user name or password in the URL is not accepted (it would be shown in the admin and sent "
-               "as plain Basic authentication); a receiver proves a request is ours by its signature: set the "
-               "receiver's secret and check X-Lifecycle-Signature")
+CREDENTIALS = gettext_lazy("a user name or password in the URL is not accepted (it would be shown in the admin and "
+                           "sent as plain Basic authentication); a receiver proves a request is ours by its "
+                           "signature: set the receiver's secret and check X-Lifecycle-Signature")
 
 
 class Refused(ValueError):
-    """This URL may not be used; the message says why, in words for the admin."""
+    """This URL may not be used; the message says why, in words for the admin (in the active
+    language: a delivery makes it with English active, for the delivery log)."""
 
 
 @dataclass(frozen=True)
@@ -57,18 +66,20 @@ class Target:
     addresses: tuple[str, ...]
 
 
+# (Marked, not translated here: parse_allow reads them while the settings load, in English.)
 _NEVER = tuple((ipaddress.ip_network(network), why) for network, why in (
-    ("0.0.0.0/8", "an unspecified address (this machine)"), ("::/128", "an unspecified address (this machine)"),
-    ("224.0.0.0/4", "a multicast address"), ("ff00::/8", "a multicast address"),
-    ("169.254.0.0/16", "a link-local address, where cloud metadata services answer"),
-    ("fe80::/10", "a link-local address, where cloud metadata services answer"),
-    ("fd00:ec2::254/128", "a cloud metadata address"),  # AWS's IPv6 one is not link-local
-    ("240.0.0.0/4", "a reserved address"),  # 255.255.255.255 included
+    ("0.0.0.0/8", gettext_noop("an unspecified address (this machine)")),
+    ("::/128", gettext_noop("an unspecified address (this machine)")),
+    ("224.0.0.0/4", gettext_noop("a multicast address")), ("ff00::/8", gettext_noop("a multicast address")),
+    ("169.254.0.0/16", gettext_noop("a link-local address, where cloud metadata services answer")),
+    ("fe80::/10", gettext_noop("a link-local address, where cloud metadata services answer")),
+    ("fd00:ec2::254/128", gettext_noop("a cloud metadata address")),  # AWS's IPv6 one is not link-local
+    ("240.0.0.0/4", gettext_noop("a reserved address")),  # 255.255.255.255 included
 ))
 
 
 def never_allowed(address: IPAddress) -> str:
-    """Why no setting opens this address, or ''."""
+    """Why no setting opens this address, or '' (in English: refusal() translates it)."""
     return next((why for network, why in _NEVER if address in network), "")
 
 
@@ -134,19 +145,23 @@ def refusal(address: IPAddress, host: str, allow: Allow, own: set[IPAddress]) ->
     """Why a webhook may not go to this address (``host`` resolved to it), or ''."""
     address = _unmapped(address)
     if why := never_allowed(address):
-        return f"{why}; webhooks never go there"
+        return _("%(why)s; webhooks never go there") % {"why": _(why)}
     listed = any(n.num_addresses == 1 and address in n for n in allow.networks)
     if address.is_loopback:
         if listed or any(address in n and any(n.subnet_of(lo) for lo in LOOPBACK if lo.version == n.version)
                          for n in allow.networks):
             return ""
-        return f"a loopback address (this machine); allowed only if {SETTING} lists {address} itself"
+        return _("a loopback address (this machine); allowed only if %(setting)s lists %(address)s itself") % {
+            "setting": SETTING, "address": address}
     if address in own:
-        return "" if listed else f"an address of this machine; allowed only if {SETTING} lists {address} itself"
+        return "" if listed else _("an address of this machine; allowed only if %(setting)s lists %(address)s "
+                                   "itself") % {"setting": SETTING, "address": address}
     if address.is_global or host.lower().rstrip(".") in allow.names or any(address in n for n in allow.networks):
         return ""
-    by_name = "" if _literal(host) else f" or the host name {host}"
-    return f"an internal address; allowed only if {SETTING} lists it or its network{by_name}"
+    if _literal(host):
+        return _("an internal address; allowed only if %(setting)s lists it or its network") % {"setting": SETTING}
+    return _("an internal address; allowed only if %(setting)s lists it or its network or the host name "
+             "%(host)s") % {"setting": SETTING, "host": host}
 
 
 def _literal(host: str) -> bool:
@@ -171,18 +186,18 @@ def split(url: str) -> tuple[SplitResult, str, int]:
         parts = urlsplit(url)
         port = parts.port
     except ValueError as exc:
-        raise Refused(f"not a valid URL: {exc}") from None
+        raise Refused(_("not a valid URL: %(error)s") % {"error": exc}) from None
     if parts.scheme not in ("http", "https") or not parts.hostname:
-        raise Refused("not an http:// or https:// URL with a host")
+        raise Refused(_("not an http:// or https:// URL with a host"))
     if "@" in parts.netloc:
-        raise Refused(CREDENTIALS)
+        raise Refused(str(CREDENTIALS))
     return parts, parts.hostname, port or (443 if parts.scheme == "https" else 80)
 
 
 def resolve(host: str, port: int) -> list[IPAddress]:
     """Every address the host name resolves to (raises OSError when it does not)."""
     found = []
-    for *_, sockaddr in socket.getaddrinfo(host, port, type=socket.SOCK_STREAM):
+    for *_info, sockaddr in socket.getaddrinfo(host, port, type=socket.SOCK_STREAM):
         address = ipaddress.ip_address(str(sockaddr[0]).partition("%")[0])  # fe80::1%eth0
         if address not in found:
             found.append(address)
@@ -198,8 +213,10 @@ def check(url: str) -> Target:
     addresses = resolve(host, port)
     for address in addresses:
         if why := refusal(address, host, allow, own):
-            shown = host if _literal(host) else f"{host} resolves to {address}, which"
-            raise Refused(f"{shown} is {why}")
+            if _literal(host):
+                raise Refused(_("%(host)s is %(why)s") % {"host": host, "why": why})
+            raise Refused(_("%(host)s resolves to %(address)s, which is %(why)s") % {
+                "host": host, "address": address, "why": why})
     path = parts.path or "/"
     return Target(parts.scheme, host, port, f"{path}?{parts.query}" if parts.query else path,
                   tuple(str(a) for a in addresses))

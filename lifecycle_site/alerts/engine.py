@@ -20,7 +20,8 @@ from datetime import datetime, timedelta
 from django.conf import settings
 from django.db import IntegrityError, InterfaceError, OperationalError, transaction
 from django.db.models import F
-from django.utils import timezone
+from django.utils import timezone, translation
+from django.utils.translation import gettext as _
 
 from lifecycle_site.alerts import conditions as cond
 from lifecycle_site.alerts.delivery import Dispatcher, Job, Result
@@ -84,10 +85,14 @@ class Evaluator:
         active = {(a.rule_id, a.subject): a for a in Alert.objects.filter(status__in=Alert.ACTIVE)}
         holding: set[tuple[int, str]] = set()
         for rule in rules.values():
-            found = cond.current(rule, now)
+            # An alert's summary is stored, mailed and shown as stored: in the site's language
+            # (LIFECYCLE_LANGUAGE), like the rest of its e-mails and webhooks.
+            with translation.override(settings.LANGUAGE_CODE):
+                found = cond.current(rule, now)
+                from_facts = cond.from_facts(rule, seen)
             for subject in found:
                 self.last_true[(rule.id, subject)] = now
-            for subject, brief in cond.from_facts(rule, seen).items():
+            for subject, brief in from_facts.items():
                 if subject not in found:  # over already: it held until the moment it was seen
                     found[subject] = brief
                     key = (rule.id, subject)
@@ -170,24 +175,34 @@ class Evaluator:
 
 
 def payload(alert: Alert, event: str, delivery_id: str) -> dict:
+    """The webhook's body: codes and what the alert stored (its summary is English, as stored); any
+    human text added here is in the site's language (LIFECYCLE_LANGUAGE: a webhook has no browser)."""
     site = settings.ALERTS["SITE_URL"]
-    return {
-        "version": 1,
-        "event": event,
-        "delivery": delivery_id,
-        "sent_at": timezone.now().isoformat(),
-        "alert": {**alert.as_dict(), "url": f"{site}/alerts/#alert-{alert.id}" if site else None},
-    }
+    with translation.override(settings.LANGUAGE_CODE):
+        return {
+            "version": 1,
+            "event": event,
+            "delivery": delivery_id,
+            "sent_at": timezone.now().isoformat(),
+            "alert": {**alert.as_dict(), "url": f"{site}/alerts/#alert-{alert.id}" if site else None},
+        }
 
 
 def email_text(alert: Alert, event: str) -> tuple[str, str]:
-    word = "RESOLVED" if event == "resolved" else "FIRING"
-    # No line breaks in a header, whatever was stored (Django refuses to send the mail otherwise)
-    subject = CONTROL_CHARACTERS.sub(" ", f"[{word}] {alert.rule_name}: {alert.subject}")
-    lines = [alert.summary, "", f"Rule: {alert.rule_name}", f"Since: {alert.since.isoformat()}",
-             f"Fired: {alert.fired_at.isoformat()}"]
-    if alert.resolved_at:
-        lines.append(f"Resolved: {alert.resolved_at.isoformat()}")
+    """The e-mail's subject and body, in the site's language (LIFECYCLE_LANGUAGE: a mail has no browser)."""
+    with translation.override(settings.LANGUAGE_CODE):
+        values = {"rule": alert.rule_name, "subject": alert.subject}
+        if event == "resolved":
+            heading = _("[RESOLVED] %(rule)s: %(subject)s") % values
+        else:
+            heading = _("[FIRING] %(rule)s: %(subject)s") % values
+        # No line breaks in a header, whatever was stored (Django refuses to send the mail otherwise)
+        subject = CONTROL_CHARACTERS.sub(" ", heading)
+        lines = [alert.summary, "", _("Rule: %(rule)s") % {"rule": alert.rule_name},
+                 _("Since: %(time)s") % {"time": alert.since.isoformat()},
+                 _("Fired: %(time)s") % {"time": alert.fired_at.isoformat()}]
+        if alert.resolved_at:
+            lines.append(_("Resolved: %(time)s") % {"time": alert.resolved_at.isoformat()})
     if settings.ALERTS["SITE_URL"]:
         lines += ["", f"{settings.ALERTS['SITE_URL']}/alerts/#alert-{alert.id}"]
     return subject, "\n".join(lines) + "\n"

@@ -5,6 +5,7 @@ from datetime import timedelta
 
 from django.db.models import Count, Q, QuerySet
 from django.utils import timezone
+from django.utils.translation import gettext as _
 
 from lifecycle_site.alerts.models import Alert
 from lifecycle_site.refusal import Refusal
@@ -22,13 +23,17 @@ def acknowledge(alert_id: int, user) -> Alert:
     )
     alert = Alert.objects.select_related("rule").filter(pk=alert_id).first()
     if alert is None:
-        raise Refusal("not_found", f"There is no alert {alert_id}.", 404)
+        raise Refusal("not_found", _("There is no alert %(id)s.") % {"id": alert_id}, 404)
     if not updated:
         if alert.status == Alert.Status.ACKNOWLEDGED:
-            raise Refusal("already_acknowledged", f"Alert {alert_id} was acknowledged already by "
-                               f"{alert.acknowledged_by_name or 'a deleted user'}.", 409)
-        raise Refusal("already_resolved", f"Alert {alert_id} is resolved already: its condition is over; "
-                           "nothing to acknowledge.", 409)
+            if alert.acknowledged_by_name:
+                message = _("Alert %(id)s was acknowledged already by %(user)s.") % {
+                    "id": alert_id, "user": alert.acknowledged_by_name}
+            else:
+                message = _("Alert %(id)s was acknowledged already by a deleted user.") % {"id": alert_id}
+            raise Refusal("already_acknowledged", message, 409)
+        raise Refusal("already_resolved", _("Alert %(id)s is resolved already: its condition is over; "
+                                            "nothing to acknowledge.") % {"id": alert_id}, 409)
     return alert
 
 

@@ -11,6 +11,8 @@ from django.core.exceptions import ValidationError
 from django.core.validators import MinValueValidator, URLValidator
 from django.db import models
 from django.db.models import Q
+from django.utils.translation import gettext as _
+from django.utils.translation import gettext_lazy, pgettext_lazy
 
 from lifecycle_site.alerts import destinations
 from ros_gateway.shared import state_machine as sm
@@ -23,8 +25,8 @@ CONTROL_CHARACTERS = re.compile(r"[\x00-\x1f\x7f-\x9f\u2028\u2029]+")
 
 def refuse_control_characters(field: str, value: str) -> None:
     if CONTROL_CHARACTERS.search(value):
-        raise ValidationError({field: "Line breaks, tabs and other control characters are not allowed here "
-                                      "(the name goes into e-mail subjects and logs)."})
+        raise ValidationError({field: _("Line breaks, tabs and other control characters are not allowed here "
+                                        "(the name goes into e-mail subjects and logs).")})
 
 
 def validate_emails(value: str) -> None:
@@ -54,28 +56,31 @@ class Receiver(models.Model):
     """Where alerts go: a webhook (JSON POST, signed) or e-mail addresses (Django's mail)."""
 
     class Kind(models.TextChoices):
-        WEBHOOK = "webhook", "webhook"
-        EMAIL = "email", "e-mail"
+        WEBHOOK = "webhook", gettext_lazy("webhook")
+        EMAIL = "email", gettext_lazy("e-mail")
 
     name = models.CharField(max_length=80, unique=True)
     kind = models.CharField(max_length=8, choices=Kind.choices, default=Kind.WEBHOOK)
     url = models.CharField(
-        "webhook URL", max_length=500, blank=True, validators=[URLValidator(schemes=["http", "https"])],
-        help_text="http:// or https:// address that takes a JSON POST (redirects are not followed).",
+        gettext_lazy("webhook URL"), max_length=500, blank=True, validators=[URLValidator(schemes=["http", "https"])],
+        help_text=gettext_lazy("http:// or https:// address that takes a JSON POST (redirects are not followed)."),
     )
     # Kept in the database (as a Django SECRET_KEY would be in the environment); shown nowhere, never logged.
     secret = models.CharField(
         max_length=200, blank=True,
-        help_text="Key of the HMAC-SHA256 signature sent in X-Lifecycle-Signature; empty: unsigned.",
+        help_text=gettext_lazy("Key of the HMAC-SHA256 signature sent in X-Lifecycle-Signature; empty: unsigned."),
     )
     emails = models.TextField(
-        "e-mail addresses", blank=True, validators=[validate_emails], help_text="Comma-separated.",
+        gettext_lazy("e-mail addresses"), blank=True, validators=[validate_emails],
+        help_text=gettext_lazy("Comma-separated."),
     )
     enabled = models.BooleanField(default=True)
     # Counted by the ingest process (monotonic: the delivery log is pruned, these are not).
     delivered = models.PositiveBigIntegerField(default=0, editable=False)
-    failed = models.PositiveBigIntegerField(default=0, editable=False, help_text="Gave up after every retry.")
-    dropped = models.PositiveBigIntegerField(default=0, editable=False, help_text="Not sent: the queue was full.")
+    failed = models.PositiveBigIntegerField(default=0, editable=False,
+                                            help_text=gettext_lazy("Gave up after every retry."))
+    dropped = models.PositiveBigIntegerField(default=0, editable=False,
+                                             help_text=gettext_lazy("Not sent: the queue was full."))
 
     class Meta:
         ordering = ["name"]
@@ -86,30 +91,31 @@ class Receiver(models.Model):
     def clean(self) -> None:
         refuse_control_characters("name", self.name)
         if self.kind == self.Kind.WEBHOOK and not self.url:
-            raise ValidationError({"url": "A webhook needs its URL."})
+            raise ValidationError({"url": _("A webhook needs its URL.")})
         if self.kind == self.Kind.WEBHOOK and _valid_url(self.url) and (why := destinations.problem(self.url)):
             raise ValidationError({"url": f"{destinations.redact(self.url)}: {why}."})
         if self.kind == self.Kind.EMAIL and not split_emails(self.emails):
-            raise ValidationError({"emails": "Give at least one e-mail address."})
+            raise ValidationError({"emails": _("Give at least one e-mail address.")})
 
 
 class Rule(models.Model):
     """When an alert fires, for which nodes or gateways, and where it is sent."""
 
     class Kind(models.TextChoices):
-        STATE = "state", "node is in a state"
-        GONE = "gone", "node vanished from the ROS graph"
-        NOT_DESIRED = "not_desired", "node is not in its desired state"
-        GATEWAY_OFFLINE = "gateway_offline", "gateway is offline or quarantined"
-        PROCESS_GIVEN_UP = "process_given_up", "a launch profile's process was given up (kept failing)"
-        NOT_KEPT = "not_kept", "node kept in its desired state was moved, or another manager keeps moving it"
-        MODE_NOT_READY = "mode_not_ready", "robot is not ready in its current mode"
-        DIAGNOSTIC = "diagnostic", "a diagnostic status is at or above a level, or stale"
+        STATE = "state", gettext_lazy("node is in a state")
+        GONE = "gone", gettext_lazy("node vanished from the ROS graph")
+        NOT_DESIRED = "not_desired", gettext_lazy("node is not in its desired state")
+        GATEWAY_OFFLINE = "gateway_offline", gettext_lazy("gateway is offline or quarantined")
+        PROCESS_GIVEN_UP = "process_given_up", gettext_lazy("a launch profile's process was given up (kept failing)")
+        NOT_KEPT = "not_kept", gettext_lazy(
+            "node kept in its desired state was moved, or another manager keeps moving it")
+        MODE_NOT_READY = "mode_not_ready", gettext_lazy("robot is not ready in its current mode")
+        DIAGNOSTIC = "diagnostic", gettext_lazy("a diagnostic status is at or above a level, or stale")
 
     class Level(models.TextChoices):
-        WARN = "warn", "WARN or worse"
-        ERROR = "error", "ERROR"
-        STALE = "stale", "stale (not heard)"
+        WARN = "warn", gettext_lazy("WARN or worse")
+        ERROR = "error", "ERROR"  # (the diagnostic level's name: the same in every language)
+        STALE = "stale", gettext_lazy("stale (not heard)")
 
     STATE_CHOICES = [(label, label) for state_id, label in sorted(sm.STATE_LABELS.items()) if state_id]
 
@@ -117,35 +123,37 @@ class Rule(models.Model):
     kind = models.CharField(max_length=16, choices=Kind.choices)
     state = models.CharField(
         max_length=16, blank=True, choices=STATE_CHOICES,
-        help_text="For 'node is in a state': e.g. errorprocessing (fires on entering it, however briefly) "
-        "or finalized.",
+        help_text=gettext_lazy("For 'node is in a state': e.g. errorprocessing (fires on entering it, however "
+                               "briefly) or finalized."),
     )
     for_seconds = models.FloatField(
-        "for (seconds)", default=0.0, validators=[MinValueValidator(0.0)],
-        help_text="Fire once the condition has held this long; 0: at once. For 'not in its desired state' "
-        "allow for a bring-up (e.g. 30): a node is not there while it is being configured and activated.",
+        gettext_lazy("for (seconds)"), default=0.0, validators=[MinValueValidator(0.0)],
+        help_text=gettext_lazy("Fire once the condition has held this long; 0: at once. For 'not in its desired "
+                               "state' allow for a bring-up (e.g. 30): a node is not there while it is being "
+                               "configured and activated."),
     )
     keep_firing_seconds = models.FloatField(
-        "keep firing for (seconds)", default=0.0, validators=[MinValueValidator(0.0)],
-        help_text="Resolve only once the condition has been over this long (a brief state such as "
-        "errorprocessing is over within milliseconds).",
+        gettext_lazy("keep firing for (seconds)"), default=0.0, validators=[MinValueValidator(0.0)],
+        help_text=gettext_lazy("Resolve only once the condition has been over this long (a brief state such as "
+                               "errorprocessing is over within milliseconds)."),
     )
     # Scope: all of these that are set must match; none set: the whole fleet.
     gateway = models.ForeignKey("fleet.Gateway", null=True, blank=True, on_delete=models.CASCADE, related_name="+",
-                                help_text="Only this gateway (or its robots' nodes).")
+                                help_text=gettext_lazy("Only this gateway (or its robots' nodes)."))
     robot = models.ForeignKey("fleet.Robot", null=True, blank=True, on_delete=models.CASCADE, related_name="+",
-                              help_text="Only this robot's nodes (or its gateway).")
+                              help_text=gettext_lazy("Only this robot's nodes (or its gateway)."))
     node_pattern = models.CharField(
         max_length=255, blank=True,
-        help_text="Only nodes whose fully qualified name matches this pattern (* and ?, e.g. /agv1/*_driver).",
+        help_text=gettext_lazy("Only nodes whose fully qualified name matches this pattern (* and ?, e.g. "
+                               "/agv1/*_driver)."),
     )
     status_pattern = models.CharField(
         max_length=256, blank=True,
-        help_text="For diagnostic rules: a status name (with what is below it, e.g. /Robot/Sensors), or a pattern "
-        "with * and ? (e.g. lidar_driver: *); empty: every status.",
+        help_text=gettext_lazy("For diagnostic rules: a status name (with what is below it, e.g. /Robot/Sensors), or "
+                               "a pattern with * and ? (e.g. lidar_driver: *); empty: every status."),
     )
     level = models.CharField(max_length=8, blank=True, choices=Level.choices,
-                             help_text="For diagnostic rules: the level that fires it.")
+                             help_text=gettext_lazy("For diagnostic rules: the level that fires it."))
     receivers = models.ManyToManyField(Receiver, blank=True, related_name="rules")
     enabled = models.BooleanField(default=True)
     created = models.DateTimeField(auto_now_add=True)
@@ -159,22 +167,22 @@ class Rule(models.Model):
     def clean(self) -> None:
         refuse_control_characters("name", self.name)
         if self.kind == self.Kind.STATE and not self.state:
-            raise ValidationError({"state": "Choose the state this rule watches for."})
+            raise ValidationError({"state": _("Choose the state this rule watches for.")})
         if self.kind != self.Kind.STATE and self.state:
-            raise ValidationError({"state": "Only 'node is in a state' rules take a state."})
+            raise ValidationError({"state": _("Only 'node is in a state' rules take a state.")})
         if self.kind == self.Kind.GATEWAY_OFFLINE and self.node_pattern:
-            raise ValidationError({"node_pattern": "A gateway rule has no node pattern."})
+            raise ValidationError({"node_pattern": _("A gateway rule has no node pattern.")})
         if self.kind == self.Kind.MODE_NOT_READY and self.node_pattern:
-            raise ValidationError({"node_pattern": "A mode rule has no node pattern (it watches robots)."})
+            raise ValidationError({"node_pattern": _("A mode rule has no node pattern (it watches robots).")})
         if self.kind == self.Kind.DIAGNOSTIC and not self.level:
-            raise ValidationError({"level": "Choose the level this rule fires at (WARN or worse, ERROR, stale)."})
+            raise ValidationError({"level": _("Choose the level this rule fires at (WARN or worse, ERROR, stale).")})
         if self.kind == self.Kind.DIAGNOSTIC and self.node_pattern:
-            raise ValidationError({"node_pattern": "A diagnostic rule names statuses (status pattern), not nodes."})
+            raise ValidationError({"node_pattern": _("A diagnostic rule names statuses (status pattern), not nodes.")})
         if self.kind != self.Kind.DIAGNOSTIC and (self.level or self.status_pattern):
-            raise ValidationError({"level": "Only diagnostic rules take a level and a status pattern."})
+            raise ValidationError({"level": _("Only diagnostic rules take a level and a status pattern.")})
         if self.kind == self.Kind.PROCESS_GIVEN_UP and self.node_pattern:
-            raise ValidationError({"node_pattern": "A process rule has no node pattern (it watches every launch "
-                                                   "profile of its robot or gateway)."})
+            raise ValidationError({"node_pattern": _("A process rule has no node pattern (it watches every launch "
+                                                     "profile of its robot or gateway).")})
 
     @property
     def watches_nodes(self) -> bool:
@@ -196,8 +204,11 @@ class Rule(models.Model):
         """'node is in a state errorprocessing, for 5 s'"""
         text = self.get_kind_display() + (f" {self.state}" if self.state else "")
         if self.kind == self.Kind.DIAGNOSTIC:
-            text = f"diagnostic status {self.status_pattern or '(any)'} {self.get_level_display()}"
-        return text + (f", for {self.for_seconds:g} s" if self.for_seconds else "")
+            text = _("diagnostic status %(pattern)s %(level)s") % {
+                "pattern": self.status_pattern or _("(any)"), "level": self.get_level_display()}
+        if not self.for_seconds:
+            return text
+        return _("%(rule)s, for %(seconds)s s") % {"rule": text, "seconds": f"{self.for_seconds:g}"}
 
     def as_dict(self) -> dict:
         return {
@@ -221,9 +232,9 @@ class Alert(models.Model):
     """One firing of a rule for one node or gateway, from firing to resolved."""
 
     class Status(models.TextChoices):
-        FIRING = "firing", "firing"
-        ACKNOWLEDGED = "acknowledged", "acknowledged"
-        RESOLVED = "resolved", "resolved"
+        FIRING = "firing", pgettext_lazy("alert status", "firing")
+        ACKNOWLEDGED = "acknowledged", pgettext_lazy("alert status", "acknowledged")
+        RESOLVED = "resolved", pgettext_lazy("alert status", "resolved")
 
     ACTIVE = (Status.FIRING, Status.ACKNOWLEDGED)
 
@@ -237,7 +248,7 @@ class Alert(models.Model):
     node_name = models.CharField(max_length=255, blank=True)
     status = models.CharField(max_length=16, choices=Status.choices, default=Status.FIRING)
     summary = models.TextField()
-    since = models.DateTimeField(help_text="When the condition began.")
+    since = models.DateTimeField(help_text=gettext_lazy("When the condition began."))
     fired_at = models.DateTimeField()
     resolved_at = models.DateTimeField(null=True, blank=True)
     acknowledged_at = models.DateTimeField(null=True, blank=True)
@@ -288,10 +299,10 @@ class Delivery(models.Model):
     """One attempt to send one alert event to one receiver (pruned to ALERTS['DELIVERY_LOG_KEEP'])."""
 
     class Outcome(models.TextChoices):
-        DELIVERED = "delivered", "delivered"
-        RETRYING = "retrying", "failed, will retry"
-        FAILED = "failed", "failed, gave up"
-        DROPPED = "dropped", "dropped (queue full)"
+        DELIVERED = "delivered", gettext_lazy("delivered")
+        RETRYING = "retrying", gettext_lazy("failed, will retry")
+        FAILED = "failed", gettext_lazy("failed, gave up")
+        DROPPED = "dropped", gettext_lazy("dropped (queue full)")
 
     alert = models.ForeignKey(Alert, null=True, on_delete=models.SET_NULL, related_name="deliveries")
     receiver = models.ForeignKey(Receiver, null=True, on_delete=models.SET_NULL, related_name="deliveries")
@@ -306,7 +317,7 @@ class Delivery(models.Model):
 
     class Meta:
         ordering = ["-at", "-id"]
-        verbose_name_plural = "deliveries"
+        verbose_name_plural = gettext_lazy("deliveries")
 
     def __str__(self) -> str:
         return f"{self.event} to {self.receiver_name}: {self.outcome}"

@@ -5,6 +5,8 @@ from django.contrib.auth.decorators import login_required
 from django.http import HttpRequest, HttpResponse
 from django.shortcuts import redirect, render
 from django.utils.html import format_html
+from django.utils.translation import gettext as _
+from django.utils.translation import pgettext_lazy
 from django.views.decorators.http import require_POST
 
 from lifecycle_site.alerts import lifecycle
@@ -12,8 +14,10 @@ from lifecycle_site.audit import denials
 from lifecycle_site.refusal import Refusal
 
 PAGE_LIMIT = 200
-STATUSES = [("recent", "active, and resolved in the last hour"), ("active", "active"), ("firing", "firing"),
-            ("acknowledged", "acknowledged"), ("resolved", "resolved"), ("all", "all")]
+STATUSES = [("recent", pgettext_lazy("alert status", "active, and resolved in the last hour")),
+            ("active", pgettext_lazy("alert status", "active")), ("firing", pgettext_lazy("alert status", "firing")),
+            ("acknowledged", pgettext_lazy("alert status", "acknowledged")),
+            ("resolved", pgettext_lazy("alert status", "resolved")), ("all", pgettext_lazy("alert status", "all"))]
 # htmx stops polling on this status: a signed-out page no longer asks (and is not sent the login page).
 STOP_POLLING = 286
 
@@ -42,8 +46,8 @@ def acknowledge(request: HttpRequest, alert_id: int) -> HttpResponse:
     """The Acknowledge button: htmx swaps in the alert's row; without JavaScript, back to the list."""
     if not request.user.has_perm(lifecycle.ACKNOWLEDGE_PERMISSION):
         denials.record(request, 403, "forbidden", "operator needed")
-        return HttpResponse('<p class="result fail" role="alert">Your role may view alerts but not acknowledge '
-                            "them (operator needed).</p>", status=403)
+        return HttpResponse(format_html('<p class="result fail" role="alert">{}</p>', _(
+            "Your role may view alerts but not acknowledge them (operator needed).")), status=403)
     error = ""
     try:
         alert = lifecycle.acknowledge(alert_id, request.user)

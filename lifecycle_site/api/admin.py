@@ -14,6 +14,8 @@ from django.contrib.auth import get_user_model
 from django.db.models import Q, QuerySet
 from django.http import HttpRequest, HttpResponse
 from django.template.response import TemplateResponse
+from django.utils.translation import gettext as _
+from django.utils.translation import gettext_lazy
 
 from lifecycle_site.api.models import MAX_TOKENS_PER_USER, ApiToken, TokenEvent, TooManyTokens
 from lifecycle_site.audit.admin import ReadOnlyAdmin
@@ -35,7 +37,7 @@ class NewTokenForm(forms.ModelForm):
     class Meta:
         model = ApiToken
         fields = ("user", "name")
-        help_texts = {"user": "The token acts as this account, with its roles, no more."}
+        help_texts = {"user": gettext_lazy("The token acts as this account, with its roles, no more.")}
 
     def __init__(self, *args, request: HttpRequest | None = None, **kwargs) -> None:
         super().__init__(*args, **kwargs)
@@ -91,7 +93,7 @@ class ApiTokenAdmin(admin.ModelAdmin):
 
     def response_add(self, request: HttpRequest, obj: ApiToken, post_url_continue=None) -> HttpResponse:
         context = {**self.admin_site.each_context(request), "opts": self.opts, "token": request._new_token,
-                   "record": obj, "title": "New API token"}
+                   "record": obj, "title": _("New API token")}
         return TemplateResponse(request, "admin/api/apitoken/created.html", context)
 
     def log_addition(self, request, obj, message):

@@ -5,10 +5,11 @@ from __future__ import annotations
 from django import forms
 from django.http import HttpRequest, JsonResponse
 from django.urls import path
+from django.utils.translation import gettext as _
 
 from lifecycle_site.alerts import lifecycle
 from lifecycle_site.alerts.models import Receiver, Rule
-from lifecycle_site.api.auth import api_view, error, json_body
+from lifecycle_site.api.auth import api_view, error, json_body, lacks_role
 from lifecycle_site.audit import denials
 from lifecycle_site.fleet.models import Gateway, Robot
 
@@ -32,8 +33,8 @@ class RuleForm(forms.ModelForm):
 
 
 def _refuse(request: HttpRequest, needed: str) -> JsonResponse:
-    denials.record(request, 403, "forbidden", f"{needed} needed")
-    return error("forbidden", f"Your account lacks the role for this ({needed} needed).", 403)
+    denials.record(request, 403, "forbidden", f"{needed} needed")  # (on record: in English)
+    return error("forbidden", lacks_role(needed), 403)
 
 
 def _alert_or_404(alert_id: int):
@@ -46,12 +47,12 @@ def alerts(request: HttpRequest) -> JsonResponse:
         return _refuse(request, "viewer")
     status = request.GET.get("status", "active")
     if status not in ("active", "all", *lifecycle.Alert.Status.values):
-        return error("bad_status", f"status {status[:40]!r} is not one of active, firing, acknowledged, resolved, "
-                     "all.", 400)
+        return error("bad_status", _("status %(status)s is not one of active, firing, acknowledged, resolved, "
+                                     "all.") % {"status": repr(status[:40])}, 400)
     try:
         limit = max(1, min(int(request.GET.get("limit", 100)), MAX_LIMIT))
     except ValueError:
-        return error("bad_limit", "limit must be a whole number (1-1000).", 400)
+        return error("bad_limit", _("limit must be a whole number (1-1000)."), 400)
     rows = lifecycle.listed(status)[:limit]
     return JsonResponse({"counts": lifecycle.counts(), "alerts": [a.as_dict() for a in rows]})
 
@@ -62,7 +63,7 @@ def alert_detail(request: HttpRequest, alert_id: int) -> JsonResponse:
         return _refuse(request, "viewer")
     alert = _alert_or_404(alert_id)
     if alert is None:
-        return error("not_found", f"There is no alert {alert_id}.", 404)
+        return error("not_found", _("There is no alert %(id)s.") % {"id": alert_id}, 404)
     return JsonResponse(alert.as_dict())
 
 
@@ -78,18 +79,19 @@ def _rules():
 
 
 def _save_rule(request: HttpRequest, instance: Rule | None) -> JsonResponse:
-    body = json_body(request, shape=dict, wanted="of rule fields")
+    body = json_body(request, shape=dict, wanted=_("of rule fields"))
     unknown = sorted(set(body) - set(RULE_FIELDS))
     if unknown:
-        return error("unknown_fields", f"Unknown rule fields: {', '.join(map(str, unknown))[:200]}; "
-                     f"use {', '.join(RULE_FIELDS)}.", 400)
+        return error("unknown_fields", _("Unknown rule fields: %(unknown)s; use %(fields)s.") % {
+            "unknown": ", ".join(map(str, unknown))[:200], "fields": ", ".join(RULE_FIELDS)}, 400)
     data = {**(instance.as_dict() if instance else NEW_RULE), **body}
     data = {k: ("" if v is None else v) for k, v in data.items() if k in RULE_FIELDS}
     form = RuleForm(data, instance=instance)
     if not form.is_valid():
         fields = {name: [str(m) for m in messages] for name, messages in form.errors.items()}
         first = "; ".join(f"{name}: {' '.join(messages)}" for name, messages in fields.items())
-        return error("invalid_rule", f"The rule was not saved: {first}", 400, fields=fields)
+        return error("invalid_rule", _("The rule was not saved: %(problems)s") % {"problems": first}, 400,
+                     fields=fields)
     rule = form.save()
     return JsonResponse(_rules().get(pk=rule.pk).as_dict(), status=200 if instance else 201)
 
@@ -112,7 +114,7 @@ def rule_detail(request: HttpRequest, rule_id: int) -> JsonResponse:
         return _refuse(request, "viewer" if request.method == "GET" else "admin")
     rule = _rules().filter(pk=rule_id).first()
     if rule is None:
-        return error("not_found", f"There is no alert rule {rule_id}.", 404)
+        return error("not_found", _("There is no alert rule %(id)s.") % {"id": rule_id}, 404)
     if request.method == "DELETE":
         rule.delete()  # its alerts stay (by rule name); an active one is resolved at the next evaluation
         return JsonResponse({"deleted": rule_id})

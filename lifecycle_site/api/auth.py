@@ -14,6 +14,8 @@ from django.db import DataError, InterfaceError, OperationalError
 from django.http import Http404, HttpRequest, JsonResponse
 from django.middleware.csrf import CsrfViewMiddleware
 from django.utils import timezone
+from django.utils.translation import gettext as _
+from django.utils.translation import gettext_lazy, pgettext
 from django.views.decorators.csrf import csrf_exempt
 
 from lifecycle_site.api import grants
@@ -21,12 +23,12 @@ from lifecycle_site.api.limits import MAX_DEPTH, MAX_DIGITS, body_limit, size_te
 from lifecycle_site.api.models import ApiToken, hash_token
 from lifecycle_site.audit import denials
 from lifecycle_site.database_input import MESSAGE as DATA_ERROR_MESSAGE
-from lifecycle_site.refusal import Refusal, cut
+from lifecycle_site.refusal import Refusal, cut, in_english
 from ros_gateway.shared import param_types as pt
 
 UNSAFE_METHODS = {"POST", "PUT", "PATCH", "DELETE"}
 log = logging.getLogger(__name__)
-DATABASE_DOWN_MESSAGE = (
+DATABASE_DOWN_MESSAGE = gettext_lazy(
     "The site's database did not answer; try again in a moment. If you asked for a change, look "
     "at the node before asking again: a change that reached the robot is recorded from its "
     "gateway's report once the database answers."
@@ -34,7 +36,8 @@ DATABASE_DOWN_MESSAGE = (
 
 
 def error(code: str, message: str, status: int, **details) -> JsonResponse:
-    """The one error shape of the API: {"error": {"code", "message", ...details}}."""
+    """The one error shape of the API: {"error": {"code", "message", ...details}}; ``message`` in
+    the request's language (a lazy translation is made text here)."""
     return refusal_response(Refusal(code, message, status, **details))
 
 
@@ -47,11 +50,14 @@ class NonFiniteNumber(ValueError):
     def __init__(self, literal: str, path: tuple) -> None:
         self.literal = literal
         self.path = path
-        where = f" at {pt.path_text(path)}" if path else ""
-        super().__init__(
-            f"{literal}{where} is not a finite number (NaN, Infinity, -Infinity and numbers beyond "
-            "±1.8e308, such as 1e999, cannot be used)"
-        )
+        values = {"literal": literal, "path": pt.path_text(path) if path else ""}
+        if path:
+            text = _("%(literal)s at %(path)s is not a finite number (NaN, Infinity, -Infinity and numbers beyond "
+                     "±1.8e308, such as 1e999, cannot be used)") % values
+        else:
+            text = _("%(literal)s is not a finite number (NaN, Infinity, -Infinity and numbers beyond ±1.8e308, "
+                     "such as 1e999, cannot be used)") % values
+        super().__init__(text)
 
 
 class TooDeep(ValueError):
@@ -62,7 +68,8 @@ class TooManyDigits(ValueError):
     """An integer longer than MAX_DIGITS digits."""
 
     def __init__(self, digits: int) -> None:
-        super().__init__(f"a number has {digits:,} digits; at most {MAX_DIGITS:,} are accepted")
+        super().__init__(_("a number has %(digits)s digits; at most %(most)s are accepted") % {
+            "digits": f"{digits:,}", "most": f"{MAX_DIGITS:,}"})
 
 
 class _Literal(str):
@@ -122,27 +129,38 @@ def json_body(request: HttpRequest, empty: bytes = b"", *, shape: type | None = 
     except RequestDataTooBig:
         raise too_large() from None
     except TooDeep:
-        raise Refusal("too_deep", f"Nothing was sent: the request body nests lists or objects deeper than "
-                      f"{MAX_DEPTH} levels; no endpoint takes more than 3.") from None
+        text = _("Nothing was sent: the request body nests lists or objects deeper than %(depth)s levels; no "
+                 "endpoint takes more than 3.") % {"depth": MAX_DEPTH}
+        raise Refusal("too_deep", text) from None
     except TooManyDigits as exc:
-        raise Refusal("malformed_json", f"Nothing was sent: {exc}.") from None
+        raise Refusal("malformed_json", _("Nothing was sent: %(reason)s.") % {"reason": exc}) from None
     except NonFiniteNumber as exc:
-        raise Refusal("non_finite_number", f"Nothing was sent: {exc}.", value=exc.literal,
+        raise Refusal("non_finite_number", _("Nothing was sent: %(reason)s.") % {"reason": exc}, value=exc.literal,
                       path=list(exc.path)) from None
     except UnicodeDecodeError as exc:
-        raise Refusal("malformed_json", f"The request body is not UTF-8 text: {exc}.") from None
+        raise Refusal("malformed_json", _("The request body is not UTF-8 text: %(error)s.") % {"error": exc}) from None
     except ValueError as exc:
-        raise Refusal("malformed_json", f"The request body is not valid JSON: {exc}.") from None
+        raise Refusal("malformed_json", _("The request body is not valid JSON: %(error)s.") % {"error": exc}) from None
     if shape is not None and not isinstance(body, shape):
-        kind = "object" if shape is dict else "list"
-        raise Refusal("malformed_json", f"The request body must be a JSON {kind}" + (f" {wanted}." if wanted else "."))
+        raise Refusal("malformed_json", _shape_refusal(shape, wanted))
     return body
+
+
+def _shape_refusal(shape: type, wanted: str) -> str:
+    """"The request body must be a JSON object" (or list), and what to send (``wanted``)."""
+    if shape is dict:
+        if wanted:
+            return _("The request body must be a JSON object %(wanted)s.") % {"wanted": wanted}
+        return _("The request body must be a JSON object.")
+    if wanted:
+        return _("The request body must be a JSON list %(wanted)s.") % {"wanted": wanted}
+    return _("The request body must be a JSON list.")
 
 
 def too_large() -> Refusal:
     limit = size_text(body_limit())
-    return Refusal("body_too_large", f"The request body is larger than {limit}, the most this site takes; "
-                   "nothing was done.", 413, limit=body_limit())
+    return Refusal("body_too_large", _("The request body is larger than %(limit)s, the most this site takes; "
+                                       "nothing was done.") % {"limit": limit}, 413, limit=body_limit())
 
 
 def body_too_large() -> JsonResponse:
@@ -176,7 +194,7 @@ def _csrf_failure(request: HttpRequest) -> JsonResponse | None:
     check.process_request(request)
     rejection = check.process_view(request, None, (), {})
     if rejection is not None:
-        return error("csrf_failed", "CSRF check failed: send the X-CSRFToken header with session auth.", 403)
+        return error("csrf_failed", _("CSRF check failed: send the X-CSRFToken header with session auth."), 403)
     return None
 
 
@@ -186,8 +204,9 @@ def _token_blocked(request: HttpRequest, until: datetime) -> JsonResponse:
     when = until.isoformat(timespec="seconds")
     denials.record(request, 429, "token_blocked", f"too many invalid tokens from this address; blocked until {when}")
     response = error(
-        "too_many_attempts", f"Too many invalid tokens from this address: every token request from it is refused, "
-        f"unchecked, until {when} (in {wait} s).", 429, retry_after=wait, until=until.isoformat(),
+        "too_many_attempts", _("Too many invalid tokens from this address: every token request from it is refused, "
+                               "unchecked, until %(when)s (in %(wait)s s).") % {"when": when, "wait": wait},
+        429, retry_after=wait, until=until.isoformat(),
     )
     response["Retry-After"] = str(wait)
     return response
@@ -209,12 +228,14 @@ def api_view(methods: tuple[str, ...] = ("GET",), permission: str = VIEW_PERMISS
             try:
                 return checked(request, *args, **kwargs)
             except (OperationalError, InterfaceError) as exc:
-                log.error("API %s %s: the database did not answer: %s", request.method, cut(request.path), exc)
+                log.error("API %s %s: the database did not answer: %s", request.method,
+                          in_english(cut, request.path), exc)
                 return error("database_unavailable", DATABASE_DOWN_MESSAGE, 503)
 
         def checked(request: HttpRequest, *args, **kwargs):
             if request.method not in methods:
-                return error("method_not_allowed", f"Use {' or '.join(methods)} here.", 405)
+                either = " " + pgettext("between HTTP methods", "or") + " "
+                return error("method_not_allowed", _("Use %(methods)s here.") % {"methods": either.join(methods)}, 405)
             if "Authorization" in request.headers:
                 # The block is the address's: every token it sends is refused unchecked, a valid
                 # one too (one query per token request), and each refusal is on record.
@@ -224,12 +245,12 @@ def api_view(methods: tuple[str, ...] = ("GET",), permission: str = VIEW_PERMISS
             user = _token_user(request)
             if user is None and "Authorization" in request.headers:
                 denials.record(request, 401, "bad_token", "the bearer token is not valid (or revoked)")
-                return error("unauthorized", "The bearer token is not valid.", 401)
+                return error("unauthorized", _("The bearer token is not valid."), 401)
             if user is None:
                 if not request.user.is_authenticated:
                     if request.method in UNSAFE_METHODS:
                         denials.record(request, 401, "unauthorized", "neither a session nor a token")
-                    return error("unauthorized", "Log in or send 'Authorization: Bearer TOKEN'.", 401)
+                    return error("unauthorized", _("Log in or send 'Authorization: Bearer TOKEN'."), 401)
                 if request.method in UNSAFE_METHODS:
                     failure = _csrf_failure(request)
                     if failure is not None:  # on record already (CSRF_FAILURE_VIEW)
@@ -240,21 +261,21 @@ def api_view(methods: tuple[str, ...] = ("GET",), permission: str = VIEW_PERMISS
             if not user.has_perm(permission):
                 needed = "viewer" if permission == VIEW_PERMISSION else "operator or admin"
                 if request.method in UNSAFE_METHODS or permission != VIEW_PERMISSION:
-                    denials.record(request, 403, "forbidden", f"{needed} needed")
-                return error("forbidden", f"Your account lacks the role for this ({needed} needed).", 403)
+                    denials.record(request, 403, "forbidden", f"{needed} needed")  # (on record: in English)
+                return error("forbidden", lacks_role(needed), 403)
             try:
                 return view(request, *args, **kwargs)
             except Http404 as exc:
-                return error("not_found", str(exc) or "Not found.", 404)
+                return error("not_found", str(exc) or _("Not found."), 404)
             except Refusal as refusal:  # the operations', the gateway link's, the alerts'
                 return refusal_response(refusal)
             except RequestDataTooBig:
                 return body_too_large()
             except TooManyFieldsSent:
-                return error("too_many_fields", "The query string has more than "
-                             f"{settings.DATA_UPLOAD_MAX_NUMBER_FIELDS:,} fields; send fewer.", 400)
+                return error("too_many_fields", _("The query string has more than %(most)s fields; send fewer.") % {
+                    "most": f"{settings.DATA_UPLOAD_MAX_NUMBER_FIELDS:,}"}, 400)
             except SuspiciousOperation as exc:  # Django's other refusals of a malformed request
-                return error("bad_request", f"The request was refused: {exc}", 400)
+                return error("bad_request", _("The request was refused: %(reason)s") % {"reason": exc}, 400)
             except DataError:  # PostgreSQL: a NUL character, or text longer than its column
                 return error("bad_request", DATA_ERROR_MESSAGE, 400)
 
@@ -263,11 +284,18 @@ def api_view(methods: tuple[str, ...] = ("GET",), permission: str = VIEW_PERMISS
     return decorate
 
 
+def lacks_role(needed: str) -> str:
+    """The refusal of a request the account's role does not allow; ``needed``: "viewer",
+    "operator or admin" or "admin" (as the record of the denial names it)."""
+    roles = {"viewer": _("viewer"), "operator or admin": _("operator or admin"), "admin": _("admin")}
+    return _("Your account lacks the role for this (%(needed)s needed).") % {"needed": roles.get(needed, needed)}
+
+
 @csrf_exempt  # a POST to an unknown path is a 404, not a CSRF refusal
 def not_found(request: HttpRequest, path: str = "") -> JsonResponse:
     """Unknown API paths answer in JSON too, whatever the method."""
     where = "/api/v1/" + path
-    return error("not_found", f"There is no API endpoint {cut(where)}; see docs/api.md.", 404)
+    return error("not_found", _("There is no API endpoint %(path)s; see docs/api.md.") % {"path": cut(where)}, 404)
 
 
 def bad_request(request: HttpRequest, exception: Exception | None = None):
@@ -279,4 +307,5 @@ def bad_request(request: HttpRequest, exception: Exception | None = None):
         return page(request, exception)
     if isinstance(exception, RequestDataTooBig):
         return body_too_large()
-    return error("bad_request", f"The request was refused: {cut(str(exception or 'malformed request'))}", 400)
+    reason = cut(str(exception)) if exception else _("malformed request")
+    return error("bad_request", _("The request was refused: %(reason)s") % {"reason": reason}, 400)

@@ -4,6 +4,7 @@ status's level changes, newest first."""
 from __future__ import annotations
 
 from django.http import HttpRequest, JsonResponse
+from django.utils.translation import gettext as _
 
 from lifecycle_site.api.auth import api_view
 from lifecycle_site.api.processes import robot_or_404
@@ -29,14 +30,16 @@ def status_history(request: HttpRequest, name: str) -> JsonResponse:
     robot = robot_or_404(name)
     status_name = request.GET.get("name", "")
     if not status_name:
-        raise Refusal("missing_field", "Name the status: ?name=/Robot/Sensors/Lidar (its full name).", 400)
+        raise Refusal("missing_field", _("Name the status: ?name=/Robot/Sensors/Lidar (its full name)."), 400)
     status = Status.objects.filter(robot=robot, name=status_name).first()
     if status is None:
-        raise Refusal("not_found", f"Robot {robot.name} has no diagnostic status named {shown(status_name)}; "
-                      f"GET /api/v1/robots/{robot.name}/diagnostics lists them.", 404)
+        raise Refusal("not_found", _("Robot %(robot)s has no diagnostic status named %(name)s; "
+                                     "GET /api/v1/robots/%(robot)s/diagnostics lists them.") % {
+            "robot": robot.name, "name": shown(status_name)}, 404)
     try:
         limit = min(max(int(request.GET.get("limit", MAX_HISTORY)), 1), MAX_HISTORY)
     except ValueError:
-        raise Refusal("invalid_field", f"limit must be a whole number from 1 to {MAX_HISTORY}.", 400) from None
+        raise Refusal("invalid_field", _("limit must be a whole number from 1 to %(most)s.") % {"most": MAX_HISTORY},
+                      400) from None
     return JsonResponse({"robot": robot.name, "status": status.as_dict(),
                          "changes": [c.as_dict() for c in history.changes(robot, status_name, limit)]})

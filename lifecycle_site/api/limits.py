@@ -5,6 +5,7 @@ layer (lifecycle_site/serve.py) enforces too, before a body is read."""
 from __future__ import annotations
 
 from django.conf import settings
+from django.utils.translation import gettext as _
 
 # Lists and objects nested deeper than this in a JSON body are refused (no endpoint needs more
 # than 3: a parameter holding an array, inside the body).
@@ -27,5 +28,5 @@ def size_text(size: int) -> str:
         return f"{size // (1024 * 1024)} MiB"
     if size % 1024 == 0:
         return f"{size // 1024} KiB"
-    return f"{size:,} bytes"
+    return _("%(size)s bytes") % {"size": f"{size:,}"}
 

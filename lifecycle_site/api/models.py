@@ -13,6 +13,8 @@ import secrets
 from django.conf import settings
 from django.db import models, transaction
 from django.db.models.signals import pre_delete
+from django.utils.translation import gettext as _
+from django.utils.translation import gettext_lazy
 
 TOKEN_PREFIX = "lcm_"
 MAX_TOKENS_PER_USER = 20
@@ -27,15 +29,16 @@ class TooManyTokens(Exception):
 
     @classmethod
     def of(cls, user) -> "TooManyTokens":
-        return cls(f"{user.get_username()} has {MAX_TOKENS_PER_USER} tokens already, the most one account may "
-                   "have: revoke one that is no longer used first.")
+        return cls(_("%(user)s has %(most)s tokens already, the most one account may have: revoke one that is no "
+                     "longer used first.") % {"user": user.get_username(), "most": MAX_TOKENS_PER_USER})
 
 
 class ApiToken(models.Model):
     user = models.ForeignKey(settings.AUTH_USER_MODEL, on_delete=models.CASCADE, related_name="api_tokens")
-    name = models.CharField(max_length=100, blank=True, help_text="What the token is for.")
+    name = models.CharField(max_length=100, blank=True, help_text=gettext_lazy("What the token is for."))
     digest = models.CharField(max_length=64, unique=True, editable=False)
-    hint = models.CharField(max_length=12, editable=False, help_text="First characters, to tell tokens apart.")
+    hint = models.CharField(max_length=12, editable=False,
+                            help_text=gettext_lazy("First characters, to tell tokens apart."))
     created = models.DateTimeField(auto_now_add=True)
     last_used = models.DateTimeField(null=True, blank=True)
 
@@ -72,22 +75,26 @@ class TokenEvent(models.Model):
     CREATED, REVOKED = "created", "revoked"
 
     at = models.DateTimeField(auto_now_add=True, db_index=True)
-    action = models.CharField(max_length=8, choices=[(CREATED, "created"), (REVOKED, "revoked")])
-    hint = models.CharField("token", max_length=12, help_text="The token's first characters.")
+    action = models.CharField(max_length=8, choices=[(CREATED, gettext_lazy("created")),
+                                                     (REVOKED, gettext_lazy("revoked"))])
+    hint = models.CharField(gettext_lazy("token"), max_length=12,
+                            help_text=gettext_lazy("The token's first characters."))
     token_name = models.CharField(max_length=100, blank=True)
     owner = models.ForeignKey(settings.AUTH_USER_MODEL, null=True, blank=True, on_delete=models.SET_NULL,
                               related_name="+")
-    owner_name = models.CharField("token of", max_length=150)
+    owner_name = models.CharField(gettext_lazy("token of"), max_length=150)
     actor = models.ForeignKey(settings.AUTH_USER_MODEL, null=True, blank=True, on_delete=models.SET_NULL,
                               related_name="+")
-    actor_name = models.CharField("by", max_length=150, blank=True)
-    via = models.CharField(max_length=32, blank=True, help_text="admin, the API tokens page, the command line")
+    actor_name = models.CharField(gettext_lazy("by"), max_length=150, blank=True)
+    via = models.CharField(max_length=32, blank=True,
+                           help_text=gettext_lazy("admin, the API tokens page, the command line"))
 
     class Meta:
         ordering = ["-at", "-id"]
 
     def __str__(self) -> str:
-        return f"{self.hint}… {self.action} by {self.actor_name or '?'}"
+        return _("%(hint)s… %(action)s by %(actor)s") % {
+            "hint": self.hint, "action": self.get_action_display(), "actor": self.actor_name or "?"}
 
     def save(self, *args, **kwargs) -> None:
         if self.pk is not None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from django.db import transaction
 from django.http import Http404, HttpRequest, HttpResponse, JsonResponse
+from django.utils.translation import gettext as _
 from django.views.decorators.csrf import csrf_exempt
 
 from lifecycle_site.api.auth import api_view, error, json_body
@@ -21,11 +22,11 @@ OPERATE, DEFINE = "fleet.operate_node", "modes.change_mode"
 def _robots_named(names: object) -> list[Robot]:
     """The robots a request names ("robots": [...]), or the Refusal saying which are not."""
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names) or len(names) > 1000:
-        raise Refusal("invalid_field", "'robots' must be a list of robot names.", 400)
+        raise Refusal("invalid_field", _("'robots' must be a list of robot names."), 400)
     robots = list(Robot.objects.filter(name__in=names))
     unknown = sorted(set(names) - {r.name for r in robots})
     if unknown:
-        raise Refusal("not_found", f"There is no robot named {', '.join(unknown[:5])}.", 404)
+        raise Refusal("not_found", _("There is no robot named %(names)s.") % {"names": ", ".join(unknown[:5])}, 404)
     return robots
 
 
@@ -67,21 +68,21 @@ def mode(request: HttpRequest, name: str) -> JsonResponse:
 def _mode_read(request: HttpRequest, name: str) -> JsonResponse:
     found = Mode.objects.filter(name=name).first()
     if found is None:
-        raise Http404(f"There is no mode named {shown(name)}.")
+        raise Http404(_("There is no mode named %(name)s.") % {"name": shown(name)})
     return JsonResponse({"mode": found.as_dict()})
 
 
 @api_view(methods=("PUT", "DELETE"), permission=DEFINE)
 def _mode_write(request: HttpRequest, name: str) -> JsonResponse:
     if request.method == "DELETE":
-        deleted, _ = Mode.objects.filter(name=name).delete()
+        deleted, _by_model = Mode.objects.filter(name=name).delete()
         if not deleted:
-            raise Http404(f"There is no mode named {shown(name)}.")
+            raise Http404(_("There is no mode named %(name)s.") % {"name": shown(name)})
         return JsonResponse({"deleted": name})
     try:
         MODE_NAME_VALIDATOR(name)
     except Exception:  # ValidationError: the name is the path's
-        return error("invalid_field", f"{shown(name)}: {MODE_NAME_VALIDATOR.message}", 400)
+        return error("invalid_field", f"{shown(name)}: {MODE_NAME_VALIDATOR.message}", 400)  # (the validator's words)
     body = json_body(request, shape=dict, wanted='{"robots": ["agv-1"], "nodes": {"/lidar_driver": '
                                                  '{"state": "active", "parameters": {}}}, "ready_when": []}')
     nodes, robots, description = body.get("nodes", {}), body.get("robots", []), body.get("description", "")
@@ -91,7 +92,7 @@ def _mode_write(request: HttpRequest, name: str) -> JsonResponse:
         return error("invalid_mode", " ".join(problems[:5]), 400, problems=problems[:50])
     found = _robots_named(robots)
     if not isinstance(description, str) or len(description) > 2000:
-        return error("invalid_field", "'description' must be a text of at most 2000 characters.", 400)
+        return error("invalid_field", _("'description' must be a text of at most 2000 characters."), 400)
     with transaction.atomic():
         saved, created = Mode.objects.update_or_create(
             name=name, defaults={"nodes": nodes, "description": description, "ready_when": ready_when,
@@ -116,6 +117,6 @@ def import_file(request: HttpRequest) -> JsonResponse:
     body = json_body(request, shape=dict, wanted='{"yaml": "modes: ...", "robots": ["agv-1"], "save": false}')
     text, names = body.get("yaml"), body.get("robots", [])
     if not isinstance(text, str):
-        return error("missing_field", "Send the file's text as 'yaml'.", 400)
+        return error("missing_field", _("Send the file's text as 'yaml'."), 400)
     found = import_modes(text, _robots_named(names), request.user, save=body.get("save") is True)
     return JsonResponse(found, status=201 if found["saved"] else 200)

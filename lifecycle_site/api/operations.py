@@ -5,6 +5,7 @@ import math
 
 from django.db import transaction
 from django.http import Http404, HttpRequest, JsonResponse
+from django.utils.translation import gettext as _
 
 from lifecycle_site.api.auth import api_view, error, json_body
 from lifecycle_site.api.limits import MAX_NODES
@@ -28,8 +29,8 @@ def positive_seconds(value, name: str, default: float) -> float:
     if value is None:
         return default
     if not param_types.is_number(value) or not 0 < value <= MAX_SERVICE_TIMEOUT:
-        raise Refusal("invalid_field", f"'{name}' must be a positive number of seconds, at most "
-                         f"{MAX_SERVICE_TIMEOUT:g} (per node).")
+        raise Refusal("invalid_field", _("'%(name)s' must be a positive number of seconds, at most %(most)s "
+                                         "(per node).") % {"name": name, "most": f"{MAX_SERVICE_TIMEOUT:g}"})
     return float(value)
 
 
@@ -48,23 +49,27 @@ def run_answer(request: HttpRequest, run: GroupRun) -> JsonResponse:
 def robot_operation(request: HttpRequest, name: str) -> JsonResponse:
     robot = Robot.objects.filter(name=name).first()
     if robot is None:
-        raise Http404(f"There is no robot named {shown(name)}.")
+        raise Http404(_("There is no robot named %(name)s.") % {"name": shown(name)})
     body = _body(request)
     robot_operations = operations.names(operations.ROBOT)
     if "operation" not in body:
-        return error("missing_field", f'Send {{"operation": "bringup"}} ({", ".join(robot_operations)}).', 400)
+        return error("missing_field", _('Send {"operation": "bringup"} (%(operations)s).') % {
+            "operations": ", ".join(robot_operations)}, 400)
     operation = body["operation"]
     if not isinstance(operation, str) or operation not in robot_operations:
-        return error("unknown_operation", f"{shown(operation)} is not an operation of a robot; use one of "
-                     f"{', '.join(robot_operations)}.", 400)
+        return error("unknown_operation", _("%(operation)s is not an operation of a robot; use one of "
+                                            "%(operations)s.") % {
+            "operation": shown(operation), "operations": ", ".join(robot_operations)}, 400)
     nodes = body.get("nodes") or []
     if not isinstance(nodes, list) or not all(isinstance(n, str) for n in nodes):
-        return error("invalid_field", "'nodes' must be a list of ROS node names.", 400)
+        return error("invalid_field", _("'nodes' must be a list of ROS node names."), 400)
     if len(nodes) > MAX_NODES:
-        return error("too_many_items", f"'nodes' names {len(nodes):,} nodes; at most {MAX_NODES} are taken "
-                     "in one operation (leave it out to run every node of the robot).", 400, limit=MAX_NODES)
+        return error("too_many_items", _("'nodes' names %(count)s nodes; at most %(most)s are taken in one "
+                                         "operation (leave it out to run every node of the robot).") % {
+            "count": f"{len(nodes):,}", "most": MAX_NODES}, 400, limit=MAX_NODES)
     if any(len(n) > NODE_NAME_LENGTH for n in nodes):
-        return error("invalid_field", f"A node name is at most {NODE_NAME_LENGTH} characters long.", 400)
+        return error("invalid_field", _("A node name is at most %(most)s characters long.") % {
+            "most": NODE_NAME_LENGTH}, 400)
     run = start_run(
         robot, operation, user=request.user, source="api", policy=str(body.get("policy", GroupRun.Policy.STOP)),
         node_timeout=positive_seconds(body.get("timeout"), "timeout", 5.0), nodes=nodes,
@@ -85,14 +90,14 @@ def node_restart(request: HttpRequest, key: str) -> JsonResponse:
 def run_detail(request: HttpRequest, run_id: str) -> JsonResponse:
     run = GroupRun.objects.select_related("robot", "requested_by").filter(pk=run_id).first()
     if run is None:
-        raise Http404(f"There is no run {shown(run_id)}.")
+        raise Http404(_("There is no run %(id)s.") % {"id": shown(run_id)})
     return run_answer(request, run)
 
 
 @api_view()
 def robot_runs(request: HttpRequest, name: str) -> JsonResponse:
     if not Robot.objects.filter(name=name).exists():
-        raise Http404(f"There is no robot {shown(name)}.")
+        raise Http404(_("There is no robot %(name)s.") % {"name": shown(name)})
     runs = GroupRun.objects.select_related("robot", "requested_by").filter(robot__name=name)[:50]
     return JsonResponse({"runs": [r.as_dict() for r in runs]})
 
@@ -102,8 +107,9 @@ def desired_state(request: HttpRequest, key: str) -> JsonResponse:
     node = get_node(key)
     body = _body(request)
     if not {"desired_state", "keep", "resume"} & set(body):
-        return error("missing_field", 'Send {"desired_state": "active"} (or null to clear it), {"keep": "enforce"} '
-                     '(off, alert, enforce; null: as its robot) or {"resume": true} (after a fight).', 400)
+        return error("missing_field", _('Send {"desired_state": "active"} (or null to clear it), {"keep": '
+                                        '"enforce"} (off, alert, enforce; null: as its robot) or {"resume": true} '
+                                        '(after a fight).'), 400)
     with transaction.atomic():  # all or nothing: a refusal rolls back what came before it
         if "desired_state" in body:
             set_desired_state(node, body["desired_state"])  # null clears it; false, 0, [] are no state

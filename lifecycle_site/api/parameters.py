@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from django.http import HttpRequest, HttpResponse, JsonResponse
+from django.utils.translation import gettext as _
 
 from lifecycle_site.api.auth import api_view, error, json_body
 from lifecycle_site.api.limits import MAX_PARAMETERS
@@ -10,28 +11,33 @@ from lifecycle_site.fleet.param_files import dump
 from lifecycle_site.operations.parameters import apply, fetch
 
 
+def not_running(node) -> str:
+    return _("%(node)s is not running on %(robot)s.") % {"node": node.name, "robot": node.robot.name}
+
+
 @api_view(methods=("GET", "PATCH"))
 def node_parameters(request: HttpRequest, key: str) -> JsonResponse:
     node = get_node(key)
     if not node.alive:
-        return error("node_offline", f"{node.name} is not running on {node.robot.name}.", 409)
+        return error("node_offline", not_running(node), 409)
     if request.method == "GET":
         return JsonResponse({"node": node.key, "parameters": fetch(node)})
     if not request.user.has_perm("fleet.operate_node"):
-        return error("forbidden", "Your role may view parameters but not change them (operator needed).", 403)
+        return error("forbidden", _("Your role may view parameters but not change them (operator needed)."), 403)
     values = json_body(request)
     if not isinstance(values, dict) or not values:
-        return error("missing_field", 'Send the new values as {"name": value, ...}.', 400)
+        return error("missing_field", _('Send the new values as {"name": value, ...}.'), 400)
     if len(values) > MAX_PARAMETERS:  # each one is sent to the node and audited
-        return error("too_many_items", f"The body names {len(values):,} parameters; at most {MAX_PARAMETERS} "
-                     "are taken in one request (nothing was sent).", 400, limit=MAX_PARAMETERS)
+        return error("too_many_items", _("The body names %(count)s parameters; at most %(most)s are taken in one "
+                                         "request (nothing was sent).") % {
+            "count": f"{len(values):,}", "most": MAX_PARAMETERS}, 400, limit=MAX_PARAMETERS)
     results = apply(node, values, request.user, "api")
     if all(r["successful"] for r in results):
         return JsonResponse({"node": node.key, "results": results})
     refused = [r["name"] for r in results if not r["successful"]]
     return error(
         "parameters_rejected",
-        f"Not set: {', '.join(refused)} (see results for each reason; the others were set).",
+        _("Not set: %(names)s (see results for each reason; the others were set).") % {"names": ", ".join(refused)},
         422,
         results=results,
     )
@@ -41,7 +47,7 @@ def node_parameters(request: HttpRequest, key: str) -> JsonResponse:
 def parameters_yaml(request: HttpRequest, key: str) -> HttpResponse:
     node = get_node(key)
     if not node.alive:
-        return error("node_offline", f"{node.name} is not running on {node.robot.name}.", 409)
+        return error("node_offline", not_running(node), 409)
     response = HttpResponse(dump(node.name, fetch(node)), content_type="application/x-yaml; charset=utf-8")
     response["Content-Disposition"] = f'attachment; filename="{node.key}.yaml"'
     return response

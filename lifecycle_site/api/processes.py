@@ -4,6 +4,7 @@ stop, restart (docs/api.md, "Processes")."""
 from __future__ import annotations
 
 from django.http import Http404, HttpRequest, JsonResponse
+from django.utils.translation import gettext as _
 
 from lifecycle_site.api.auth import api_view, json_body
 from lifecycle_site.audit.models import ProcessRecord
@@ -18,7 +19,7 @@ RECORDS_SHOWN = 20
 def robot_or_404(name: str) -> Robot:
     robot = Robot.objects.select_related("gateway").filter(name=name).first()
     if robot is None:
-        raise Http404(f"There is no robot named {shown(name)}.")
+        raise Http404(_("There is no robot named %(name)s.") % {"name": shown(name)})
     return robot
 
 
@@ -43,7 +44,7 @@ def process_action(request: HttpRequest, name: str, process: str) -> JsonRespons
     is the action's audit record (a refusal: the API's error, with the record's id)."""
     body = json_body(request, shape=dict)
     if "action" not in body:
-        raise Refusal("missing_field", 'Send {"action": "restart"} (start, stop or restart).')
+        raise Refusal("missing_field", _('Send {"action": "restart"} (start, stop or restart).'))
     robot = robot_or_404(name)
     record = processes.control(processes.profile_of(robot, process), body["action"], request.user, "api")
     return JsonResponse({"record": record.as_dict(), "process": processes.profile_of(robot, process).as_dict()})

@@ -5,6 +5,7 @@ availability, failures, restarts and the events to look at, rebuilt from the aud
 from __future__ import annotations
 
 from django.http import HttpRequest, JsonResponse
+from django.utils.translation import gettext as _
 
 from lifecycle_site.api.auth import api_view, error
 from lifecycle_site.api.views import get_node
@@ -22,7 +23,8 @@ def _window(request: HttpRequest) -> tw.Window:
         if request.GET.get("from") or request.GET.get("to"):
             raise Refusal("invalid_field", f"from, to: {exc}") from None
         asked = request.GET.get("window", "")
-        raise Refusal("invalid_field", f"window must be one of {', '.join(tl.WINDOWS)}, not {shown(asked)}.") from None
+        raise Refusal("invalid_field", _("window must be one of %(windows)s, not %(asked)s.") % {
+            "windows": ", ".join(tl.WINDOWS), "asked": shown(asked)}) from None
 
 
 @api_view()
@@ -37,5 +39,6 @@ def robot_timeline(request: HttpRequest, name: str) -> JsonResponse:
     window = _window(request)
     robot = Robot.objects.filter(name=name).first()
     if robot is None:
-        return error("not_found", f"There is no robot named {shown(name)}; GET /api/v1/robots lists them.", 404)
+        return error("not_found", _("There is no robot named %(name)s; GET /api/v1/robots lists them.") % {
+            "name": shown(name)}, 404)
     return JsonResponse(robot_timeline_of(robot, window).as_dict())

@@ -5,6 +5,8 @@ from __future__ import annotations
 from django.core.cache import cache
 from django.db.models import Count, Q
 from django.http import Http404, HttpRequest, JsonResponse
+from django.utils.translation import gettext as _
+from django.utils.translation import gettext_noop
 
 from lifecycle_site.api.auth import api_view, error, json_body
 from lifecycle_site.audit.models import TransitionRecord
@@ -14,7 +16,7 @@ from lifecycle_site.gateway_link import gateway_input as checks
 from lifecycle_site.gateway_link import gateways as gateway_status
 from lifecycle_site.gateway_link.gateway_client import MAX_SERVICE_TIMEOUT, GatewayError, call_gateway
 from lifecycle_site.operations.transitions import request_transition
-from lifecycle_site.refusal import shown
+from lifecycle_site.refusal import both, shown
 from ros_gateway.shared import param_types, protocol
 from ros_gateway.shared import state_machine as sm
 
@@ -81,7 +83,7 @@ def nodes(request: HttpRequest) -> JsonResponse:
     robot = request.GET.get("robot")
     if robot:
         if not Robot.objects.filter(name=robot).exists():
-            return error("not_found", f"There is no robot named {shown(robot)}.", 404)
+            return error("not_found", _("There is no robot named %(name)s.") % {"name": shown(robot)}, 404)
         queryset = queryset.filter(robot__name=robot)
     return JsonResponse({"nodes": [node_dict(n) for n in queryset]})
 
@@ -117,9 +119,10 @@ def _described_by_node(node: ManagedNode) -> tuple[list, list]:
                                        "states")
             graph = checks.small_list(call_gateway(gateway, protocol.GET_TRANSITION_GRAPH, **where).get("graph"),
                                       "graph")
-        except checks.GatewayInputRefused as exc:
-            raise GatewayError("gateway_error", f"Gateway {gateway} answered with something the site cannot read "
-                               f"({exc}).", carried_out=False) from None
+        except checks.GatewayInputRefused as exc:  # (its reason in English, as logged and counted)
+            text, english = both(gettext_noop("Gateway %(gateway)s answered with something the site cannot read "
+                                              "(%(reason)s)."), gateway=gateway, reason=exc)
+            raise GatewayError("gateway_error", text, carried_out=False, english=english) from None
         described = (states, graph)
         cache.set(key, described, DESCRIPTION_TTL_S)
     return described
@@ -128,7 +131,7 @@ def _described_by_node(node: ManagedNode) -> tuple[list, list]:
 def get_node(key: str) -> ManagedNode:
     node = ManagedNode.objects.select_related("robot__gateway").filter(key=key).first()
     if node is None:
-        raise Http404(f"There is no node with id {shown(key)}; GET /api/v1/nodes lists them.")
+        raise Http404(_("There is no node with id %(id)s; GET /api/v1/nodes lists them.") % {"id": shown(key)})
     return node
 
 
@@ -136,11 +139,11 @@ def get_node(key: str) -> ManagedNode:
 def transition(request: HttpRequest, key: str) -> JsonResponse:
     body = json_body(request)
     if not isinstance(body, dict) or "transition" not in body:
-        return error("missing_field", 'Send {"transition": "configure"} (a label or a numeric id).', 400)
+        return error("missing_field", _('Send {"transition": "configure"} (a label or a numeric id).'), 400)
     timeout = body.get("timeout")
     if timeout is not None and (not param_types.is_number(timeout) or not 0 < timeout <= MAX_SERVICE_TIMEOUT):
-        return error("invalid_field",
-                     f"'timeout' must be a positive number of seconds, at most {MAX_SERVICE_TIMEOUT:g}.", 400)
+        return error("invalid_field", _("'timeout' must be a positive number of seconds, at most %(most)s.") % {
+            "most": f"{MAX_SERVICE_TIMEOUT:g}"}, 400)
     done = request_transition(get_node(key), body["transition"], request.user, "api", timeout)
     return JsonResponse(done.data)  # a refusal is answered by api_view
 
@@ -152,7 +155,7 @@ def node_logs(request: HttpRequest, key: str) -> JsonResponse:
     level = request.GET.get("level")
     if level:
         if level.upper() not in LEVELS:
-            return error("invalid_field", f"level must be one of {', '.join(LEVELS)}.", 400)
+            return error("invalid_field", _("level must be one of %(levels)s.") % {"levels": ", ".join(LEVELS)}, 400)
         records = records.filter(level__gte=LEVELS[level.upper()])
     rows = list(records.order_by("-id")[: _limit(request, 100)])
     return JsonResponse({"node": node.key, "records": [r.as_dict() for r in reversed(rows)]})
@@ -164,7 +167,7 @@ def transitions(request: HttpRequest) -> JsonResponse:
     robot = request.GET.get("robot")
     if robot:
         if not Robot.objects.filter(name=robot).exists() and not records.filter(robot_name=robot).exists():
-            return error("not_found", f"There is no robot named {shown(robot)}.", 404)
+            return error("not_found", _("There is no robot named %(name)s.") % {"name": shown(robot)}, 404)
         records = records.filter(robot_name=robot)
     if request.GET.get("node"):
         wanted = request.GET["node"]

@@ -92,9 +92,8 @@ def _login_failed(sender, credentials: dict, request: HttpRequest | None = None,
     if getattr(request, "axes_locked_out", False):  # django-axes: refused before the password was checked
         record(request, 429, "login_blocked", "too many failed logins for this account or address", username=username)
     else:
-        from lifecycle_site.sign_in import problems  # a company sign-in refused for a reason of its own
-
-        problem = problems.noted(request)
+        # A company sign-in refused for a reason of its own (sign_in/problems.py notes it on the request).
+        problem = getattr(request, "sign_in_problem", None)
         record(request, 401, "login_failed", problem.summary if problem else "wrong user name or password",
                username=username)
 

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from django.conf import settings
 from django.db import models
+from django.utils.translation import gettext_lazy, pgettext_lazy
 
 
 class AppendOnlyError(Exception):
@@ -43,22 +44,22 @@ class AppendOnlyRecord(models.Model):
 
 class TransitionRecord(AppendOnlyRecord):
     class Outcome(models.TextChoices):
-        SUCCEEDED = "succeeded", "succeeded"
-        FAILED = "failed", "failed"
-        REJECTED = "rejected", "rejected"
-        TIMED_OUT = "timed_out", "timed out"
-        OBSERVED = "observed", "observed"
+        SUCCEEDED = "succeeded", pgettext_lazy("outcome", "succeeded")
+        FAILED = "failed", pgettext_lazy("outcome", "failed")
+        REJECTED = "rejected", pgettext_lazy("outcome", "rejected")
+        TIMED_OUT = "timed_out", pgettext_lazy("outcome", "timed out")
+        OBSERVED = "observed", pgettext_lazy("outcome", "observed")
         # Not transitions: the node's process ended (during a transition, or by itself), or a
         # new instance of it appeared (its state then read fresh). See ros_gateway/processes.py.
-        PROCESS_LOST = "process_lost", "process lost"
-        PROCESS_RESTARTED = "process_restarted", "process restarted (new instance)"
+        PROCESS_LOST = "process_lost", gettext_lazy("process lost")
+        PROCESS_RESTARTED = "process_restarted", gettext_lazy("process restarted (new instance)")
 
     class Source(models.TextChoices):
-        DASHBOARD = "dashboard", "dashboard"
-        API = "api", "API"
-        EXTERNAL = "external", "external tool"
-        RECOVERY = "recovery", "automatic recovery"
-        CLI = "cli", "command line"
+        DASHBOARD = "dashboard", pgettext_lazy("source", "dashboard")
+        API = "api", "API"  # (the same word in every language)
+        EXTERNAL = "external", gettext_lazy("external tool")
+        RECOVERY = "recovery", gettext_lazy("automatic recovery")
+        CLI = "cli", pgettext_lazy("source", "command line")
 
     # Kept as plain text too, so the record stays readable after a node or robot is deleted.
     node = models.ForeignKey(
@@ -83,7 +84,8 @@ class TransitionRecord(AppendOnlyRecord):
     completed_at = models.DateTimeField(null=True, blank=True)
     duration_ms = models.FloatField(null=True, blank=True)
     error = models.TextField(blank=True)
-    run_id = models.CharField(max_length=64, blank=True, help_text="Groups the steps of one group operation.")
+    run_id = models.CharField(max_length=64, blank=True,
+                              help_text=gettext_lazy("Groups the steps of one group operation."))
     # The id of the gateway's fact this record was made from: applying a fact twice makes one record.
     fact_id = models.CharField(max_length=32, null=True, blank=True, unique=True, editable=False)
 
@@ -136,16 +138,17 @@ class ParameterRecord(AppendOnlyRecord):
     )
     robot_name = models.CharField(max_length=63)
     node_name = models.CharField(max_length=255)
-    name = models.CharField("parameter", max_length=255)
+    name = models.CharField(gettext_lazy("parameter"), max_length=255)
     old_value = models.JSONField(null=True, blank=True)
     new_value = models.JSONField(null=True, blank=True)
-    outcome = models.CharField(max_length=16, choices=[("succeeded", "succeeded"), ("rejected", "rejected"),
-                                                        ("observed", "observed")])
+    outcome = models.CharField(max_length=16, choices=[("succeeded", pgettext_lazy("outcome", "succeeded")),
+                                                        ("rejected", pgettext_lazy("outcome", "rejected")),
+                                                        ("observed", pgettext_lazy("outcome", "observed"))])
     reason = models.TextField(blank=True)
     source = models.CharField(max_length=16, choices=TransitionRecord.Source.choices)
     at = models.DateTimeField()
     fact_id = models.CharField(max_length=32, null=True, blank=True, unique=True, editable=False)
-    run_id = models.CharField(max_length=64, blank=True, help_text="The run (a mode's) that set it.")
+    run_id = models.CharField(max_length=64, blank=True, help_text=gettext_lazy("The run (a mode's) that set it."))
 
     class Meta:
         ordering = ["-at", "-id"]
@@ -173,29 +176,30 @@ class ProcessRecord(AppendOnlyRecord):
     or refused, or what the supervisor did by itself (an exit, a respawn, giving up)."""
 
     class Action(models.TextChoices):
-        START = "start", "start"
-        STOP = "stop", "stop"
-        RESTART = "restart", "restart"
-        EXITED = "exited", "exited"
-        RESPAWN = "respawn", "respawned"
-        GAVE_UP = "gave_up", "respawning given up"
+        START = "start", pgettext_lazy("process action", "start")
+        STOP = "stop", pgettext_lazy("process action", "stop")
+        RESTART = "restart", pgettext_lazy("process action", "restart")
+        EXITED = "exited", gettext_lazy("exited")
+        RESPAWN = "respawn", gettext_lazy("respawned")
+        GAVE_UP = "gave_up", gettext_lazy("respawning given up")
 
     class Source(models.TextChoices):
-        DASHBOARD = "dashboard", "dashboard"
-        API = "api", "API"
-        CLI = "cli", "command line"
-        SUPERVISOR = "supervisor", "supervisor (by itself)"
-        CONFIG = "config", "profile changed"
-        EXTERNAL = "external", "external"
+        DASHBOARD = "dashboard", pgettext_lazy("source", "dashboard")
+        API = "api", "API"  # (the same word in every language)
+        CLI = "cli", pgettext_lazy("source", "command line")
+        SUPERVISOR = "supervisor", gettext_lazy("supervisor (by itself)")
+        CONFIG = "config", gettext_lazy("profile changed")
+        EXTERNAL = "external", pgettext_lazy("source", "external")
 
     profile = models.ForeignKey("fleet.ProcessProfile", null=True, blank=True, on_delete=models.SET_NULL,
                                 related_name="records")
     robot_name = models.CharField(max_length=63)
-    process_name = models.CharField("process", max_length=64)
-    supervisor = models.CharField(max_length=16, default="launch", help_text="What started the process.")
+    process_name = models.CharField(gettext_lazy("process"), max_length=64)
+    supervisor = models.CharField(max_length=16, default="launch", help_text=gettext_lazy("What started the process."))
     action = models.CharField(max_length=16, choices=Action.choices)
-    outcome = models.CharField(max_length=16, choices=[("succeeded", "succeeded"), ("failed", "failed"),
-                                                        ("rejected", "rejected")])
+    outcome = models.CharField(max_length=16, choices=[("succeeded", pgettext_lazy("outcome", "succeeded")),
+                                                        ("failed", pgettext_lazy("outcome", "failed")),
+                                                        ("rejected", pgettext_lazy("outcome", "rejected"))])
     source = models.CharField(max_length=16, choices=Source.choices)
     pid = models.PositiveIntegerField(null=True, blank=True)
     old_pid = models.PositiveIntegerField(null=True, blank=True)
@@ -227,8 +231,10 @@ class AccessDenial(models.Model):
     at = models.DateTimeField(auto_now_add=True, db_index=True)
     user = models.ForeignKey(settings.AUTH_USER_MODEL, null=True, blank=True, on_delete=models.SET_NULL,
                              related_name="+")
-    username = models.CharField(max_length=150, blank=True, help_text="The account, or the name tried at login.")
-    client = models.CharField(max_length=64, blank=True, help_text="The client's address as the site saw it.")
+    username = models.CharField(max_length=150, blank=True,
+                                help_text=gettext_lazy("The account, or the name tried at login."))
+    client = models.CharField(max_length=64, blank=True,
+                              help_text=gettext_lazy("The client's address as the site saw it."))
     method = models.CharField(max_length=8)
     path = models.CharField(max_length=300)
     status = models.PositiveSmallIntegerField()

@@ -6,6 +6,8 @@ from functools import wraps
 from django.contrib.auth.decorators import login_required
 from django.http import HttpRequest, HttpResponse
 from django.shortcuts import render
+from django.utils.html import format_html
+from django.utils.translation import gettext as _
 
 from lifecycle_site.audit import denials
 
@@ -32,7 +34,8 @@ def operator_required(view):
         if not request.user.has_perm("fleet.operate_node"):
             denials.record(request, 403, "forbidden", "operator needed")
             return HttpResponse(
-                '<p class="result fail" role="alert">Your role may view but not operate nodes (operator needed).</p>',
+                format_html('<p class="result fail" role="alert">{}</p>',
+                            _("Your role may view but not operate nodes (operator needed).")),
                 status=403,
             )
         return view(request, *args, **kwargs)

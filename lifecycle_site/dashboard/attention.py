@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from django.core.cache import cache
 from django.db.models import OuterRef, Q, Subquery
+from django.utils.translation import get_language, gettext, gettext_noop
 
 from lifecycle_site.alerts.models import Alert
 from lifecycle_site.audit.models import TransitionRecord
@@ -40,14 +41,53 @@ OUTCOME_LABELS = dict(TransitionRecord.Outcome.choices)
 SHOWN = 12  # items the strip lists; the filter shows every affected row
 KEEP_S = 0.5
 REASON_CHARS = 400
+# A failed last transition's label by its outcome: with the transition's name, and without one.
+FAILED_LABELS = {
+    TransitionRecord.Outcome.FAILED: (gettext_noop("%(transition)s failed"), gettext_noop("transition failed")),
+    TransitionRecord.Outcome.TIMED_OUT: (gettext_noop("%(transition)s timed out"),
+                                         gettext_noop("transition timed out")),
+}
+GATEWAY_LABELS = {"quarantined": gettext_noop("gateway quarantined"), "never": gettext_noop("gateway never reported")}
+ALERT_FIRING = gettext_noop("alert firing: %(rule)s")
+
+# The strip is read once for every page whatever its language (current() is kept KEEP_S), so its
+# own words are kept as said() makes them: English text and values, which view() translates at
+# render time (in the page's, or the socket's, language). Each item has "label", "also" (and
+# "reason") in English, and "said": the same as said() pairs.
+Said = tuple[str, dict | None]
+
+
+def said(text: str, **values) -> Said:
+    """Words of the strip: a marked English text (gettext_noop) and its values."""
+    return text, values
+
+
+def plain(text: str) -> Said:
+    """Words that are not translated (a stored text, or none)."""
+    return text, None
+
+
+def english(words: Said) -> str:
+    text, values = words
+    return text % values if values else text
+
+
+def say(words: Said) -> str:
+    """In the active language."""
+    text, values = words
+    if values is None:
+        return text
+    return gettext(text) % values if values else gettext(text)
 
 
 def current(gateway_views: list[dict] | None = None) -> dict:
     """``{"items": [...], "count": n, "keys": [node keys], "gateways": [names]}``, kept KEEP_S.
     Each item: kind, label, key (a node's, or "" for a gateway), robot, node, gateway, reason,
-    at (ISO 8601, or None), also (the other labels of the same node). ``gateway_views``: the
-    gateways as snapshots.gateway_views() gives them, if the caller has them at hand."""
-    return cache.get_or_set("fleet-attention", lambda: _read(gateway_views), KEEP_S)
+    at (ISO 8601, or None), also (the other labels of the same node), said (label, also and reason
+    as said() keeps them: view() translates them). ``gateway_views``: the gateways as
+    snapshots.gateway_views() gives them, if the caller has them at hand."""
+    # (per language: a gateway's reason and a mode's drift come in words made as they are read)
+    return cache.get_or_set(f"fleet-attention:{get_language()}", lambda: _read(gateway_views), KEEP_S)
 
 
 def _read(gateway_views: list[dict] | None) -> dict:
@@ -57,7 +97,7 @@ def _read(gateway_views: list[dict] | None) -> dict:
             .values_list("key", "name", "robot__name", "robot__gateway__name", "state_label", "alive",
                          "gone_reason", "last_seen", "desired_state", "last_id", "last_outcome",
                          "robot__current_mode__mode__name", "enforcement_stopped", "enforcement_note"))
-    found: dict[str, list[tuple[str, str]]] = {}  # node key -> [(kind, label)]
+    found: dict[str, list[tuple[str, Said]]] = {}  # node key -> [(kind, label)]
     nodes: dict[str, tuple] = {}
     in_mode: set[str] = set()  # robots in a mode
     for row in rows:
@@ -66,18 +106,21 @@ def _read(gateway_views: list[dict] | None) -> dict:
             in_mode.add(robot)
         kinds = []
         if outcome in FAILED_OUTCOMES:
-            kinds.append((FAILED, ""))  # labelled from its record below
+            kinds.append((FAILED, plain("")))  # labelled from its record below
         if fight:  # its gateway stopped keeping it in its desired state (ros_gateway/desired_keeper.py)
-            kinds.append((FIGHT, "another manager keeps changing it"))
+            kinds.append((FIGHT, said(gettext_noop("another manager keeps changing it"))))
         if alive and desired and state != desired:
             # A mode's states are its nodes' desired states while it is current (lifecycle_site/modes).
-            kinds.append((NOT_DESIRED, f"not as mode {mode} says: {state}, the mode wants {desired}" if mode
-                          else f"not in its desired state: {state}, desired state {desired}"))
+            kinds.append((NOT_DESIRED, said(gettext_noop("not as mode %(mode)s says: %(state)s, the mode wants "
+                                                         "%(desired)s"), mode=mode, state=state, desired=desired)
+                          if mode else said(gettext_noop("not in its desired state: %(state)s, desired state "
+                                                         "%(desired)s"), state=state, desired=desired)))
         if not alive:
             if gone_reason == "process_lost":
-                kinds.append((PROCESS_LOST, "process lost"))
+                kinds.append((PROCESS_LOST, said(gettext_noop("process lost"))))
             else:
-                kinds.append((LOST, "not answering" if gone_reason == "unreachable" else "lost"))
+                kinds.append((LOST, said(gettext_noop("not answering")) if gone_reason == "unreachable"
+                              else said(gettext_noop("lost"))))
         if kinds:
             found[key], nodes[key] = kinds, row
     alerts: dict[str, list[dict]] = {}
@@ -94,19 +137,22 @@ def _read(gateway_views: list[dict] | None) -> dict:
     for key, fired in alerts.items():  # alerts about nodes that show nothing else
         first = fired[0]
         if first["node_name"]:
-            items.append({"kind": ALERT, "label": f"alert firing: {first['rule_name']}", "key": key,
+            label = said(ALERT_FIRING, rule=first["rule_name"])
+            items.append({"kind": ALERT, "label": english(label), "key": key,
                           "robot": first["robot_name"], "node": first["node_name"], "gateway": first["gateway_name"],
-                          "reason": first["summary"][:REASON_CHARS], "at": first["fired_at"].isoformat(), "also": []})
+                          "reason": first["summary"][:REASON_CHARS], "at": first["fired_at"].isoformat(), "also": [],
+                          "said": {"label": label, "also": []}})
     gateways = []
     for view in snapshots.gateway_views() if gateway_views is None else gateway_views:
         if view["robots"] and not view["online"]:
             gateways.append(view["name"])
-            what = {"quarantined": "gateway quarantined", "never": "gateway never reported"}.get(
-                view["status"], "gateway offline")
+            what = said(GATEWAY_LABELS.get(view["status"], gettext_noop("gateway offline")))
             fired = alerts.get(view["name"], [])
-            items.append({"kind": GATEWAY, "label": what, "key": "", "robot": ", ".join(view["robots"]), "node": "",
-                          "gateway": view["name"], "reason": view["reason_plain"], "at": view["reason_since"],
-                          "also": [f"alert firing: {a['rule_name']}" for a in fired]})
+            also = [said(ALERT_FIRING, rule=a["rule_name"]) for a in fired]
+            items.append({"kind": GATEWAY, "label": english(what), "key": "", "robot": ", ".join(view["robots"]),
+                          "node": "", "gateway": view["name"], "reason": view["reason_plain"],
+                          "at": view["reason_since"], "also": [english(a) for a in also],
+                          "said": {"label": what, "also": also}})
     items.sort(key=lambda item: item["at"] or "", reverse=True)  # within a kind, the latest first
     items.sort(key=lambda item: RANK[item["kind"]])
     keys = [item["key"] for item in items if item["key"]]
@@ -124,10 +170,11 @@ def _parameter_drift(robots: set[str], listed: set[str]) -> list[dict]:
         for found in drift.differences(now_mode.robot, now_mode):
             if found.kind != "parameter" or found.node_id in listed:
                 continue
+            label = said(gettext_noop("not as mode %(mode)s says"), mode=now_mode.mode.name)
             item = items.setdefault(found.node_id, {
-                "kind": DRIFT, "label": f"not as mode {now_mode.mode.name} says", "key": found.node_id,
+                "kind": DRIFT, "label": english(label), "key": found.node_id,
                 "robot": now_mode.robot.name, "node": found.node, "gateway": now_mode.robot.gateway.name,
-                "reason": "", "at": now_mode.since.isoformat(), "also": []})
+                "reason": "", "at": now_mode.since.isoformat(), "also": [], "said": {"label": label, "also": []}})
             item["reason"] = "; ".join(filter(None, (item["reason"], found.words())))[:REASON_CHARS]
     return list(items.values())
 
@@ -140,22 +187,35 @@ def _diagnostics(alerts: dict[str, list[dict]]) -> list[dict]:
                                                   "message", "level_since", "node")[:DIAGNOSTICS])
     for name, robot, gateway, level, stale, message, since, node in rows:
         fired = alerts.pop(f"{robot}:{name}", [])
-        items.append({"kind": DIAGNOSTIC, "label": "diagnostic stale" if stale or level == STALE else
-                      "diagnostic ERROR", "key": "", "robot": robot, "node": "", "status": name, "gateway": gateway,
-                      "reason": (message if not stale else f"not heard; last said: {message}")[:REASON_CHARS],
-                      "at": since.isoformat(), "also": [f"alert firing: {a['rule_name']}" for a in fired],
-                      "reporter": node})
+        # (ERROR: the diagnostic level's name, as the diagnostics page writes it)
+        label = said(gettext_noop("diagnostic stale") if stale or level == STALE else gettext_noop("diagnostic ERROR"))
+        reason = plain(message) if not stale else said(gettext_noop("not heard; last said: %(message)s"),
+                                                        message=message)
+        also = [said(ALERT_FIRING, rule=a["rule_name"]) for a in fired]
+        items.append({"kind": DIAGNOSTIC, "label": english(label), "key": "", "robot": robot, "node": "",
+                      "status": name, "gateway": gateway, "reason": english(reason)[:REASON_CHARS],
+                      "at": since.isoformat(), "also": [english(a) for a in also], "reporter": node,
+                      "said": {"label": label, "also": also, "reason": reason}})
     return items
 
 
-def _node_item(key: str, row: tuple, kinds: list[tuple[str, str]], record: dict | None, fired: list[dict]) -> dict:
+def _failed(record: dict) -> Said:
+    """A failed last transition's label: "activate failed", "configure timed out"."""
+    with_name, without = FAILED_LABELS.get(record["outcome"], ("", ""))
+    if not with_name:  # (not an outcome the strip lists as failed: in English, as it was)
+        return plain(f"{record['transition_label'] or 'transition'} "
+                     f"{OUTCOME_LABELS.get(record['outcome'], '')}".strip())
+    return said(with_name, transition=record["transition_label"]) if record["transition_label"] else said(without)
+
+
+def _node_item(key: str, row: tuple, kinds: list[tuple[str, Said]], record: dict | None, fired: list[dict]) -> dict:
     _, name, robot, gateway, _, _, _, last_seen, _, _, _, _, fight, fight_note = row
     labels = []
     for kind, label in kinds:
         if kind == FAILED and record is not None:
-            label = f"{record['transition_label'] or 'transition'} {OUTCOME_LABELS.get(record['outcome'], '')}".strip()
+            label = _failed(record)
         labels.append(label)
-    labels += [f"alert firing: {a['rule_name']}" for a in fired]
+    labels += [said(ALERT_FIRING, rule=a["rule_name"]) for a in fired]
     # The last record's words explain a failed transition or a loss; for a node that is up but not
     # in its desired state they may tell of an earlier, ended episode ("its process ended").
     explains = any(kind in (FAILED, LOST, PROCESS_LOST) for kind, _ in kinds)
@@ -166,12 +226,14 @@ def _node_item(key: str, row: tuple, kinds: list[tuple[str, str]], record: dict 
         at = record["requested_at"].isoformat()
     else:
         at = last_seen.isoformat() if last_seen else None
-    return {"kind": kinds[0][0], "label": labels[0], "key": key, "robot": robot, "node": name, "gateway": gateway,
-            "reason": reason[:REASON_CHARS], "at": at, "also": labels[1:]}
+    return {"kind": kinds[0][0], "label": english(labels[0]), "key": key, "robot": robot, "node": name,
+            "gateway": gateway, "reason": reason[:REASON_CHARS], "at": at, "also": [english(a) for a in labels[1:]],
+            "said": {"label": labels[0], "also": labels[1:]}}
 
 
 def view(data: dict) -> dict:
-    """What the strip's template takes: the items shown (with their links) and how many more."""
+    """What the strip's template takes: the items shown (with their links and their words in the
+    active language) and how many more."""
     from urllib.parse import urlencode
 
     from django.urls import reverse
@@ -185,6 +247,9 @@ def view(data: dict) -> dict:
             url = reverse("dashboard:node", args=[item["key"]])
         else:
             url = f"{fleet}#gateway-{item['gateway']}"
-        shown.append({**item, "url": url})
+        words = item["said"]
+        shown.append({**item, "url": url, "label": say(words["label"]), "also": [say(a) for a in words["also"]]})
+        if "reason" in words:
+            shown[-1]["reason"] = say(words["reason"])[:REASON_CHARS]
     return {"count": data["count"], "shown": shown, "more": max(0, data["count"] - SHOWN),
             "keys": " ".join(data["keys"]), "gateways": " ".join(data["gateways"])}

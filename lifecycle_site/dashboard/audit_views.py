@@ -12,6 +12,8 @@ from django.db.models import QuerySet
 from django.http import HttpRequest, HttpResponse
 from django.shortcuts import render
 from django.utils import timezone
+from django.utils.translation import gettext as _
+from django.utils.translation import gettext_lazy
 
 from lifecycle_site.audit.models import ParameterRecord, TransitionRecord
 from lifecycle_site.dashboard.access import viewer_required
@@ -40,26 +42,33 @@ class _SafeWriter:
         self._writer.writerow([_cell(value) for value in row])
 
 
-WHEN_INVALID = "Not a date and time: write it like 2026-11-23 14:05 (UTC), or pick it in the calendar."
+WHEN_INVALID = gettext_lazy("Not a date and time: write it like 2026-11-23 14:05 (UTC), or pick it in the calendar.")
+ANY = gettext_lazy("any")
 
 
 class AuditFilter(forms.Form):
-    kind = forms.ChoiceField(required=False, label="Changes of",
-                             choices=[("", "lifecycle state"), ("parameters", "parameters")])
-    robot = forms.CharField(required=False)
-    node = forms.CharField(required=False, help_text="ROS name, e.g. /lidar_driver")
-    user = forms.CharField(required=False)
-    outcome = forms.ChoiceField(required=False, choices=[("", "any")] + TransitionRecord.Outcome.choices)
-    source = forms.ChoiceField(required=False, choices=[("", "any")] + TransitionRecord.Source.choices)
-    since = forms.DateTimeField(required=False, label="From (UTC)", error_messages={"invalid": WHEN_INVALID},
+    kind = forms.ChoiceField(required=False, label=gettext_lazy("Changes of"),
+                             choices=[("", gettext_lazy("lifecycle state")),
+                                      ("parameters", gettext_lazy("parameters"))])
+    robot = forms.CharField(required=False, label=gettext_lazy("Robot"))
+    node = forms.CharField(required=False, label=gettext_lazy("Node"),
+                           help_text=gettext_lazy("ROS name, e.g. /lidar_driver"))
+    user = forms.CharField(required=False, label=gettext_lazy("User"))
+    outcome = forms.ChoiceField(required=False, label=gettext_lazy("Outcome"),
+                                choices=[("", ANY)] + TransitionRecord.Outcome.choices)
+    source = forms.ChoiceField(required=False, label=gettext_lazy("Source"),
+                               choices=[("", ANY)] + TransitionRecord.Source.choices)
+    since = forms.DateTimeField(required=False, label=gettext_lazy("From (UTC)"),
+                                error_messages={"invalid": WHEN_INVALID},
                                 widget=forms.DateTimeInput(attrs={"type": "datetime-local"}))
-    until = forms.DateTimeField(required=False, label="To (UTC)", error_messages={"invalid": WHEN_INVALID},
+    until = forms.DateTimeField(required=False, label=gettext_lazy("To (UTC)"),
+                                error_messages={"invalid": WHEN_INVALID},
                                 widget=forms.DateTimeInput(attrs={"type": "datetime-local"}))
 
     def clean(self):
         data = super().clean()
         if data.get("since") and data.get("until") and data["since"] > data["until"]:
-            raise forms.ValidationError("'From' must be before 'to'.")
+            raise forms.ValidationError(_("'From' must be before 'to'."))
         return data
 
     @property

@@ -15,11 +15,13 @@ from urllib.parse import parse_qs
 from channels.db import database_sync_to_async
 from channels.generic.websocket import AsyncWebsocketConsumer
 from django.template.loader import render_to_string
+from django.utils import translation
 from redis.exceptions import RedisError
 
 from lifecycle_site.dashboard import attention, fragments, runs, snapshots, socket_checks
 from lifecycle_site.dashboard.collapse import CollapsedRobots
 from lifecycle_site.fleet.models import Robot
+from lifecycle_site.languages import choice as languages
 from lifecycle_site.prefix import forwarded_prefix, script_prefix
 from ros_gateway.shared import protocol
 
@@ -87,6 +89,9 @@ class LiveConsumer(AsyncWebsocketConsumer):
         self.accepted = True
 
     async def connect(self) -> None:
+        # The page's language for everything this socket renders: activated in this connection's
+        # own task (a context variable), so it holds for all its messages and their worker threads.
+        translation.activate(await database_sync_to_async(languages.of_scope)(self.scope))
         user = self.scope.get("user")
         if user is None or not user.is_authenticated:
             await self.close(code=NOT_LOGGED_IN)

@@ -10,6 +10,7 @@ from urllib.parse import urlencode
 from django.http import Http404, HttpRequest, HttpResponse
 from django.shortcuts import render
 from django.urls import reverse
+from django.utils.translation import gettext as _
 from django.views.decorators.http import require_POST
 
 from lifecycle_site.dashboard.access import operator_required, viewer_required
@@ -87,7 +88,8 @@ def status_detail(request: HttpRequest, robot: str) -> HttpResponse:
     name = request.GET.get("name", "")
     status = Status.objects.filter(robot=robot_obj, name=name).first()
     if status is None:
-        raise Http404(f"Robot {robot_obj.name} has no diagnostic status named {name[:200]!r}.")
+        raise Http404(_("Robot %(robot)s has no diagnostic status named %(name)s.") % {
+            "robot": robot_obj.name, "name": repr(name[:200])})
     window, warning = tw.page_window(request.GET)
     node = ManagedNode.objects.filter(robot=robot_obj, name=status.node).first() if status.node else None
     return render(request, "dashboard/diagnostic_status.html", {

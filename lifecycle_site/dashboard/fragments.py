@@ -4,7 +4,7 @@ A node's state change goes to every open fleet page and to each of its node page
 socket used to render the same row or panel itself: 0.75 ms a fleet row, so at 10
 transitions/s with 25 fleet pages open, about a third of a core of daphne's event loop, on
 which every other push waits. Sockets that would render the same thing (the same template,
-data, role and URL prefix) now share one rendering for a moment.
+data, role, URL prefix and language) now share one rendering for a moment.
 """
 from __future__ import annotations
 
@@ -13,6 +13,8 @@ import threading
 import time
 from collections import OrderedDict
 from typing import Callable
+
+from django.utils import translation
 
 KEEP_S = 1.0  # short: a panel carries the time it was rendered (how long a transition runs)
 SIZE = 512
@@ -24,7 +26,7 @@ _lock = threading.Lock()
 def rendered(key_parts: tuple, render: Callable[[], str]) -> str:
     """``render()``'s result, shared with whoever asked with the same ``key_parts`` (anything
     JSON can write) within the last KEEP_S seconds."""
-    key = json.dumps(key_parts, sort_keys=True, default=str)
+    key = json.dumps((translation.get_language(), key_parts), sort_keys=True, default=str)  # one per language
     now = time.monotonic()
     with _lock:
         kept = _kept.get(key)

@@ -10,6 +10,8 @@ from django.db.models import Q, QuerySet
 from django.http import Http404, HttpRequest, HttpResponse, JsonResponse
 from django.shortcuts import render
 from django.utils import dateparse, timezone
+from django.utils.translation import gettext as _
+from django.utils.translation import pgettext_lazy
 
 from lifecycle_site.dashboard import snapshots
 from lifecycle_site.dashboard.access import viewer_required
@@ -36,9 +38,12 @@ def filters_of(request: HttpRequest) -> dict:
     return found
 
 
-# How each filter is named in a download's first lines and its file name (what it keeps).
-FILTER_WORDS = (("q", "text", "with"), ("not", "without the text", "without"), ("node", "nodes", "nodes"),
-                ("xnode", "hiding nodes", "hiding"))
+# How each filter is named in a download's first lines (in the reader's language) and its file
+# name (what it keeps).
+FILTER_WORDS = (("q", pgettext_lazy("log filter", "text"), "with"),
+                ("not", pgettext_lazy("log filter", "without the text"), "without"),
+                ("node", pgettext_lazy("log filter", "nodes"), "nodes"),
+                ("xnode", pgettext_lazy("log filter", "hiding nodes"), "hiding"))
 _UNSAFE_IN_FILE_NAME = re.compile(r"[^A-Za-z0-9._-]+")
 
 
@@ -47,16 +52,16 @@ def download_names(scope: str, name: str, found: dict) -> tuple[str, str]:
     from a filtered console does not pass for the whole log."""
     said, parts = [], []
     if found["level"] != "DEBUG":
-        said.append(f"level {found['level']} and above")
+        said.append(_("level %(level)s and above") % {"level": found["level"]})
         parts.append(f"{found['level']}-and-above")
     for key, words, short in FILTER_WORDS:
         if found[key]:
             said.append(f'{words} "{found[key]}"')
             parts.append(f"{short}-" + (_UNSAFE_IN_FILE_NAME.sub("-", found[key]).strip("-")[:40] or "x"))
-    if found["re"] and any(found[key] for key, _, _ in FILTER_WORDS):
-        said.append("as regular expressions, applied in the browser")
+    if found["re"] and any(found[key] for key, _words, _short in FILTER_WORDS):
+        said.append(_("as regular expressions, applied in the browser"))
         parts.append("regex")
-    line = "# filters: " + ("; ".join(said) if said else "none (every record kept)")
+    line = _("# filters: %(filters)s") % {"filters": "; ".join(said) if said else _("none (every record kept)")}
     return f"{scope}-{name.replace('/', '_')}-rosout{''.join('_' + p for p in parts)}.log", line
 
 
@@ -69,12 +74,12 @@ def _target(scope: str, name: str) -> tuple[str, QuerySet, dict]:
     if scope == "node":
         node = ManagedNode.objects.select_related("robot__gateway").filter(key=name).first()
         if node is None:
-            raise Http404(f"There is no node {name}.")
+            raise Http404(_("There is no node %(node)s.") % {"node": name})
         return f"{node.robot.name} {node.name}", LogRecord.objects.filter(node=node), {"node": node}
     robot = Robot.objects.select_related("gateway").filter(name=name).first() if scope == "robot" else None
     if robot is None:
-        raise Http404(f"There is no robot {name}.")
-    return f"{robot.name} (all nodes)", LogRecord.objects.filter(robot=robot), {"robot": robot}
+        raise Http404(_("There is no robot %(robot)s.") % {"robot": name})
+    return _("%(robot)s (all nodes)") % {"robot": robot.name}, LogRecord.objects.filter(robot=robot), {"robot": robot}
 
 
 def _filtered(records: QuerySet, request: HttpRequest) -> QuerySet:
@@ -155,13 +160,15 @@ def log_console(request: HttpRequest, scope: str, name: str) -> HttpResponse:
 @viewer_required
 def log_download(request: HttpRequest, scope: str, name: str) -> HttpResponse:
     """Everything kept server-side (bounded by the retention settings), oldest first."""
-    title, records, _ = _target(scope, name)
+    title, records, _context = _target(scope, name)
     records = _filtered(records, request).order_by("id")
     file_name, filters_line = download_names(scope, name, filters_of(request))
     if request.GET.get("format") == "json":  # for the page, which applies regular expressions itself
         return JsonResponse({"title": title, "file_name": file_name, "filters": filters_line,
                              "records": [r.as_dict() for r in records.iterator(chunk_size=2000)]})
-    lines = [f"# /rosout of {title}, downloaded {timezone.now():%Y-%m-%d %H:%M:%S %Z}\n", filters_line + "\n"]
+    downloaded = f"{timezone.now():%Y-%m-%d %H:%M:%S %Z}"
+    lines = [_("# /rosout of %(title)s, downloaded %(time)s") % {"title": title, "time": downloaded} + "\n",
+             filters_line + "\n"]
     lines += [
         f"{r.stamp:%Y-%m-%d %H:%M:%S.%f} UTC [{r.level_name}] [{r.logger}] {r.message}\n"
         for r in records.iterator(chunk_size=2000)
@@ -174,7 +181,7 @@ def log_download(request: HttpRequest, scope: str, name: str) -> HttpResponse:
 @viewer_required
 def log_since(request: HttpRequest, scope: str, name: str) -> JsonResponse:
     """Records after a given id: what a console missed while its WebSocket was down."""
-    _, records, _ = _target(scope, name)
+    _title, records, _context = _target(scope, name)
     try:
         after = int(request.GET.get("after", 0))
     except ValueError:

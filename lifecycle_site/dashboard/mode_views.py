@@ -13,7 +13,7 @@ from lifecycle_site.dashboard.access import operator_required, viewer_required
 from lifecycle_site.dashboard.process_views import robot_or_404
 from lifecycle_site.fleet.models import GroupRun, Robot
 from lifecycle_site.modes import drift, yaml_files
-from lifecycle_site.operations import modes
+from lifecycle_site.operations import modes, words
 from lifecycle_site.refusal import Refusal
 
 
@@ -30,11 +30,12 @@ def live_context(robot: Robot) -> dict:
 @viewer_required
 def robot_modes(request: HttpRequest, robot: str) -> HttpResponse:
     robot_obj = robot_or_404(robot)
-    listed = [{**m.as_dict(), "confirm": modes.MODE_RUN.confirm_text(robot_obj.name, m.name)}
+    listed = [{**m.as_dict(), "confirm": words.question(modes.MODE_RUN, robot_obj.name, m.name)}
               for m in robot_obj.modes.prefetch_related("robots")]
     return render(request, "dashboard/modes.html", {
         **live_context(robot_obj), "modes": listed,
-        "operation": modes.MODE_RUN, "can_operate": request.user.has_perm("fleet.operate_node"),
+        "confirm_detail": words.question_detail(modes.MODE_RUN),
+        "can_operate": request.user.has_perm("fleet.operate_node"),
         "can_define": request.user.is_staff and request.user.has_perm("modes.change_mode")})
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 from django.db import transaction
 from django.http import Http404, HttpRequest, HttpResponse
 from django.shortcuts import render
+from django.utils.translation import gettext as _
 from django.views.decorators.http import require_POST
 
 from lifecycle_site.dashboard import snapshots
@@ -32,14 +33,14 @@ def _run_panel(request: HttpRequest, run: GroupRun | None, runs_in: str, error: 
 def robot_operation(request: HttpRequest, robot: str) -> HttpResponse:
     robot_obj = Robot.objects.filter(name=robot).first()
     if robot_obj is None:
-        raise Http404(f"There is no robot {robot}.")
+        raise Http404(_("There is no robot %(robot)s.") % {"robot": robot})
     runs_in = f"robot-{robot_obj.name}-run"
     try:
         timeout = float(request.POST.get("timeout") or 5)
         run = start_run(robot_obj, request.POST.get("operation", ""), user=request.user, source="dashboard",
                         policy=request.POST.get("policy", "stop"), node_timeout=max(0.5, min(timeout, 25.0)))
     except ValueError:
-        return _run_panel(request, None, runs_in, "The timeout must be a number of seconds.")
+        return _run_panel(request, None, runs_in, _("The timeout must be a number of seconds."))
     except Refusal as exc:
         return _run_panel(request, None, runs_in, exc.message, refused=exc, robot=robot_obj)
     return _run_panel(request, run, runs_in)

@@ -8,6 +8,7 @@ from typing import Any
 
 from django.http import HttpRequest, HttpResponse
 from django.shortcuts import render
+from django.utils.translation import gettext as _
 from django.views.decorators.http import require_POST
 
 from lifecycle_site.api import limits
@@ -77,7 +78,7 @@ def _section(request: HttpRequest, node: ManagedNode, **extra) -> HttpResponse:
         except GatewayError as exc:
             context["error"] = exc.message
     if not node.alive and "error" not in context:
-        context["error"] = "The node is not running: its parameters cannot be read."
+        context["error"] = _("The node is not running: its parameters cannot be read.")
     if context.get("parameters"):
         context["parameters"] = _with_choices(context["parameters"], context.get("typed"))
     return render(request, "dashboard/_parameters.html", context)
@@ -100,7 +101,8 @@ def _parse(raw: str, entry: dict) -> Any:
     except NonFiniteNumber as exc:
         raise pt.InvalidValue(str(exc)) from None
     except ValueError:
-        raise pt.InvalidValue(f"{raw!r} is not a valid {kind.replace('_', ' ')}") from None
+        raise pt.InvalidValue(_("%(value)s is not a valid %(type)s") % {
+            "value": repr(raw), "type": kind.replace("_", " ")}) from None
     return raw
 
 
@@ -129,7 +131,8 @@ def _edit(request: HttpRequest, node: ManagedNode) -> HttpResponse:
             if raw is None:
                 continue
             if raw not in ("true", "false"):
-                problems[name] = {"name": name, "successful": False, "reason": f"{raw!r} is not true or false"}
+                problems[name] = {"name": name, "successful": False,
+                                  "reason": _("%(value)s is not true or false") % {"value": repr(raw)}}
                 continue
             typed[name] = raw
             value = raw == "true"
@@ -178,9 +181,10 @@ def import_file(request: HttpRequest, key: str) -> HttpResponse:
     node = node_or_404(key)
     upload = request.FILES.get("file")
     if upload is None:
-        return _section(request, node, import_error="Choose a parameter file (.yaml) first.")
+        return _section(request, node, import_error=_("Choose a parameter file (.yaml) first."))
     if upload.size > MAX_FILE_BYTES:
-        return _section(request, node, import_error=f"The file is larger than {MAX_FILE_BYTES // 1024} KiB.")
+        return _section(request, node, import_error=_("The file is larger than %(size)s KiB.") % {
+            "size": MAX_FILE_BYTES // 1024})
     try:
         wanted = load(upload.read().decode("utf-8", errors="replace"), node.name)
         current = fetch(node)
@@ -213,24 +217,25 @@ def apply_file(request: HttpRequest, key: str) -> HttpResponse:
     """Step 2: apply what the preview showed as valid, all or none. Checked again first (the
     node's values or the page may have changed since): nothing is sent if one fails."""
     node = node_or_404(key)
-    file_name = request.POST.get("file_name", "")[:MAX_FILE_NAME] or "the file"
+    file_name = request.POST.get("file_name", "")[:MAX_FILE_NAME] or _("the file")
     try:
         values = loads_finite(request.POST.get("values", "{}"))
         assert isinstance(values, dict)
     except NonFiniteNumber as exc:
-        return _section(request, node, import_error=f"Nothing was sent: {exc}.")
+        return _section(request, node, import_error=_("Nothing was sent: %(problem)s.") % {"problem": exc})
     except (ValueError, AssertionError):
-        return _section(request, node, import_error="The preview was damaged; import the file again.")
+        return _section(request, node, import_error=_("The preview was damaged; import the file again."))
     if not values:
         return _section(request, node, nothing_changed=True)
     if len(values) > limits.MAX_PARAMETERS:
-        return _section(request, node, import_error=f"The file sets {len(values)} parameters; at most "
-                        f"{limits.MAX_PARAMETERS} can be set at once. Nothing was sent.")
+        return _section(request, node, import_error=_(
+            "The file sets %(count)s parameters; at most %(max)s can be set at once. Nothing was sent.") % {
+            "count": len(values), "max": limits.MAX_PARAMETERS})
     try:
         current = fetch(node)
         changes = diff(current, values)
         if any(c["note"] for c in changes):
-            return _preview(request, node, current, changes, file_name, apply_error=(
+            return _preview(request, node, current, changes, file_name, apply_error=_(
                 "Nothing was sent: the node's parameters changed since the preview, and some of these values "
                 "no longer fit (the reason is beside each)."))
         sending = {c["name"]: c["value"] for c in changes}
@@ -250,10 +255,11 @@ def apply_file(request: HttpRequest, key: str) -> HttpResponse:
 
 def _refusal(results: dict[str, dict]) -> str:
     if any(r["successful"] for r in results.values()):  # a gateway from before atomic sets
-        return ("The node refused some of these values and took the others (its gateway sets them one at a "
-                "time); what it refused is beside each, its current values are above.")
+        return _("The node refused some of these values and took the others (its gateway sets them one at a "
+                 "time); what it refused is beside each, its current values are above.")
+    # (the gateway's words for a node that did not answer: ros_gateway, in English)
     if any(r["reason"].startswith("no answer from the node") for r in results.values()):
-        return ("The node did not answer in time: these values may or may not be set. Its current values are "
-                "in the table above.")
-    return ("Nothing was set: the node refused these values, and it takes them all together or none. "
-            "Its reason is beside the value it refused.")
+        return _("The node did not answer in time: these values may or may not be set. Its current values are "
+                 "in the table above.")
+    return _("Nothing was set: the node refused these values, and it takes them all together or none. "
+             "Its reason is beside the value it refused.")

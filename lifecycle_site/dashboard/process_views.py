@@ -13,6 +13,8 @@ import re
 
 from django.http import Http404, HttpRequest, HttpResponse
 from django.shortcuts import render
+from django.utils.translation import gettext as _
+from django.utils.translation import pgettext, pgettext_lazy
 from django.views.decorators.http import require_POST
 
 from lifecycle_site.audit.models import ProcessRecord
@@ -27,17 +29,28 @@ POLL_SECONDS = 3
 RUNNING = {ProcessProfile.Status.STARTING, ProcessProfile.Status.RUNNING, ProcessProfile.Status.STOPPING}
 # Not running, but waiting to be started again: a stop cancels that.
 STOPPABLE = RUNNING | {ProcessProfile.Status.BACKING_OFF}
-START, RESTART, STOP = ({"name": a, "label": a.capitalize()} for a in ("start", "restart", "stop"))
+START, RESTART, STOP = "start", "restart", "stop"
+ACTION_LABELS = {START: pgettext_lazy("process button", "Start"), RESTART: pgettext_lazy("process button", "Restart"),
+                 STOP: pgettext_lazy("process button", "Stop")}
 # The words of a refusal's heading, by its code; others: "Refused".
-REFUSAL_HEADINGS = {"gateway_offline": "Gateway offline", "process_state": "Not possible", "process_failed": "Failed",
-                    "process_disabled": "Disabled", "timeout": "Timed out", "unknown_process": "No such process",
-                    "unknown_action": "No such action"}
+REFUSAL_HEADINGS = {"gateway_offline": pgettext_lazy("process refusal", "Gateway offline"),
+                    "process_state": pgettext_lazy("process refusal", "Not possible"),
+                    "process_failed": pgettext_lazy("process refusal", "Failed"),
+                    "process_disabled": pgettext_lazy("process refusal", "Disabled"),
+                    "timeout": pgettext_lazy("process refusal", "Timed out"),
+                    "unknown_process": pgettext_lazy("process refusal", "No such process"),
+                    "unknown_action": pgettext_lazy("process refusal", "No such action")}
+
+
+def _actions(*names: str) -> list[dict]:
+    """A row's buttons, labelled in the active language (the digest of the rows takes the words)."""
+    return [{"name": name, "label": str(ACTION_LABELS[name])} for name in names]
 
 
 def robot_or_404(name: str) -> Robot:
     robot = Robot.objects.select_related("gateway").filter(name=name).first()
     if robot is None:
-        raise Http404(f"There is no robot {shown(name)}.")
+        raise Http404(_("There is no robot %(robot)s.") % {"robot": shown(name)})
     return robot
 
 
@@ -45,9 +58,9 @@ def _row(profile: ProcessProfile, blocked: str, nodes: list) -> dict:
     """A profile as its row shows it (never its environment: it may hold secrets), with the
     buttons that fit its status and why none can act now (``blocked``), if so."""
     status = profile.status
-    actions = [RESTART if status in RUNNING else START] + ([STOP] if status in STOPPABLE else [])
+    actions = _actions(RESTART if status in RUNNING else START, *([STOP] if status in STOPPABLE else []))
     if not blocked and not profile.enabled:
-        blocked = f"The launch profile {profile.name} is disabled; an admin enables it."
+        blocked = _("The launch profile %(profile)s is disabled; an admin enables it.") % {"profile": profile.name}
     return {
         "id": profile.pk, "name": profile.name, "command": profile.command_line(), "enabled": profile.enabled,
         "supervisor": processes.SUPERVISORS["launch"], "nodes": [n.name for n in nodes],
@@ -71,7 +84,8 @@ def _host_row(host: processes.HostProcess, blocked: str) -> dict:
         "status_label": host.get_status_display(), "pid": host.pid,
         "since": host.since.isoformat() if host.since else None, "restarts": host.restarts,
         "exit_code": exit_.get("code"), "exit_signal": exit_.get("signal"), "exit_at": exit_.get("at"),
-        "message": host.message, "actions": [RESTART, STOP] if host.running else [START], "blocked": blocked,
+        "message": host.message, "actions": _actions(RESTART, STOP) if host.running else _actions(START),
+        "blocked": blocked,
     }
 
 
@@ -84,9 +98,10 @@ def _record(record: ProcessRecord) -> dict:
 def _live(request: HttpRequest, robot: Robot) -> dict:
     """What the polled part of the page shows, and its digest (``seen``)."""
     gateway = snapshots.gateway_of(robot)
-    blocked = "" if gateway["online"] else f"The gateway {gateway['name']} is offline: no command can be sent."
+    blocked = "" if gateway["online"] else _("The gateway %(gateway)s is offline: no command can be sent.") % {
+        "gateway": gateway["name"]}
     if not robot.enabled:
-        blocked = f"{robot.name} is disabled: its gateway runs none of its processes."
+        blocked = _("%(robot)s is disabled: its gateway runs none of its processes.") % {"robot": robot.name}
     nodes = processes.nodes_by_process(robot)
     rows = [_row(p, blocked, nodes.get(p.name, [])) for p in robot.process_profiles.order_by("name")]
     rows += [_host_row(host, blocked) for host in processes.host_processes(robot, nodes)]
@@ -157,7 +172,7 @@ def process_action(request: HttpRequest, robot: str, process: str, action: str) 
             context = {"ok": False, "heading": REFUSAL_HEADINGS[refused.code], "message": refused.message}
             return render(request, "dashboard/_process_result.html", context, status=refused.status)
         context = {"ok": False, "code": refused.code, "message": refused.message,
-                   "heading": REFUSAL_HEADINGS.get(refused.code, "Refused")}
+                   "heading": REFUSAL_HEADINGS.get(refused.code) or pgettext("process refusal", "Refused")}
     else:
         context = {"ok": True, "message": record.message}
     if request.POST.get("from") == "node":  # the node page's button: only the outcome

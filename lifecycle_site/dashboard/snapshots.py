@@ -12,6 +12,8 @@ from django.template.loader import render_to_string
 from django.urls import reverse
 from django.utils.http import RFC3986_SUBDELIMS
 from django.utils.safestring import mark_safe
+from django.utils.translation import get_language
+from django.utils.translation import gettext as _
 
 from lifecycle_site.dashboard.graph import layout
 from lifecycle_site.dashboard.runs import recent_runs
@@ -219,13 +221,14 @@ def mark_gateway(rows: Iterable[dict], view: dict) -> None:
 
 
 # Every open page's socket asks for its gateways every few seconds (consumers.watch_gateway):
-# answers are kept this long in the process's memory, so fifty screens cost one read.
+# answers are kept this long in the process's memory, so fifty screens cost one read. Kept per
+# language: a gateway's reason is in words (gateways.describe(), in the active language).
 GATEWAY_VIEWS_TTL_S = 1.0
 
 
 def gateway_views() -> list[dict]:
     """What fleet() says of the gateways, without the nodes (for the fleet page's watch)."""
-    return cache.get_or_set("socket-gateway-views", _gateway_views, GATEWAY_VIEWS_TTL_S)
+    return cache.get_or_set(f"socket-gateway-views:{get_language()}", _gateway_views, GATEWAY_VIEWS_TTL_S)
 
 
 def _gateway_views() -> list[dict]:
@@ -246,7 +249,7 @@ def node_gateway(key: str) -> list[dict]:
         node = ManagedNode.objects.select_related("robot__gateway").filter(key=key).first()
         return [gateway_of(node.robot)] if node else []
 
-    return cache.get_or_set(f"socket-node-gateway:{key}", read, GATEWAY_VIEWS_TTL_S)
+    return cache.get_or_set(f"socket-node-gateway:{get_language()}:{key}", read, GATEWAY_VIEWS_TTL_S)
 
 
 def robot_gateway(name: str) -> list[dict]:
@@ -254,7 +257,7 @@ def robot_gateway(name: str) -> list[dict]:
         robot = Robot.objects.select_related("gateway").filter(name=name).first()
         return [gateway_of(robot)] if robot else []
 
-    return cache.get_or_set(f"socket-robot-gateway:{name}", read, GATEWAY_VIEWS_TTL_S)
+    return cache.get_or_set(f"socket-robot-gateway:{get_language()}:{name}", read, GATEWAY_VIEWS_TTL_S)
 
 
 def offline(groups: list[dict]) -> list[dict]:
@@ -297,12 +300,16 @@ def node_with_since(node: ManagedNode) -> dict:
     return payload
 
 
-@lru_cache(maxsize=64)
 def graph_svg(state_id: int, alive: bool) -> str:
-    """The state machine drawing; a handful of variants, each rendered once (it is the
-    costly part of a node page's live update)."""
+    """The state machine drawing; a handful of variants, each rendered once per language (it
+    is the costly part of a node page's live update)."""
+    return _graph_svg(state_id, alive, get_language())
+
+
+@lru_cache(maxsize=64)
+def _graph_svg(state_id: int, alive: bool, language: str | None) -> str:
     context = {"graph": layout(state_id, alive), "node": {"state": sm.state_dict(state_id)}}
-    return mark_safe(render_to_string("dashboard/_graph.html", context))
+    return mark_safe(render_to_string("dashboard/_graph.html", context))  # (in ``language``, the active one)
 
 
 def state_panel(node: dict, gateway_offline: str = "", known_at: str | None = None) -> dict:
@@ -312,7 +319,8 @@ def state_panel(node: dict, gateway_offline: str = "", known_at: str | None = No
     no command can be sent)."""
     refusal = restart_refusal(node)
     if gateway_offline and not refusal:
-        refusal = f"The gateway {gateway_offline} is offline: no command can be sent until it is back."
+        refusal = _("The gateway %(gateway)s is offline: no command can be sent until it is back.") % {
+            "gateway": gateway_offline}
     return {
         "node": node,
         "graph_svg": graph_svg(node["state"]["id"], node["alive"]),
@@ -330,14 +338,15 @@ def state_panel(node: dict, gateway_offline: str = "", known_at: str | None = No
 def restart_refusal(node: dict) -> str:
     """Why a restart cannot work now ('' if it can): it drives the node's lifecycle, which a
     finalized node (or one that is not running) no longer has."""
-    name = node["name"]
+    values = {"node": node["name"]}
     if node.get("last_seen") is None and not node["alive"]:
-        return f"{name} has not appeared yet: there is nothing to restart."
+        return _("%(node)s has not appeared yet: there is nothing to restart.") % values
     if not node["alive"]:
-        return f"{name} is not running: its process must be started again (a restart needs a running node)."
+        return _("%(node)s is not running: its process must be started again "
+                 "(a restart needs a running node).") % values
     if node["state"]["id"] == sm.FINALIZED:
-        return (f"{name} is finalized: a lifecycle restart cannot bring it back. Restart its process "
-                "(its supervisor or launch file); with a desired state set, it is then brought back to it.")
+        return _("%(node)s is finalized: a lifecycle restart cannot bring it back. Restart its process "
+                 "(its supervisor or launch file); with a desired state set, it is then brought back to it.") % values
     return ""
 
 

@@ -13,11 +13,15 @@ from datetime import datetime, timedelta, timezone
 from urllib.parse import urlencode
 
 from django.urls import reverse
+from django.utils import dateformat
 from django.utils.html import escape
 from django.utils.safestring import SafeString, mark_safe
+from django.utils.translation import gettext as _
+from django.utils.translation import ngettext, pgettext
 
 from lifecycle_site.timelines import node as tl
 from lifecycle_site.timelines.events import OUTAGE, Event
+from lifecycle_site.timelines.facts import state_name
 from ros_gateway.shared import state_machine as sm
 
 BAR_H = 26
@@ -55,6 +59,12 @@ def pattern(state: str) -> str:
     return PATTERNS[tl.UNKNOWN]
 
 
+def shown_state(state: str) -> str:
+    """A bar's state as the drawing writes it: a ROS state as it is, the others in the active
+    language (``state`` stays what the code and data-state say)."""
+    return pgettext("timeline state", "many changes") if state == BUSY else state_name(state)
+
+
 def duration(seconds: float) -> str:
     """12 s, 4 min 05 s, 3 h 20 min, 2 d 4 h."""
     seconds = round(seconds)
@@ -86,10 +96,15 @@ class Bar:
 
     @property
     def title(self) -> str:  # made for the bars drawn only: a busy window has thousands of stretches
+        values = {"start": utc(self.start), "end": utc(self.end)}
         if self.state == BUSY:
-            return f"{self.changes} states from {utc(self.start)} to {utc(self.end)} UTC, too short to draw apart"
+            # (the same words for one: "1 states" in English, a singular where a language has one)
+            return ngettext("%(count)s states from %(start)s to %(end)s UTC, too short to draw apart",
+                            "%(count)s states from %(start)s to %(end)s UTC, too short to draw apart",
+                            self.changes) % {**values, "count": self.changes}
         length = duration((self.end - self.start).total_seconds())
-        return f"{self.state}: {utc(self.start)} to {utc(self.end)} UTC ({length})"
+        return _("%(state)s: %(start)s to %(end)s UTC (%(length)s)") % {
+            **values, "state": shown_state(self.state), "length": length}
 
     @property
     def dark(self) -> bool:
@@ -98,7 +113,7 @@ class Bar:
     def label_class(self) -> str | None:
         """"" when the state's name fits in the bar on a phone, "tl-wide" when only on a wide
         screen, None when it never does."""
-        needed = len(self.state) * CHAR_W + 8
+        needed = len(shown_state(self.state)) * CHAR_W + 8
         if self.w * NARROW_PX / 100 >= needed:
             return ""
         return "tl-wide" if self.w * WIDE_PX / 100 >= needed else None
@@ -133,7 +148,8 @@ def bars_svg(drawn: list[Bar], origin: datetime) -> SafeString:
         label, text = bar.label_class(), ""
         if label is not None:
             css = f' class="{label}"' if label else ""
-            text = f'<text x="{bar.x + bar.w / 2:.3f}%" y="{bar.y + BAR_H / 2 + 4:.1f}"{css}>{escape(bar.state)}</text>'
+            text = (f'<text x="{bar.x + bar.w / 2:.3f}%" y="{bar.y + BAR_H / 2 + 4:.1f}"{css}>'
+                    f'{escape(shown_state(bar.state))}</text>')
         parts.append(
             f'<g class="tl-bar{" dark" if bar.dark else ""}" data-state="{escape(bar.state)}" '
             f'data-s="{(bar.start - origin).total_seconds():.0f}" data-e="{(bar.end - origin).total_seconds():.0f}">'
@@ -154,7 +170,7 @@ def marks_svg(events: list[tuple[int, Event]], start: datetime, span: float, y: 
     parts = []
     for index, event in events:
         x = _x(event.at, start, span)
-        text = escape(f"{event.title} at {utc(event.at)} UTC")
+        text = escape(_("%(title)s at %(time)s UTC") % {"title": event.title, "time": utc(event.at)})
         parts.append(
             f'<line class="tl-mark-line" x1="{x:.3f}%" x2="{x:.3f}%" y1="{y - 2:.1f}" y2="{y + BAR_H:.1f}"/>'
             f'<a class="tl-mark tl-mark-{event.kind}" href="#ev-{index}"><title>{text}</title>'
@@ -170,8 +186,9 @@ def outages_svg(outages: list[tuple[int, Event]], start: datetime, end: datetime
         x0, x1 = _x(event.at, start, span), _x(event.until or end, start, span)
         width = max(x1 - x0, MIN_OUTAGE_SHARE * 100)
         x0 = min(x0, 100 - width)
-        until = f"{utc(event.until)} UTC" if event.until else "now"
-        text = escape(f"{event.title} from {utc(event.at)} UTC to {until}")
+        values = {"title": event.title, "start": utc(event.at)}
+        text = escape(_("%(title)s from %(start)s UTC to %(end)s UTC") % {**values, "end": utc(event.until)}
+                      if event.until else _("%(title)s from %(start)s UTC to now") % values)
         # The band, and at its start a mark with room for a finger: a short outage is a sliver.
         parts.append(f'<a class="tl-outage" href="#ev-{index}"><title>{text}</title>'
                      f'<rect x="{x0:.3f}%" y="{y:.1f}" width="{width:.3f}%" height="12" fill="url(#tl-outage)"/>'
@@ -205,11 +222,13 @@ def ticks(start: datetime, end: datetime) -> list[Tick]:
     while at <= end:
         x = _x(at, start, span)
         anchor = "start" if x < 4 else "end" if x > 96 else "middle"
+        # (weekday and month as Django names them in the active language: "Mon", "05 Jan")
         if step >= timedelta(days=1):
-            found.append(Tick(x, at.strftime("%a"), at.strftime("%d %b"), anchor, len(found) % 2 == 1))
+            found.append(Tick(x, dateformat.format(at, "D"), dateformat.format(at, "d M"), anchor,
+                              len(found) % 2 == 1))
         else:
             new_day = not found or (at.hour == 0 and at.minute == 0)
-            found.append(Tick(x, at.strftime("%H:%M"), at.strftime("%d %b") if new_day else "", anchor,
+            found.append(Tick(x, at.strftime("%H:%M"), dateformat.format(at, "d M") if new_day else "", anchor,
                               len(found) % 2 == 1 and not new_day))
         at += step
     return found

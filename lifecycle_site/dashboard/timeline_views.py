@@ -8,6 +8,7 @@ from datetime import datetime, timezone
 from django.http import Http404, HttpRequest, HttpResponse
 from django.shortcuts import render
 from django.urls import reverse
+from django.utils.translation import gettext as _
 
 from lifecycle_site.dashboard.access import viewer_required
 from lifecycle_site.dashboard.timeline_drawing import drawing, duration, numbered, pattern, utc
@@ -62,7 +63,7 @@ def _events(numbered_events: list) -> list[dict]:
                "logs_url": f"{bases[target]}?at={moment_query(event.at)}", "node": event.node}
         if event.kind == OUTAGE:
             row["until"] = (f"{utc(event.until)} UTC ({duration((event.until - event.at).total_seconds())})"
-                            if event.until else "still now")
+                            if event.until else _("still now"))
         rows.append(row)
     return rows
 
@@ -103,7 +104,7 @@ def node_timeline(request: HttpRequest, key: str) -> HttpResponse:
 def robot_timeline(request: HttpRequest, robot: str) -> HttpResponse:
     found = Robot.objects.filter(name=robot).first()
     if found is None:
-        raise Http404(f"There is no robot {robot}.")
+        raise Http404(_("There is no robot %(robot)s.") % {"robot": robot})
     window, warning = tw.page_window(request.GET)
     timelines = robot_timeline_of(found, window)
     availability = timelines.availability

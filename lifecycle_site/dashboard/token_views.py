@@ -9,11 +9,12 @@ from django.contrib.auth.decorators import login_required
 from django.http import HttpRequest, HttpResponse, HttpResponseRedirect
 from django.shortcuts import get_object_or_404, render
 from django.urls import reverse
+from django.utils.translation import gettext as _
 from django.views.decorators.http import require_POST
 
 from lifecycle_site.api.models import MAX_TOKENS_PER_USER, ApiToken, TooManyTokens
 
-VIA = "API tokens page"
+VIA = "API tokens page"  # (stored in the token's audit record: in English)
 
 
 def _page(request: HttpRequest, status: int = 200, **extra) -> HttpResponse:
@@ -32,9 +33,9 @@ def my_tokens(request: HttpRequest) -> HttpResponse:
         return _page(request)
     name = request.POST.get("name", "").strip()
     if not name:
-        return _page(request, 400, error="Name the token after what will use it (e.g. 'CI bring-up').", name=name)
+        return _page(request, 400, error=_("Name the token after what will use it (e.g. 'CI bring-up')."), name=name)
     if len(name) > 100:
-        return _page(request, 400, error="The name is longer than 100 characters.", name=name)
+        return _page(request, 400, error=_("The name is longer than %(max)s characters.") % {"max": 100}, name=name)
     try:
         record, token = ApiToken.issue(request.user, name, by=request.user, via=VIA)
     except TooManyTokens as exc:
@@ -48,5 +49,6 @@ def revoke_token(request: HttpRequest, token_id: int) -> HttpResponse:
     # Another user's token is "not found": its existence is none of this user's business.
     record = get_object_or_404(ApiToken, pk=token_id, user=request.user)
     record.revoke(by=request.user, via=VIA)
-    messages.success(request, f"Token {record.hint}… ({record.name or 'no name'}) revoked: it no longer works.")
+    messages.success(request, _("Token %(hint)s… (%(name)s) revoked: it no longer works.") % {
+        "hint": record.hint, "name": record.name or _("no name")})
     return HttpResponseRedirect(reverse("dashboard:tokens"))

@@ -8,6 +8,7 @@ from django.contrib.auth.decorators import permission_required
 from django.http import Http404, HttpRequest, HttpResponse
 from django.shortcuts import redirect, render
 from django.template.loader import render_to_string
+from django.utils.translation import gettext as _
 from django.views.decorators.http import require_POST
 
 from lifecycle_site.audit import denials
@@ -59,7 +60,7 @@ def robot_section(request: HttpRequest, robot: str) -> HttpResponse:
     the button that toggles it (swapped in for the whole section)."""
     found = snapshots.robot_section(robot, request.GET.get("open") == "1")
     if found is None:
-        raise Http404(f"There is no robot {robot}.")
+        raise Http404(_("There is no robot %(robot)s.") % {"robot": robot})
     robot_obj, nodes = found
     return render(request, "dashboard/_robot.html",
                   {"robot": robot_obj, "nodes": nodes, "can_operate": _can_operate(request)})
@@ -83,7 +84,7 @@ def fleet_find(request: HttpRequest) -> HttpResponse:
 def node_or_404(key: str) -> ManagedNode:
     node = ManagedNode.objects.select_related("robot__gateway").filter(key=key).first()
     if node is None:
-        raise Http404(f"There is no node {key}.")
+        raise Http404(_("There is no node %(node)s.") % {"node": key})
     return node
 
 
@@ -122,7 +123,7 @@ def node_transition(request: HttpRequest, key: str) -> HttpResponse:
     named = {"robot": node.robot.name, "node": node.name, "gateway_name": node.robot.gateway.name}
     if not _can_operate(request):
         denials.record(request, 403, "forbidden", "operator needed")
-        outcome_context = {"ok": False, "message": "Your role may view but not operate nodes (operator needed)."}
+        outcome_context = {"ok": False, "message": _("Your role may view but not operate nodes (operator needed).")}
         return render(request, answer, {**named, **outcome_context}, status=403)
     try:
         done = request_transition(node, request.POST.get("transition", ""), request.user, "dashboard")
@@ -155,36 +156,38 @@ def watch_node(request: HttpRequest, robot: str) -> HttpResponse:
     the row added or removed (a plain form post gets the fleet page again)."""
     robot_obj = Robot.objects.select_related("gateway").filter(name=robot).first()
     if robot_obj is None:
-        raise Http404(f"There is no robot {robot}.")
+        raise Http404(_("There is no robot %(robot)s.") % {"robot": robot})
     name = request.POST.get("name", "").strip()
     if name and not name.startswith("/"):
         name = "/" + name
     row_html, ok = "", False
+    named = {"node": name, "robot": robot}
     if request.POST.get("action") == "unwatch":
         node = ManagedNode.objects.filter(robot=robot_obj, name=name).first()
         if node is None:
-            message = f"{robot} has no node {name or '(no name given)'}."
+            message = _("%(robot)s has no node %(node)s.") % {"robot": robot, "node": name or _("(no name given)")}
         elif node.last_seen is not None:
-            message = (f"{name} on {robot} has been seen running, so its history is kept: remove it in the admin "
-                       "if it is gone for good.")
+            message = _("%(node)s on %(robot)s has been seen running, so its history is kept: remove it in the admin "
+                        "if it is gone for good.") % named
         else:
             key = node.key
             node.delete()
-            ok, message = True, f"No longer watching {name} on {robot}."
+            ok, message = True, _("No longer watching %(node)s on %(robot)s.") % named
             row_html = f'<tr id="{dom_id(key)}" hx-swap-oob="delete"></tr>'
     elif not ROS_NAME.match(name) or "__" in name or len(name) > ManagedNode._meta.get_field("name").max_length:
-        message = f"{name or 'An empty name'} is not a ROS node name (e.g. /lidar_driver)."
+        message = (_("%(node)s is not a ROS node name (e.g. /lidar_driver).") % named if name
+                   else _("An empty name is not a ROS node name (e.g. /lidar_driver)."))
     else:
         node, created = ManagedNode.objects.get_or_create(robot=robot_obj, name=name)
         ok = True
         if created:
-            message = f"Watching {name} on {robot}: it shows as waiting until it appears."
+            message = _("Watching %(node)s on %(robot)s: it shows as waiting until it appears.") % named
             row = snapshots.fleet_row(node_dict(node))
             snapshots.mark_gateway([row], snapshots.gateway_of(robot_obj))
             row_html = render_to_string("dashboard/_node_row_new.html",
                                         {"node": row, "nodes": [row], "can_operate": True}, request=request)
         else:
-            message = f"{name} on {robot} is already listed."
+            message = _("%(node)s on %(robot)s is already listed.") % named
     if not request.htmx:
         (messages.success if ok else messages.error)(request, message)
         return redirect("dashboard:fleet")

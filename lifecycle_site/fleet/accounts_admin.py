@@ -29,6 +29,7 @@ from django.contrib.auth.models import AbstractUser, Group, User
 from django.core.exceptions import PermissionDenied
 from django.http import HttpRequest, HttpResponse, HttpResponseRedirect
 from django.urls import reverse
+from django.utils.translation import gettext_lazy
 
 from lifecycle_site.fleet.roles import ADMIN_ROLE, ASSIGNABLE_BY_ADMINS
 
@@ -36,10 +37,20 @@ from lifecycle_site.fleet.roles import ADMIN_ROLE, ASSIGNABLE_BY_ADMINS
 SUPERUSER_ONLY_FIELDS = ("is_superuser", "is_staff", "user_permissions")
 # What nobody but a superuser changes on their own account.
 OWN_ACCOUNT_FIXED_FIELDS = ("groups", "is_active")
+# What an admin is told on opening an account only a superuser manages, by privilege()'s reason.
+ONLY_FOR_SUPERUSERS = {
+    "a superuser": gettext_lazy("The account “%(user)s” is a superuser: only a superuser may open, change or "
+                                "delete it, or set its password. Ask a superuser."),
+    "a member of the admin role": gettext_lazy("The account “%(user)s” is a member of the admin role: only a "
+                                               "superuser may open, change or delete it, or set its password. Ask a "
+                                               "superuser."),
+    "a staff account": gettext_lazy("The account “%(user)s” is a staff account: only a superuser may open, change "
+                                    "or delete it, or set its password. Ask a superuser."),
+}
 
 
 def privilege(user: AbstractUser) -> str | None:
-    """Why only a superuser may manage ``user``, in words; None if an admin may."""
+    """Why only a superuser may manage ``user``, in (English) words; None if an admin may."""
     if user.is_superuser:
         return "a superuser"
     if user.groups.filter(name=ADMIN_ROLE).exists():
@@ -118,12 +129,7 @@ class RoleLimitedUserAdmin(UserAdmin):
         reason = privilege(target)
         if reason is None:
             return None
-        self.message_user(
-            request,
-            f"The account “{target.get_username()}” is {reason}: only a superuser may open, change "
-            "or delete it, or set its password. Ask a superuser.",
-            messages.ERROR,
-        )
+        self.message_user(request, ONLY_FOR_SUPERUSERS[reason] % {"user": target.get_username()}, messages.ERROR)
         opts = self.opts
         return HttpResponseRedirect(
             reverse(f"admin:{opts.app_label}_{opts.model_name}_changelist", current_app=self.admin_site.name)

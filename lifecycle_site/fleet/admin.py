@@ -2,6 +2,8 @@ from django import forms
 from django.contrib import admin
 from django.urls import reverse
 from django.utils.html import format_html
+from django.utils.translation import gettext as _
+from django.utils.translation import gettext_lazy
 
 from lifecycle_site.fleet import (
     accounts_admin,  # noqa: F401  (users and groups, limited by role)
@@ -38,10 +40,12 @@ class ManagedNodeInline(admin.TabularInline):
     readonly_fields = ("state_label", "alive", "last_seen", "dashboard")
     ordering = ("order", "name")
     extra = 0
+    verbose_name = gettext_lazy("managed node")  # (the model's own names, in English as before)
+    verbose_name_plural = gettext_lazy("managed nodes")
 
-    @admin.display(description="dashboard")
+    @admin.display(description=gettext_lazy("dashboard"))
     def dashboard(self, obj: ManagedNode) -> str:
-        return format_html('<a href="{}">node page</a>', dashboard_url(obj)) if obj.pk and obj.key else ""
+        return format_html('<a href="{}">{}</a>', dashboard_url(obj), _("node page")) if obj.pk and obj.key else ""
 
 
 @admin.register(Robot)
@@ -67,7 +71,7 @@ class NodeAbsenceInline(admin.TabularInline):
     max_num = 0
     can_delete = False
     ordering = ("-gone_at",)
-    verbose_name_plural = "absences (newest first; the timeline page draws them)"
+    verbose_name_plural = gettext_lazy("absences (newest first; the timeline page draws them)")
 
     def get_queryset(self, request):
         # A flapping node may have thousands: the newest 20 of the node shown are listed.
@@ -92,6 +96,6 @@ class ManagedNodeAdmin(admin.ModelAdmin):
         """The admin's "View on site" button opens the node's dashboard page."""
         return dashboard_url(obj)
 
-    @admin.display(description="dashboard")
+    @admin.display(description=gettext_lazy("dashboard"))
     def dashboard(self, obj: ManagedNode) -> str:
-        return format_html('<a href="{}">node page</a>', dashboard_url(obj))
+        return format_html('<a href="{}">{}</a>', dashboard_url(obj), _("node page"))

@@ -1,9 +1,10 @@
 from django.apps import AppConfig
+from django.utils.translation import gettext_lazy
 
 
 class FleetConfig(AppConfig):
     name = "lifecycle_site.fleet"
-    verbose_name = "Fleet"
+    verbose_name = gettext_lazy("Fleet")
 
     def ready(self) -> None:
         from django.contrib.auth import get_user_model

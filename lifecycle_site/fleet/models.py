@@ -1,25 +1,26 @@
-"""Gateways, the robots each of them watches, their managed nodes, /rosout history and group runs."""
+"""Gateways, the robots each of them watches, their managed nodes and /rosout history (group runs:
+group_runs.py, launch profiles: process_profiles.py)."""
 from __future__ import annotations
 
-from django.conf import settings
 from django.core.validators import MaxValueValidator, MinValueValidator, RegexValidator
 from django.db import models
+from django.utils.translation import gettext_lazy, pgettext_lazy
 
-from ros_gateway.shared import operations, protocol
+from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 
 ROBOT_NAME_VALIDATOR = RegexValidator(
     r"^[a-z0-9][a-z0-9_-]{0,62}$",
-    "Use lower-case letters, digits, '-' and '_' (for example agv-1).",
+    gettext_lazy("Use lower-case letters, digits, '-' and '_' (for example agv-1)."),
 )
 NAMESPACE_VALIDATOR = RegexValidator(
     r"^(/[A-Za-z_][A-Za-z0-9_]*)*$",
-    "A ROS namespace such as /agv1 or /plant/agv1, or empty for the whole domain.",
+    gettext_lazy("A ROS namespace such as /agv1 or /plant/agv1, or empty for the whole domain."),
 )
 
 GATEWAY_NAME_VALIDATOR = RegexValidator(
     protocol.GATEWAY_NAME_RE,
-    "Use lower-case letters, digits, '-' and '_', starting with a letter or digit (for example cell-a).",
+    gettext_lazy("Use lower-case letters, digits, '-' and '_', starting with a letter or digit (for example cell-a)."),
 )
 
 
@@ -39,24 +40,31 @@ class Gateway(models.Model):
     # From its heartbeat (copied by the ingest process).
     last_beat = models.DateTimeField(null=True, blank=True)
     started = models.DateTimeField(null=True, blank=True)
-    stopped = models.BooleanField(default=False, help_text="Its last heartbeat said it stopped cleanly.")
-    instance = models.CharField(max_length=32, blank=True, help_text="Id of its running process.")
+    stopped = models.BooleanField(default=False, help_text=gettext_lazy("Its last heartbeat said it stopped cleanly."))
+    instance = models.CharField(max_length=32, blank=True, help_text=gettext_lazy("Id of its running process."))
     version = models.CharField(max_length=64, blank=True)
     host = models.CharField(max_length=255, blank=True)
     pid = models.PositiveIntegerField(null=True, blank=True)
-    domains = models.JSONField("ROS domains", default=list, blank=True)
-    dds = models.JSONField("DDS discovery settings", default=dict, blank=True)
-    node_count = models.PositiveIntegerField("nodes", default=0)
-    outbox = models.JSONField(default=dict, blank=True, help_text="What it held or dropped while Redis was away.")
+    domains = models.JSONField(gettext_lazy("ROS domains"), default=list, blank=True)
+    dds = models.JSONField(gettext_lazy("DDS discovery settings"), default=dict, blank=True)
+    node_count = models.PositiveIntegerField(gettext_lazy("nodes"), default=0)
+    outbox = models.JSONField(default=dict, blank=True,
+                              help_text=gettext_lazy("What it held or dropped while Redis was away."))
     # Kept by the ingest process.
-    backlog = models.PositiveIntegerField(default=0, help_text="Entries of its streams not yet stored.")
-    facts_lost = models.PositiveBigIntegerField(default=0, help_text="Facts trimmed from Redis before they were read.")
-    facts_rejected = models.PositiveBigIntegerField(default=0, help_text="Facts the site could not apply.")
-    logs_lost = models.PositiveBigIntegerField(default=0, help_text="Log batches trimmed before they were read.")
-    logs_dropped = models.PositiveBigIntegerField(default=0, help_text="Log records its buffer dropped.")
-    logs_received = models.PositiveBigIntegerField(default=0, help_text="Log records stored from it.")
-    facts_cursor = models.CharField(max_length=40, blank=True, help_text="Last applied entry of its facts stream.")
-    logs_cursor = models.CharField(max_length=40, blank=True, help_text="Last stored entry of its logs stream.")
+    backlog = models.PositiveIntegerField(default=0, help_text=gettext_lazy("Entries of its streams not yet stored."))
+    facts_lost = models.PositiveBigIntegerField(
+        default=0, help_text=gettext_lazy("Facts trimmed from Redis before they were read.")
+    )
+    facts_rejected = models.PositiveBigIntegerField(default=0,
+                                                    help_text=gettext_lazy("Facts the site could not apply."))
+    logs_lost = models.PositiveBigIntegerField(default=0,
+                                               help_text=gettext_lazy("Log batches trimmed before they were read."))
+    logs_dropped = models.PositiveBigIntegerField(default=0, help_text=gettext_lazy("Log records its buffer dropped."))
+    logs_received = models.PositiveBigIntegerField(default=0, help_text=gettext_lazy("Log records stored from it."))
+    facts_cursor = models.CharField(max_length=40, blank=True,
+                                    help_text=gettext_lazy("Last applied entry of its facts stream."))
+    logs_cursor = models.CharField(max_length=40, blank=True,
+                                   help_text=gettext_lazy("Last stored entry of its logs stream."))
     facts_instance = models.CharField(max_length=32, blank=True)
     facts_seq = models.PositiveBigIntegerField(default=0)
     logs_instance = models.CharField(max_length=32, blank=True)
@@ -64,14 +72,15 @@ class Gateway(models.Model):
     # Kept by the site's checks of what the gateway sends and holds (gateway_link/quarantine.py).
     quarantined = models.DateTimeField(
         null=True, blank=True, editable=False,
-        help_text="When the site cut it off (its Redis user disabled, its streams no longer read); "
-                  "empty while it may work.",
+        help_text=gettext_lazy("When the site cut it off (its Redis user disabled, its streams no longer read); "
+                               "empty while it may work."),
     )
     quarantine_reason = models.TextField(blank=True, editable=False)
-    quarantines = models.PositiveIntegerField(default=0, editable=False, help_text="How often it was cut off.")
-    live_refused = models.PositiveBigIntegerField(default=0, help_text="Live updates the site refused.")
-    redis_bytes = models.PositiveBigIntegerField(default=0, editable=False,
-                                                 help_text="What its Redis keys held at the site's last count.")
+    quarantines = models.PositiveIntegerField(default=0, editable=False,
+                                              help_text=gettext_lazy("How often it was cut off."))
+    live_refused = models.PositiveBigIntegerField(default=0, help_text=gettext_lazy("Live updates the site refused."))
+    redis_bytes = models.PositiveBigIntegerField(
+        default=0, editable=False, help_text=gettext_lazy("What its Redis keys held at the site's last count."))
 
     class Meta:
         ordering = ["name"]
@@ -102,33 +111,35 @@ class Robot(models.Model):
 
     name = models.CharField(max_length=63, unique=True, validators=[ROBOT_NAME_VALIDATOR])
     domain_id = models.PositiveSmallIntegerField(
-        "ROS domain id",
+        gettext_lazy("ROS domain id"),
         validators=[MinValueValidator(0), MaxValueValidator(232)],
-        help_text="ROS_DOMAIN_ID the robot's nodes use (0-232).",
+        help_text=gettext_lazy("ROS_DOMAIN_ID the robot's nodes use (0-232)."),
     )
     namespace = models.CharField(
         max_length=200,
         blank=True,
         validators=[NAMESPACE_VALIDATOR],
-        help_text="Only nodes under this namespace belong to the robot; empty for all of the domain.",
+        help_text=gettext_lazy("Only nodes under this namespace belong to the robot; empty for all of the domain."),
     )
     gateway = models.ForeignKey(
         Gateway,
         on_delete=models.PROTECT,
         related_name="robots",
         default=default_gateway_id,
-        help_text="The gateway that reaches this robot's ROS domain.",
+        help_text=gettext_lazy("The gateway that reaches this robot's ROS domain."),
     )
     description = models.TextField(blank=True)
-    enabled = models.BooleanField(default=True, help_text="The gateway watches enabled robots only.")
+    enabled = models.BooleanField(default=True, help_text=gettext_lazy("The gateway watches enabled robots only."))
     auto_recover = models.BooleanField(
         default=False,
-        help_text="When a node comes back after its process was restarted, drive it to its desired state.",
+        help_text=gettext_lazy("When a node comes back after its process was restarted, drive it to its desired "
+                               "state."),
     )
     keep_desired = models.CharField(
-        "keep desired states", max_length=8, default="off", choices=KEEP_CHOICES,
-        help_text="When another tool moves a node away from its desired state: nothing (off), an alert, or the "
-                  "gateway drives it back (enforce; it stops and says so when another manager keeps moving it).")
+        gettext_lazy("keep desired states"), max_length=8, default="off", choices=KEEP_CHOICES,
+        help_text=gettext_lazy("When another tool moves a node away from its desired state: nothing (off), an alert, "
+                               "or the gateway drives it back (enforce; it stops and says so when another manager "
+                               "keeps moving it)."))
     created = models.DateTimeField(auto_now_add=True)
 
     class Meta:
@@ -146,25 +157,29 @@ class ManagedNode(models.Model):
     """A lifecycle node seen on a robot (or pinned by name before it shows up)."""
 
     robot = models.ForeignKey(Robot, on_delete=models.CASCADE, related_name="nodes")
-    name = models.CharField("fully qualified name", max_length=255)
+    name = models.CharField(gettext_lazy("fully qualified name"), max_length=255)
     key = models.CharField(max_length=320, unique=True, editable=False)
     state_id = models.PositiveSmallIntegerField(default=sm.UNKNOWN)
     state_label = models.CharField(max_length=32, default="unknown")
     alive = models.BooleanField(default=False)
     gone_reason = models.CharField(
         max_length=16, blank=True, default="",
-        help_text="Why a node that is not alive went: 'process_lost' (its process ended, or its node left "
-        "the ROS graph), 'unreachable' (its process stopped answering the gateway's probes: its host or "
-        "link may be down), or empty (not known, or its robot is no longer watched).",
+        help_text=gettext_lazy("Why a node that is not alive went: 'process_lost' (its process ended, or its node "
+                               "left the ROS graph), 'unreachable' (its process stopped answering the gateway's "
+                               "probes: its host or link may be down), or empty (not known, or its robot is no "
+                               "longer watched)."),
     )
     process_status = models.CharField(
-        max_length=16, blank=True, default="", choices=[("", "-"), ("lost", "lost"), ("restarted", "restarted")],
-        help_text="What was last seen of the node's process: lost, or restarted (a new instance).",
+        max_length=16, blank=True, default="",
+        choices=[("", "-"), ("lost", pgettext_lazy("node process", "lost")),
+                 ("restarted", pgettext_lazy("node process", "restarted"))],
+        help_text=gettext_lazy("What was last seen of the node's process: lost, or restarted (a new instance)."),
     )
-    process_since = models.DateTimeField(null=True, blank=True, help_text="When that was seen.")
+    process_since = models.DateTimeField(null=True, blank=True, help_text=gettext_lazy("When that was seen."))
     supervised_by = models.CharField(
         max_length=64, blank=True, editable=False,
-        help_text="The launch profile whose process runs this node, as its gateway last saw ('' none known).",
+        help_text=gettext_lazy("The launch profile whose process runs this node, as its gateway last saw ('' none "
+                               "known)."),
     )
     first_seen = models.DateTimeField(null=True, blank=True)
     last_seen = models.DateTimeField(null=True, blank=True)
@@ -177,18 +192,20 @@ class ManagedNode(models.Model):
     order = models.PositiveIntegerField(
         null=True,
         blank=True,
-        help_text="Position in the robot's bring-up order, lowest first; nodes sharing a position go "
-        "together. Empty: after the others, side by side with the other unordered nodes.",
+        help_text=gettext_lazy("Position in the robot's bring-up order, lowest first; nodes sharing a position go "
+                               "together. Empty: after the others, side by side with the other unordered nodes."),
     )
     desired_state = models.CharField(
         max_length=16,
         blank=True,
-        choices=[("", "none"), *((label, label) for label in sm.DESIRED_STATES)],
-        help_text="The state automatic recovery brings this node back to after a restart of its process.",
+        choices=[("", pgettext_lazy("desired state", "none")), *((label, label) for label in sm.DESIRED_STATES)],
+        help_text=gettext_lazy("The state automatic recovery brings this node back to after a restart of its "
+                               "process."),
     )
     keep_desired = models.CharField(
-        "keep desired state", max_length=8, blank=True, choices=[("", "as its robot"), *KEEP_CHOICES],
-        help_text="Whether its desired state is kept against other tools; empty: as its robot says.")
+        gettext_lazy("keep desired state"), max_length=8, blank=True,
+        choices=[("", gettext_lazy("as its robot")), *KEEP_CHOICES],
+        help_text=gettext_lazy("Whether its desired state is kept against other tools; empty: as its robot says."))
     # Set when the gateway stopped keeping it (another manager keeps moving it); cleared by an operator.
     enforcement_stopped = models.DateTimeField(null=True, blank=True, editable=False)
     enforcement_note = models.TextField(blank=True, editable=False)
@@ -230,11 +247,12 @@ class NodeAbsence(models.Model):
     The state timeline draws these; ManagedNode keeps only the current absence. Pruned by the
     ingest process after ABSENCE_KEEP_DAYS (longer than the widest timeline window)."""
 
-    REASONS = [("", "left"), ("process_lost", "process lost"), ("unreachable", "unreachable")]
+    REASONS = [("", pgettext_lazy("node absence", "left")), ("process_lost", gettext_lazy("process lost")),
+               ("unreachable", pgettext_lazy("node status", "unreachable"))]
 
     node = models.ForeignKey(ManagedNode, on_delete=models.CASCADE, related_name="absences")
     gone_at = models.DateTimeField()
-    back_at = models.DateTimeField(null=True, blank=True, help_text="Empty while the node is still away.")
+    back_at = models.DateTimeField(null=True, blank=True, help_text=gettext_lazy("Empty while the node is still away."))
     reason = models.CharField(max_length=16, blank=True, default="", choices=REASONS)
 
     class Meta:
@@ -258,7 +276,7 @@ class GatewayOutage(models.Model):
 
     gateway = models.ForeignKey(Gateway, on_delete=models.CASCADE, related_name="outages")
     began = models.DateTimeField()
-    ended = models.DateTimeField(null=True, blank=True, help_text="Empty while it lasts.")
+    ended = models.DateTimeField(null=True, blank=True, help_text=gettext_lazy("Empty while it lasts."))
     reason = models.CharField(max_length=16, blank=True, default="", help_text="offline, stopped or quarantined")
 
     class Meta:
@@ -323,73 +341,5 @@ class LogRecord(models.Model):
         }
 
 
-class GroupRun(models.Model):
-    """One ordered group operation on a robot's nodes (bring up, pause, ..., restart)."""
-
-    class Policy(models.TextChoices):
-        STOP = "stop", "stop at the first failure"
-        CONTINUE = "continue", "continue and report"
-
-    class Status(models.TextChoices):
-        QUEUED = "queued", "queued"
-        RUNNING = "running", "running"
-        SUCCEEDED = "succeeded", "succeeded"
-        FAILED = "failed", "failed"
-        PARTIAL = "partial", "partly failed"
-
-    id = models.CharField(primary_key=True, max_length=32, editable=False)
-    robot = models.ForeignKey(Robot, on_delete=models.CASCADE, related_name="runs")
-    # Read from the shared table when asked: a new operation needs no migration.
-    operation = models.CharField(max_length=16, choices=operations.choices)
-    policy = models.CharField(max_length=16, choices=Policy.choices, default=Policy.STOP)
-    node_timeout = models.FloatField(default=5.0)
-    only_nodes = models.JSONField(default=list, blank=True, help_text="Node names; empty for all of the robot's.")
-    plan = models.JSONField(default=dict, blank=True,
-                            help_text="A mode's run: the mode, each node's target state and parameters.")
-    steps = models.PositiveSmallIntegerField(
-        null=True, blank=True, editable=False,
-        help_text="How many steps of the robot's bring-up order the run went in (1: all side by side); "
-        "empty for a run the gateway started itself (a recovery).")
-    status = models.CharField(max_length=16, choices=Status.choices, default=Status.QUEUED)
-    message = models.TextField(blank=True)
-    results = models.JSONField(default=list, blank=True)
-    source = models.CharField(max_length=16, default="api")
-    requested_by = models.ForeignKey(
-        settings.AUTH_USER_MODEL, null=True, blank=True, on_delete=models.SET_NULL, related_name="+"
-    )
-    created = models.DateTimeField(auto_now_add=True)
-    started = models.DateTimeField(null=True, blank=True)
-    finished = models.DateTimeField(null=True, blank=True)
-
-    class Meta:
-        ordering = ["-created"]
-
-    def __str__(self) -> str:
-        return f"{self.get_operation_display()} {self.robot.name} ({self.status})"
-
-    @property
-    def done(self) -> bool:
-        return self.status in (self.Status.SUCCEEDED, self.Status.FAILED, self.Status.PARTIAL)
-
-    def as_dict(self) -> dict:
-        return {
-            "id": self.id,
-            "robot": self.robot.name,
-            "operation": self.operation,
-            "policy": self.policy,
-            "node_timeout": self.node_timeout,
-            "nodes": self.only_nodes,
-            **({"mode": self.plan.get("mode")} if self.plan.get("mode") else {}),
-            "steps": self.steps,
-            "status": self.status,
-            "message": self.message,
-            "results": self.results,
-            "source": self.source,
-            "requested_by": self.requested_by.get_username() if self.requested_by else None,
-            "created": self.created.isoformat(),
-            "started": self.started.isoformat() if self.started else None,
-            "finished": self.finished.isoformat() if self.finished else None,
-        }
-
-
+from lifecycle_site.fleet.group_runs import GroupRun  # noqa: E402, F401 - registered with this app
 from lifecycle_site.fleet.process_profiles import ProcessProfile  # noqa: E402, F401 - registered with this app

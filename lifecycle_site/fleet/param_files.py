@@ -4,6 +4,7 @@ from __future__ import annotations
 from typing import Any
 
 import yaml
+from django.utils.translation import gettext as _
 
 from ros_gateway.shared import param_types as pt
 
@@ -20,21 +21,29 @@ MAX_NESTING = 32
 MAX_INTEGER_CHARS = 100
 
 
-def _line(node_or_event: yaml.Node | yaml.Event) -> str:
+def _line(node_or_event: yaml.Node | yaml.Event) -> int | None:
+    """The line it starts on, counted from 1 (None if not known)."""
     mark = node_or_event.start_mark
-    return f" (line {mark.line + 1})" if mark is not None else ""
+    return mark.line + 1 if mark is not None else None
 
 
 def _bounded_int(loader: yaml.constructor.SafeConstructor, node: yaml.ScalarNode) -> int:
     if len(node.value) > MAX_INTEGER_CHARS:
-        raise ParameterFileError(f"an integer of more than {MAX_INTEGER_CHARS} characters{_line(node)}; "
-                                 "ROS integers are 64-bit")
+        line = _line(node)
+        if line is None:
+            raise ParameterFileError(_("an integer of more than %(count)s characters; ROS integers are 64-bit") % {
+                "count": MAX_INTEGER_CHARS})
+        raise ParameterFileError(_("an integer of more than %(count)s characters (line %(line)s); ROS integers are "
+                                   "64-bit") % {"count": MAX_INTEGER_CHARS, "line": line})
     return loader.construct_yaml_int(node)
 
 
-def _too_deep(where: str) -> ParameterFileError:
-    return ParameterFileError(f"lists or mappings nested more than {MAX_NESTING} levels deep{where}; "
-                              "a parameter file needs only a few")
+def _too_deep(line: int | None) -> ParameterFileError:
+    if line is None:
+        return ParameterFileError(_("lists or mappings nested more than %(count)s levels deep; a parameter file "
+                                    "needs only a few") % {"count": MAX_NESTING})
+    return ParameterFileError(_("lists or mappings nested more than %(count)s levels deep (line %(line)s); a "
+                                "parameter file needs only a few") % {"count": MAX_NESTING, "line": line})
 
 
 class _PythonLoader(yaml.SafeLoader):
@@ -44,7 +53,7 @@ class _PythonLoader(yaml.SafeLoader):
 
     def fetch_flow_collection_start(self, TokenClass: type) -> None:  # noqa: N803 (PyYAML's name)
         if self.flow_level >= MAX_NESTING:
-            raise _too_deep(f" (line {self.line + 1})")
+            raise _too_deep(self.line + 1)
         super().fetch_flow_collection_start(TokenClass)
 
 
@@ -67,7 +76,7 @@ def _check_events(text: str) -> None:
     for event in yaml.parse(text, Loader=LOADER):
         if isinstance(event, yaml.AliasEvent):
             # *name repeats a value: nested ones turn a few lines into gigabytes
-            raise ParameterFileError("aliases (*name) are not supported in a parameter file; write the values out")
+            raise ParameterFileError(_("aliases (*name) are not supported in a parameter file; write the values out"))
         if isinstance(event, yaml.CollectionStartEvent):
             depth += 1
             if depth > MAX_NESTING:
@@ -108,9 +117,9 @@ def load(text: str, node_name: str) -> dict[str, Any]:
         _check_events(text)
         document = yaml.load(text, Loader=LOADER)  # a safe loader (above)
     except yaml.YAMLError as exc:
-        raise ParameterFileError(f"not valid YAML: {exc}") from None
+        raise ParameterFileError(_("not valid YAML: %(error)s") % {"error": exc}) from None
     if not isinstance(document, dict) or not document:
-        raise ParameterFileError("expected a mapping such as '/node: {ros__parameters: {...}}'")
+        raise ParameterFileError(_("expected a mapping such as '/node: {ros__parameters: {...}}'"))
     bare = node_name.lstrip("/")
     for key in (node_name, bare, "/**", "**"):
         if key in document:
@@ -119,10 +128,11 @@ def load(text: str, node_name: str) -> dict[str, Any]:
     else:
         if len(document) != 1:
             found = ", ".join(map(str, document))
-            raise ParameterFileError(f"the file has no section for {node_name} (found: {found})")
+            raise ParameterFileError(_("the file has no section for %(node)s (found: %(found)s)") % {
+                "node": node_name, "found": found})
         section = next(iter(document.values()))
     if not isinstance(section, dict) or not isinstance(section.get("ros__parameters"), dict):
-        raise ParameterFileError("the node's section has no 'ros__parameters' mapping")
+        raise ParameterFileError(_("the node's section has no 'ros__parameters' mapping"))
     return _flatten(section["ros__parameters"])
 
 
@@ -132,8 +142,10 @@ def _not_finite_note(value: Any) -> str:
     if found is None:
         return ""
     path, number = found
-    where = f"item {path[0]} is " if path else ""  # ROS arrays are flat: the index says where
-    return f"cannot be set: {where}{number}, not a finite number"
+    if path:  # ROS arrays are flat: the index says where
+        return _("cannot be set: item %(index)s is %(number)s, not a finite number") % {
+            "index": path[0], "number": number}
+    return _("cannot be set: %(number)s, not a finite number") % {"number": number}
 
 
 def diff(current: list[dict], wanted: dict[str, Any]) -> list[dict]:
@@ -150,7 +162,7 @@ def diff(current: list[dict], wanted: dict[str, Any]) -> list[dict]:
         change = {"name": name, "old": None if parameter is None else parameter["value"], "new": value,
                   "value": value, "note": ""}
         if parameter is None:
-            change["note"], change["missing"] = "the node has no such parameter", True
+            change["note"], change["missing"] = _("the node has no such parameter"), True
         elif note := _not_finite_note(value):
             change["note"] = note
         elif parameter["value"] == value:

@@ -9,21 +9,22 @@ import signal
 
 from django.core.validators import MaxValueValidator, MinValueValidator, RegexValidator
 from django.db import models
+from django.utils.translation import gettext_lazy
 
-PROCESS_NAME = RegexValidator(r"^[A-Za-z0-9_.-]{1,64}$", "1-64 letters, digits, '_', '.' or '-'.")
+PROCESS_NAME = RegexValidator(r"^[A-Za-z0-9_.-]{1,64}$", gettext_lazy("1-64 letters, digits, '_', '.' or '-'."))
 STOP_SIGNALS = [(signal.SIGTERM.name, "SIGTERM"), (signal.SIGINT.name, "SIGINT (as Ctrl-C; ros2 launch)")]
 
 
 class ProcessProfile(models.Model):
-    class Status(models.TextChoices):
-        UNKNOWN = "unknown", "not reported yet"
-        STARTING = "starting", "starting"
-        RUNNING = "running", "running"
-        STOPPING = "stopping", "stopping"
-        STOPPED = "stopped", "stopped"
-        EXITED = "exited", "exited"
-        BACKING_OFF = "backing_off", "exited, starting again soon"
-        GIVEN_UP = "given_up", "given up (kept failing)"
+    class Status(models.TextChoices):  # (the labels: the Processes page's and the CLI's words)
+        UNKNOWN = "unknown", gettext_lazy("not reported yet")
+        STARTING = "starting", gettext_lazy("starting")
+        RUNNING = "running", gettext_lazy("running")
+        STOPPING = "stopping", gettext_lazy("stopping")
+        STOPPED = "stopped", gettext_lazy("stopped")
+        EXITED = "exited", gettext_lazy("exited")
+        BACKING_OFF = "backing_off", gettext_lazy("exited, starting again soon")
+        GIVEN_UP = "given_up", gettext_lazy("given up (kept failing)")
 
     robot = models.ForeignKey("fleet.Robot", on_delete=models.CASCADE, related_name="process_profiles")
     name = models.CharField(max_length=64, validators=[PROCESS_NAME],

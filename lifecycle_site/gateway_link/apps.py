@@ -1,4 +1,5 @@
 from django.apps import AppConfig
+from django.utils.translation import gettext_lazy
 
 
 class GatewayLinkConfig(AppConfig):
@@ -6,7 +7,7 @@ class GatewayLinkConfig(AppConfig):
     and quotas, quarantines, and the checks of everything a gateway sends."""
 
     name = "lifecycle_site.gateway_link"
-    verbose_name = "Gateway link"
+    verbose_name = gettext_lazy("Gateway link")
 
     def ready(self) -> None:
         from lifecycle_site.gateway_link import (  # noqa: F401

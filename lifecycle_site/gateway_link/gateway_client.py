@@ -17,11 +17,12 @@ from typing import Any
 
 import redis
 from django.conf import settings
+from django.utils.translation import gettext_noop
 
 from lifecycle_site.gateway_link import attribution, gateways, presence, redis_guard
 from lifecycle_site.gateway_link import gateway_input as checks
 from lifecycle_site.gateway_link.gateways import MAX_SERVICE_TIMEOUT, channel_prefix
-from lifecycle_site.refusal import Refusal
+from lifecycle_site.refusal import Refusal, both, in_english
 from ros_gateway.shared import protocol
 
 __all__ = ["GatewayError", "GatewayOffline", "GatewayNoAnswer", "call_gateway", "channel_prefix",
@@ -35,7 +36,8 @@ WAIT_SLICE_S = 1.0
 
 
 class GatewayError(Refusal):
-    """A command could not be carried out; ``code`` and ``message`` are shown to the user.
+    """A command could not be carried out; ``code`` and ``message`` are shown to the user
+    (``english``: the message as an audit record or a run's summary stores it).
 
     ``facts`` are what the gateway (or the site, for a command it withdrew) reported along with
     the refusal (an audit record of the attempt, say): the caller applies them like those of a
@@ -103,7 +105,7 @@ def call_gateway(gateway: str, command: str, timeout: float | None = None, **arg
     robot = _target(arguments)
     state = gateways.status(gateway)
     if not state.online:
-        raise GatewayOffline(state.refusal(robot), gateway)
+        raise GatewayOffline(state.refusal(robot), gateway, english=in_english(state.refusal, robot))
     service_timeout = _service_timeout(timeout)
     wait = protocol.CALLS_PER_COMMAND * service_timeout + settings.LIFECYCLE["COMMAND_GRACE"]
     asked = datetime.now(timezone.utc)
@@ -131,7 +133,6 @@ class _Call:
         self.reply_key = protocol.reply_key(prefix, gateway, message["request_id"])
         self.claim_key = protocol.claim_key(prefix, gateway, message["request_id"])
         self.client = gateways.redis_client()
-        self.target = f" to {robot}" if robot else ""
         self.claim_seen: dict[str, float] = {}  # gateway instance that took the command -> first read (monotonic)
 
     def not_carried_out(self, reason: str, outcome: str = "rejected") -> list[dict]:
@@ -154,14 +155,22 @@ class _Call:
                     raise
                 self.send()
         except redis.TimeoutError as exc:  # it may have been queued: the gateway's record will tell
-            text = (f"Redis, which links the site and gateway {self.gateway}, did not answer while the command "
-                    f"was sent ({exc}): whether it was carried out is not known. Check the node's state when "
-                    "Redis answers again.")
-            raise GatewayNoAnswer(text, self.gateway, requested_at=self.asked) from exc
+            text, english = both(gettext_noop(
+                "Redis, which links the site and gateway %(gateway)s, did not answer while the command was sent "
+                "(%(error)s): whether it was carried out is not known. Check the node's state when Redis answers "
+                "again."), gateway=self.gateway, error=exc)
+            raise GatewayNoAnswer(text, self.gateway, requested_at=self.asked, english=english) from exc
         except redis.RedisError as exc:
-            text = (f"Redis, which links the site and gateway {self.gateway}, is unreachable: {exc}; "
-                    f"nothing was sent{self.target}.")
-            raise GatewayOffline(text, self.gateway, self.not_carried_out(text), requested_at=self.asked) from exc
+            if self.robot:
+                text, english = both(gettext_noop(
+                    "Redis, which links the site and gateway %(gateway)s, is unreachable: %(error)s; nothing was "
+                    "sent to %(robot)s."), gateway=self.gateway, error=exc, robot=self.robot)
+            else:
+                text, english = both(gettext_noop(
+                    "Redis, which links the site and gateway %(gateway)s, is unreachable: %(error)s; nothing was "
+                    "sent."), gateway=self.gateway, error=exc)
+            raise GatewayOffline(text, self.gateway, self.not_carried_out(english), requested_at=self.asked,
+                                 english=english) from exc
         end = time.monotonic() + self.wait
         trouble: Exception | None = None
         while (left := end - time.monotonic()) > 0:
@@ -193,12 +202,20 @@ class _Call:
     def settle(self, trouble: Exception | None) -> dict:
         """No reply in time: withdraw the command if the gateway has not taken it; else say what
         is known. Returns the reply if it came meanwhile."""
-        waited = f"Gateway {self.gateway} did not answer within {self.wait:.0f} s"
+        waited = {"gateway": self.gateway, "seconds": f"{self.wait:.0f}"}
         try:
             if self.client.set(self.claim_key, protocol.ABANDONED, nx=True, ex=protocol.CLAIM_TTL_S):
                 self.client.lrem(self.queue, 1, self.encoded)
-                text = f"{waited}, so the command was withdrawn: it was not carried out, nothing was sent{self.target}."
-                withdrawn = GatewayOffline(text, self.gateway, self.not_carried_out(text), requested_at=self.asked)
+                if self.robot:
+                    text, english = both(gettext_noop(
+                        "Gateway %(gateway)s did not answer within %(seconds)s s, so the command was withdrawn: it "
+                        "was not carried out, nothing was sent to %(robot)s."), **waited, robot=self.robot)
+                else:
+                    text, english = both(gettext_noop(
+                        "Gateway %(gateway)s did not answer within %(seconds)s s, so the command was withdrawn: it "
+                        "was not carried out, nothing was sent."), **waited)
+                withdrawn = GatewayOffline(text, self.gateway, self.not_carried_out(english), requested_at=self.asked,
+                                           english=english)
                 withdrawn.details["carried_out"] = False
                 raise withdrawn
             holder = self.client.get(self.claim_key)
@@ -211,21 +228,38 @@ class _Call:
                 return self.result(popped)
             instance = _instance(holder)
             if instance and presence.process_gone(self.client, protocol.client_name(self.gateway, instance), read):
-                text = (f"Gateway {self.gateway} took the command, but its process ended before it answered: "
-                        f"whether it reached {self.robot or 'the robot'} is not known. Check the node's state "
-                        "before you try again.")
-                raise GatewayNoAnswer(text, self.gateway, self.not_carried_out(text, "timed_out"),
-                                      requested_at=self.asked)
-            text = (f"{waited}. It had taken the command, so it may still be carried out; its outcome will be "
-                    "in the audit log when the gateway reports it. Check the node's state before you try again.")
-            raise GatewayNoAnswer(text, self.gateway, requested_at=self.asked)
+                if self.robot:
+                    text, english = both(gettext_noop(
+                        "Gateway %(gateway)s took the command, but its process ended before it answered: whether "
+                        "it reached %(robot)s is not known. Check the node's state before you try again."),
+                        gateway=self.gateway, robot=self.robot)
+                else:
+                    text, english = both(gettext_noop(
+                        "Gateway %(gateway)s took the command, but its process ended before it answered: whether "
+                        "it reached the robot is not known. Check the node's state before you try again."),
+                        gateway=self.gateway)
+                raise GatewayNoAnswer(text, self.gateway, self.not_carried_out(english, "timed_out"),
+                                      requested_at=self.asked, english=english)
+            text, english = both(gettext_noop(
+                "Gateway %(gateway)s did not answer within %(seconds)s s. It had taken the command, so it may still "
+                "be carried out; its outcome will be in the audit log when the gateway reports it. Check the "
+                "node's state before you try again."), **waited)
+            raise GatewayNoAnswer(text, self.gateway, requested_at=self.asked, english=english)
         # The gateway keeps what it did (or that it let the command expire) until Redis is back:
         # its record tells, so none is made here.
-        text = (f"Redis, which links the site and gateway {self.gateway}, stopped answering while the site "
-                f"waited for the gateway ({trouble}): whether the command for {self.robot or 'the robot'} was "
-                "carried out is not known; the audit log will show it when Redis is back. Check the node's "
-                "state before you try again.")
-        raise GatewayNoAnswer(text, self.gateway, requested_at=self.asked)
+        if self.robot:
+            text, english = both(gettext_noop(
+                "Redis, which links the site and gateway %(gateway)s, stopped answering while the site waited for "
+                "the gateway (%(error)s): whether the command for %(robot)s was carried out is not known; the audit "
+                "log will show it when Redis is back. Check the node's state before you try again."),
+                gateway=self.gateway, error=trouble, robot=self.robot)
+        else:
+            text, english = both(gettext_noop(
+                "Redis, which links the site and gateway %(gateway)s, stopped answering while the site waited for "
+                "the gateway (%(error)s): whether the command for the robot was carried out is not known; the audit "
+                "log will show it when Redis is back. Check the node's state before you try again."),
+                gateway=self.gateway, error=trouble)
+        raise GatewayNoAnswer(text, self.gateway, requested_at=self.asked, english=english)
 
     def result(self, raw: bytes) -> dict:
         """The gateway's reply, if it is one the site can read: a JSON object of bounded size;
@@ -235,17 +269,21 @@ class _Call:
         except (ValueError, RecursionError):  # (JSON nested deeper than Python's stack)
             reply = None
         if not isinstance(reply, dict):
-            raise GatewayError("gateway_error", f"Gateway {self.gateway} answered with something the site cannot "
-                               f"read ({len(raw):,} bytes); check the node's state before you try again.",
-                               carried_out=None, requested_at=self.asked)
+            text, english = both(gettext_noop(
+                "Gateway %(gateway)s answered with something the site cannot read (%(size)s bytes); check the "
+                "node's state before you try again."), gateway=self.gateway, size=f"{len(raw):,}")
+            raise GatewayError("gateway_error", text, carried_out=None, requested_at=self.asked, english=english)
         facts = reply.get("facts") if isinstance(reply.get("facts"), list) else []
         if reply.get("ok") is not True:
             code, message = checks.failure(reply)
+            # (the gateway's own message is in its words, English: shown and stored as it is)
+            text, english = (message, message) if message else both(
+                gettext_noop("Gateway %(gateway)s reported an error."), gateway=self.gateway)
             raise GatewayError(
-                code, message or f"Gateway {self.gateway} reported an error.", facts,
+                code, text, facts,
                 # A refusal means nothing reached the node; the gateway's own failure may come midway.
                 carried_out=None if code == "gateway_error" else False,
-                requested_at=self.asked,
+                requested_at=self.asked, english=english,
             )
         return {**reply, "facts": facts}
 

@@ -20,6 +20,8 @@ from urllib.parse import urlsplit, urlunsplit
 import redis
 from django.conf import settings
 from django.core.signals import setting_changed
+from django.utils.translation import gettext as _
+from django.utils.translation import ngettext
 from redis.backoff import ExponentialBackoff
 from redis.retry import Retry
 
@@ -169,13 +171,14 @@ def _when(moment: datetime, ago: bool = True) -> str:
         return clock
     seconds = max(0, int((now - moment).total_seconds()))
     if seconds < 120:
-        ago = f"{seconds} s ago"
+        ago = _("%(n)s s ago") % {"n": seconds}
     elif seconds < 7200:
-        ago = f"{seconds // 60} min ago"
+        ago = _("%(n)s min ago") % {"n": seconds // 60}
     elif seconds < 172800:
-        ago = f"{seconds // 3600} h ago"
+        ago = _("%(n)s h ago") % {"n": seconds // 3600}
     else:
-        ago = f"{seconds // 86400} days ago"
+        days = seconds // 86400
+        ago = ngettext("%(n)s day ago", "%(n)s days ago", days) % {"n": days}
     return f"{clock}, {ago}"
 
 
@@ -204,20 +207,25 @@ class GatewayStatus:
 
     def reason(self, ago: bool = True) -> str:
         """Why it takes no commands, for a person: 'no heartbeat since 10:32:05 UTC, 2 min ago'
-        (without ``ago``: 'no heartbeat since 10:32:05 UTC')."""
+        (without ``ago``: 'no heartbeat since 10:32:05 UTC'). In the active language: what is
+        stored (an alert's summary) takes it in English (refusal.in_english)."""
         if self.state == UNREACHABLE:
-            return f"Redis, which links the site and its gateways, is unreachable: {self.redis_error.rstrip('.')}"
+            return _("Redis, which links the site and its gateways, is unreachable: %(error)s") % {
+                "error": self.redis_error.rstrip(".")}
         if self.state == QUARANTINED:
-            when = f" at {_when(self.quarantined, ago)}" if self.quarantined else ""
-            return f"the site cut it off{when}: {self.quarantine_reason.rstrip('.')}"
+            why = self.quarantine_reason.rstrip(".")  # (stored, in English)
+            if self.quarantined:
+                return _("the site cut it off at %(when)s: %(reason)s") % {
+                    "when": _when(self.quarantined, ago), "reason": why}
+            return _("the site cut it off: %(reason)s") % {"reason": why}
         if self.state == NEVER or self.last_beat is None:
-            return "it has never reported"
+            return _("it has never reported")
         if self.state == STOPPED:
-            return f"it stopped at {_when(self.last_beat, ago)}"
+            return _("it stopped at %(when)s") % {"when": _when(self.last_beat, ago)}
         if self.ended:
-            last = _when(self.last_beat, ago)
-            return f"its process has ended: its connection to Redis closed (last heartbeat {last})"
-        return f"no heartbeat since {_when(self.last_beat, ago)}"
+            return _("its process has ended: its connection to Redis closed (last heartbeat %(when)s)") % {
+                "when": _when(self.last_beat, ago)}
+        return _("no heartbeat since %(when)s") % {"when": _when(self.last_beat, ago)}
 
     def reason_since(self) -> datetime | None:
         """The moment reason() counts its age from (None: it names none)."""
@@ -228,14 +236,23 @@ class GatewayStatus:
         return self.last_beat
 
     def refusal(self, robot: str | None = None) -> str:
-        """The error of a command that was not sent because of this status."""
-        target = f" to {robot}" if robot else ""
+        """The error of a command that was not sent because of this status (in the active
+        language; refusal.in_english for the stored one)."""
+        values = {"gateway": self.name, "reason": self.reason(), "robot": robot}
         if self.state == UNREACHABLE:
-            return f"{self.reason()}; nothing was sent{target} (gateway {self.name})."
+            if robot:
+                return _("%(reason)s; nothing was sent to %(robot)s (gateway %(gateway)s).") % values
+            return _("%(reason)s; nothing was sent (gateway %(gateway)s).") % values
         if self.state == QUARANTINED:
-            return (f"Gateway {self.name} is quarantined ({self.reason()}); nothing was sent{target}. An "
-                    "administrator can lift the quarantine in the admin (Gateways) once the cause is dealt with.")
-        return f"Gateway {self.name} is offline ({self.reason()}); nothing was sent{target}."
+            if robot:
+                return _("Gateway %(gateway)s is quarantined (%(reason)s); nothing was sent to %(robot)s. An "
+                         "administrator can lift the quarantine in the admin (Gateways) once the cause is dealt "
+                         "with.") % values
+            return _("Gateway %(gateway)s is quarantined (%(reason)s); nothing was sent. An administrator can lift "
+                     "the quarantine in the admin (Gateways) once the cause is dealt with.") % values
+        if robot:
+            return _("Gateway %(gateway)s is offline (%(reason)s); nothing was sent to %(robot)s.") % values
+        return _("Gateway %(gateway)s is offline (%(reason)s); nothing was sent.") % values
 
     def as_dict(self) -> dict:
         return {
@@ -297,15 +314,15 @@ def dds_summary(dds: dict) -> str:
         return ""
     parts = []
     if dds.get("ROS_AUTOMATIC_DISCOVERY_RANGE"):
-        parts.append(f"discovery {dds['ROS_AUTOMATIC_DISCOVERY_RANGE']}")
+        parts.append(_("discovery %(range)s") % {"range": dds["ROS_AUTOMATIC_DISCOVERY_RANGE"]})
     if dds.get("ROS_STATIC_PEERS"):
-        parts.append(f"peers {dds['ROS_STATIC_PEERS']}")
+        parts.append(_("peers %(peers)s") % {"peers": dds["ROS_STATIC_PEERS"]})
     if dds.get("ROS_DISCOVERY_SERVER"):
-        parts.append(f"discovery server {dds['ROS_DISCOVERY_SERVER']}")
+        parts.append(_("discovery server %(server)s") % {"server": dds["ROS_DISCOVERY_SERVER"]})
     if dds.get("ROS_SUPER_CLIENT"):
-        parts.append("super client")
+        parts.append(_("super client"))
     if dds.get("LIFECYCLE_DDS_INTERFACES"):
-        parts.append(f"interfaces {dds['LIFECYCLE_DDS_INTERFACES']}")
+        parts.append(_("interfaces %(interfaces)s") % {"interfaces": dds["LIFECYCLE_DDS_INTERFACES"]})
     if dds.get("RMW_IMPLEMENTATION"):
         parts.append(dds["RMW_IMPLEMENTATION"])
     return " · ".join(parts)

@@ -17,7 +17,7 @@ from datetime import datetime, timedelta
 
 from django.db.models import Case, F, Q, Value, When
 from django.db.models.functions import Coalesce
-from django.utils import timezone
+from django.utils import timezone, translation
 
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.fleet.models import GroupRun, ManagedNode
@@ -166,7 +166,9 @@ def cause(node: ManagedNode, start: int | None, found: int, moment: datetime) ->
             and last.result_state_id is None:
         what = f"{last.transition_label} " if last.transition_label else ""
         by = f" by {last.requested_by_name}" if last.requested_by_name else ""
-        text += f": after request #{last.pk} ({what}{last.get_outcome_display()}{by}) was not answered"
+        with translation.override("en"):  # a stored record: in English, whatever the site's language
+            outcome = str(last.get_outcome_display())
+        text += f": after request #{last.pk} ({what}{outcome}{by}) was not answered"
     run = GroupRun.objects.filter(robot_id=node.robot_id, created__lte=moment,
                                   created__gte=moment - RUN_CONTEXT).select_related(
         "requested_by").order_by("-created").first()

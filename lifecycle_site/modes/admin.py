@@ -3,6 +3,7 @@ the API or the command line) and, read-only, which mode each robot is in."""
 from __future__ import annotations
 
 from django.contrib import admin
+from django.utils.translation import gettext_lazy
 
 from lifecycle_site.modes.models import CurrentMode, Mode
 
@@ -14,11 +15,11 @@ class ModeAdmin(admin.ModelAdmin):
     filter_horizontal = ("robots",)
     fields = ("name", "description", "robots", "nodes")
 
-    @admin.display(description="robots")
+    @admin.display(description=gettext_lazy("robots"))
     def robot_names(self, mode: Mode) -> str:
         return ", ".join(mode.robots.values_list("name", flat=True)) or "-"
 
-    @admin.display(description="nodes")
+    @admin.display(description=gettext_lazy("nodes"))
     def node_count(self, mode: Mode) -> int:
         return len(mode.nodes)
 

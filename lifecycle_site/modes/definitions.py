@@ -6,6 +6,8 @@ import re
 from typing import Any
 
 from django.core.exceptions import ValidationError
+from django.utils.translation import gettext as _
+from django.utils.translation import gettext_lazy
 
 from ros_gateway.shared import param_types as pt
 from ros_gateway.shared import state_machine as sm
@@ -16,47 +18,61 @@ MODE_NAME = re.compile(r"^[a-z0-9][a-z0-9_-]{0,62}$")
 PARAMETER_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_.]{0,254}$")
 STATES = tuple(sm.DESIRED_STATES)  # unconfigured, inactive, active
 KEYS = {"state", "parameters"}
+TOO_LONG = "text over 4096 characters"
+MIXED_LIST = "a list must hold values of one kind (true/false, numbers or texts)"
+NOT_A_VALUE = "not a number, true/false, text or list of one of these"
+# What problems() says of a parameter's value, by _value_problem()'s answer (one sentence each).
+VALUE_PROBLEMS = {
+    TOO_LONG: gettext_lazy("%(node)s: %(parameter)s is text over 4096 characters."),
+    MIXED_LIST: gettext_lazy("%(node)s: %(parameter)s is a list must hold values of one kind (true/false, numbers "
+                             "or texts)."),
+    NOT_A_VALUE: gettext_lazy("%(node)s: %(parameter)s is not a number, true/false, text or list of one of these."),
+}
 
 
 def _value_problem(value: Any) -> str:
-    """Why the value is not one a ROS 2 parameter can take ("" if it is)."""
+    """Why the value is not one a ROS 2 parameter can take ("" if it is): TOO_LONG, MIXED_LIST or
+    NOT_A_VALUE (problems() says it in words, VALUE_PROBLEMS)."""
     if isinstance(value, (bool, int, str)) or (isinstance(value, float) and pt.non_finite(value) is None):
-        return "text over 4096 characters" if isinstance(value, str) and len(value) > MAX_TEXT else ""
+        return TOO_LONG if isinstance(value, str) and len(value) > MAX_TEXT else ""
     if isinstance(value, list) and len(value) <= MAX_ITEMS:
         kinds = {bool if isinstance(v, bool) else (float if isinstance(v, (int, float)) else type(v)) for v in value}
         if len(kinds) <= 1 and kinds <= {bool, float, str} and all(not _value_problem(v) for v in value):
             return ""
-        return "a list must hold values of one kind (true/false, numbers or texts)"
-    return "not a number, true/false, text or list of one of these"
+        return MIXED_LIST
+    return NOT_A_VALUE
 
 
 def problems(nodes: Any) -> list[str]:
     """Every problem of a mode's node table, in words; [] if it can be stored."""
     if not isinstance(nodes, dict):
-        return ['The nodes must be a table {"/node": {"state": ..., "parameters": {...}}}.']
+        return [_('The nodes must be a table {"/node": {"state": ..., "parameters": {...}}}.')]
     if len(nodes) > MAX_NODES:
-        return [f"A mode holds at most {MAX_NODES} nodes."]
+        return [_("A mode holds at most %(count)s nodes.") % {"count": MAX_NODES}]
     found: list[str] = []
     for name, entry in nodes.items():
         if not NODE_NAME.match(name):
-            found.append(f"{name!r} is not a fully qualified node name (such as /lidar_driver).")
+            found.append(_("%(name)s is not a fully qualified node name (such as /lidar_driver).") % {
+                "name": repr(name)})
             continue
         if not isinstance(entry, dict) or set(entry) - KEYS:
-            found.append(f"{name}: give only state and parameters.")
+            found.append(_("%(node)s: give only state and parameters.") % {"node": name})
             continue
         state = entry.get("state")
         if state is not None and state not in STATES:
-            found.append(f"{name}: {state!r} is not a state a mode can ask for; use {', '.join(STATES)} "
-                         "or null (left alone).")
+            found.append(_("%(node)s: %(state)s is not a state a mode can ask for; use %(states)s or null (left "
+                           "alone).") % {"node": name, "state": repr(state), "states": ", ".join(STATES)})
         parameters = entry.get("parameters") or {}
         if not isinstance(parameters, dict) or len(parameters) > MAX_PARAMETERS:
-            found.append(f"{name}: parameters must be at most {MAX_PARAMETERS} {{name: value}}.")
+            found.append(_("%(node)s: parameters must be at most %(count)s {name: value}.") % {
+                "node": name, "count": MAX_PARAMETERS})
             continue
         for key, value in parameters.items():
             if not PARAMETER_NAME.match(key):
-                found.append(f"{name}: {key!r} is not a parameter name.")
+                found.append(_("%(node)s: %(parameter)s is not a parameter name.") % {
+                    "node": name, "parameter": repr(key)})
             elif problem := _value_problem(value):
-                found.append(f"{name}: {key} is {problem}.")
+                found.append(VALUE_PROBLEMS[problem] % {"node": name, "parameter": key})
     return found
 
 
@@ -82,7 +98,8 @@ def _number(value: Any) -> bool:
 def readiness_problems(predicates: Any) -> list[str]:
     """Every problem of a mode's readiness predicates, in words; [] if they can be stored."""
     if not isinstance(predicates, list) or len(predicates) > MAX_PREDICATES:
-        return [f"Readiness is a list of at most {MAX_PREDICATES} predicates such as {PREDICATE_FORMS[0]}."]
+        return [_("Readiness is a list of at most %(count)s predicates such as %(example)s.") % {
+            "count": MAX_PREDICATES, "example": PREDICATE_FORMS[0]}]
     found = []
     for index, given in enumerate(predicates, 1):
         keys = set(given) if isinstance(given, dict) else set()
@@ -100,7 +117,8 @@ def readiness_problems(predicates: Any) -> list[str]:
                 and TOPIC_NAME.match(str(given["topic"])) and _number(given["min_hz"]) and given["min_hz"] >= 0 \
                 and _number(given.get("window_s", 5.0)) and 0.5 <= given.get("window_s", 5.0) <= 60:
             continue
-        found.append(f"Predicate {index} is not one of: {'; '.join(PREDICATE_FORMS)} (window_s 0.5 to 60 s).")
+        found.append(_("Predicate %(index)s is not one of: %(forms)s (window_s 0.5 to 60 s).") % {
+            "index": index, "forms": "; ".join(PREDICATE_FORMS)})
     return found
 
 

@@ -7,6 +7,8 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 from typing import Any
 
+from django.utils.translation import gettext as _
+
 from lifecycle_site.fleet.models import ManagedNode, Robot
 from lifecycle_site.modes import parameter_values, readiness
 from lifecycle_site.modes.models import CurrentMode
@@ -27,10 +29,13 @@ class Difference:
 
     def words(self) -> str:
         if self.kind == "absent":
-            return f"{self.node} is not running (the mode wants it {self.want})"
+            return _("%(node)s is not running (the mode wants it %(state)s)") % {"node": self.node, "state": self.want}
         if self.kind == "state":
-            return f"{self.node} is {self.have}, the mode wants {self.want}"
-        return f"{self.node}: {self.parameter} is {self.have!r}, the mode sets {self.want!r}"
+            return _("%(node)s is %(have)s, the mode wants %(want)s") % {
+                "node": self.node, "have": self.have, "want": self.want}
+        have = _(self.have) if self.have in (NOT_SET, UNKNOWN) else self.have
+        return _("%(node)s: %(parameter)s is %(have)s, the mode sets %(want)s") % {
+            "node": self.node, "parameter": self.parameter, "have": repr(have), "want": repr(self.want)}
 
 
 def current(robot: Robot) -> CurrentMode | None:

@@ -6,27 +6,30 @@ from __future__ import annotations
 from django.conf import settings
 from django.core.validators import RegexValidator
 from django.db import models
+from django.utils.translation import gettext_lazy
 
 from lifecycle_site.modes import definitions
 
 MODE_NAME_VALIDATOR = RegexValidator(
-    definitions.MODE_NAME, "Use lower-case letters, digits, '-' and '_' (for example production).")
+    definitions.MODE_NAME, gettext_lazy("Use lower-case letters, digits, '-' and '_' (for example production)."))
 
 
 class Mode(models.Model):
     name = models.CharField(max_length=63, unique=True, validators=[MODE_NAME_VALIDATOR])
     description = models.TextField(blank=True)
     robots = models.ManyToManyField("fleet.Robot", related_name="modes", blank=True,
-                                    help_text="The robots it is for: one, or several with the same node names.")
+                                    help_text=gettext_lazy("The robots it is for: one, or several with the same node "
+                                                           "names."))
     nodes = models.JSONField(
         default=dict, blank=True, validators=[definitions.validate_nodes],
-        help_text='Per node: {"/lidar_driver": {"state": "active", "parameters": {"scan_rate_hz": 8.0}}}; '
-                  'state null (or no state) leaves the node where it is.')
+        help_text=gettext_lazy('Per node: {"/lidar_driver": {"state": "active", "parameters": {"scan_rate_hz": 8.0}}}; '
+                               'state null (or no state) leaves the node where it is.'))
     ready_when = models.JSONField(
-        "ready when", default=list, blank=True, validators=[definitions.validate_readiness],
-        help_text='All must hold for the mode to be ready, e.g. [{"node": "/lidar_driver", "state": "active"}, '
-                  '{"node": "/lidar_driver", "parameter": "scan_rate_hz", "min": 5, "max": 20}, '
-                  '{"topic": "/scan", "min_hz": 5, "window_s": 5}]; the topic rates are measured by the gateway.')
+        gettext_lazy("ready when"), default=list, blank=True, validators=[definitions.validate_readiness],
+        help_text=gettext_lazy('All must hold for the mode to be ready, e.g. [{"node": "/lidar_driver", "state": '
+                               '"active"}, {"node": "/lidar_driver", "parameter": "scan_rate_hz", "min": 5, "max": '
+                               '20}, {"topic": "/scan", "min_hz": 5, "window_s": 5}]; the topic rates are measured by '
+                               'the gateway.'))
     updated = models.DateTimeField(auto_now=True)
     updated_by = models.ForeignKey(settings.AUTH_USER_MODEL, null=True, blank=True, on_delete=models.SET_NULL,
                                    related_name="+", editable=False)
@@ -59,7 +62,8 @@ class CurrentMode(models.Model):
     applied_by = models.ForeignKey(settings.AUTH_USER_MODEL, null=True, blank=True, on_delete=models.SET_NULL,
                                    related_name="+")
     run = models.ForeignKey("fleet.GroupRun", null=True, blank=True, on_delete=models.SET_NULL, related_name="+")
-    not_ready_since = models.DateTimeField(null=True, blank=True, help_text="Since when a readiness predicate fails.")
+    not_ready_since = models.DateTimeField(null=True, blank=True,
+                                           help_text=gettext_lazy("Since when a readiness predicate fails."))
 
     def __str__(self) -> str:
         return f"{self.robot} in {self.mode}"
@@ -75,7 +79,7 @@ class TopicRate(models.Model):
 
     robot = models.ForeignKey("fleet.Robot", on_delete=models.CASCADE, related_name="topic_rates")
     topic = models.CharField(max_length=255)
-    hz = models.FloatField(null=True, blank=True, help_text="Empty: no publisher found.")
+    hz = models.FloatField(null=True, blank=True, help_text=gettext_lazy("Empty: no publisher found."))
     window_s = models.FloatField()
     at = models.DateTimeField()
 

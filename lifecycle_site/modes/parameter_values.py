@@ -7,13 +7,15 @@ from __future__ import annotations
 from typing import Any
 
 from django.db.models import Q
+from django.utils.translation import gettext_noop
 
 from lifecycle_site.audit.models import ParameterRecord
 from lifecycle_site.fleet.models import ManagedNode
 from lifecycle_site.modes.models import CurrentMode
 
-NOT_SET = "not set since the mode was applied"
-UNKNOWN = "unknown: its process was restarted"
+# Kept in English (code compares them; the API gives them as they are); drift.py words them in the reader's language.
+NOT_SET = gettext_noop("not set since the mode was applied")
+UNKNOWN = gettext_noop("unknown: its process was restarted")
 
 
 def known(now_mode: CurrentMode, node: ManagedNode, names: list[str]) -> dict[str, Any]:

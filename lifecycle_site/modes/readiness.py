@@ -8,6 +8,7 @@ from dataclasses import asdict, dataclass
 from datetime import timedelta
 
 from django.utils import timezone
+from django.utils.translation import gettext as _
 
 from lifecycle_site.fleet.models import ManagedNode
 from lifecycle_site.modes import parameter_values
@@ -40,25 +41,28 @@ def checks(now_mode: CurrentMode) -> list[Check]:
         if "topic" in p:
             rate = rates.get(p["topic"])
             hz = rate.hz if rate is not None and rate.at >= fresh else None
-            now = "no publisher" if rate is not None and rate.at >= fresh and hz is None else (
-                "not measured yet" if hz is None else f"{hz:g} Hz")
-            found.append(Check(f"{p['topic']} at >= {p['min_hz']:g} Hz over {p.get('window_s', 5.0):g} s",
-                               hz is not None and hz >= p["min_hz"], now))
+            now = _("no publisher") if rate is not None and rate.at >= fresh and hz is None else (
+                _("not measured yet") if hz is None else f"{hz:g} Hz")
+            words = _("%(topic)s at >= %(min_hz)s Hz over %(window)s s") % {
+                "topic": p["topic"], "min_hz": f"{p['min_hz']:g}", "window": f"{p.get('window_s', 5.0):g}"}
+            found.append(Check(words, hz is not None and hz >= p["min_hz"], now))
             continue
         node = nodes.get(p["node"])
         if "state" in p:
-            state = node.state_label if node is not None and node.alive else "not running"
-            found.append(Check(f"{p['node']} {p['state']}", state == p["state"], state))
+            running = node is not None and node.alive
+            found.append(Check(f"{p['node']} {p['state']}", running and node.state_label == p["state"],
+                               node.state_label if running else _("not running")))
             continue
         value = values.get(p["node"], {}).get(p["parameter"], parameter_values.NOT_SET)
         if "equals" in p:
             words, holds = f"{p['node']} {p['parameter']} = {p['equals']!r}", value == p["equals"]
         else:
             low, high = p.get("min", float("-inf")), p.get("max", float("inf"))
-            words = f"{p['node']} {p['parameter']} within {p.get('min', '-')}..{p.get('max', '-')}"
+            words = _("%(node)s %(parameter)s within %(min)s..%(max)s") % {
+                "node": p["node"], "parameter": p["parameter"], "min": p.get("min", "-"), "max": p.get("max", "-")}
             holds = isinstance(value, (int, float)) and not isinstance(value, bool) and low <= value <= high
         unknown = value in (parameter_values.NOT_SET, parameter_values.UNKNOWN)
-        found.append(Check(words, holds and not unknown, "unknown" if unknown else repr(value)))
+        found.append(Check(words, holds and not unknown, _("unknown") if unknown else repr(value)))
     return found
 
 

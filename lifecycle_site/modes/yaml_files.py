@@ -8,6 +8,7 @@ import re
 from typing import Any
 
 import yaml
+from django.utils.translation import gettext as _
 
 from lifecycle_site.modes import definitions
 
@@ -32,27 +33,32 @@ def export(modes: list[dict]) -> str:
 def read(text: str) -> tuple[list[dict], list[str]]:
     """The modes a file describes (name, description, nodes) and every problem found, in words."""
     if len(text.encode("utf-8", "surrogatepass")) > MAX_BYTES:
-        raise FileRefused(f"The file is over {MAX_BYTES // 1024} KB.")
+        raise FileRefused(_("The file is over %(size)s KB.") % {"size": MAX_BYTES // 1024})
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         where = getattr(exc, "problem_mark", None)
-        raise FileRefused(f"The file is not YAML{f' (line {where.line + 1})' if where else ''}: "
-                          f"{getattr(exc, 'problem', None) or exc}.") from None
+        problem = getattr(exc, "problem", None) or exc
+        if where:
+            raise FileRefused(_("The file is not YAML (line %(line)s): %(problem)s.") % {
+                "line": where.line + 1, "problem": problem}) from None
+        raise FileRefused(_("The file is not YAML: %(problem)s.") % {"problem": problem}) from None
     if isinstance(data, dict) and isinstance(data.get("modes"), list):
         modes, problems = _own(data["modes"]), []
     elif isinstance(data, dict) and any(_entry_type(v) for v in data.values()):
         modes, problems = _system_modes(data)
     else:
-        raise FileRefused("The file holds no modes: expected 'modes:' (this product's export) or a system_modes "
-                          "model file (entries with ros__parameters: type: system or node).")
+        raise FileRefused(_("The file holds no modes: expected 'modes:' (this product's export) or a system_modes "
+                            "model file (entries with ros__parameters: type: system or node)."))
     if len(modes) > MAX_MODES:
-        raise FileRefused(f"The file makes {len(modes)} modes; at most {MAX_MODES} are taken at once.")
+        raise FileRefused(_("The file makes %(count)s modes; at most %(max)s are taken at once.") % {
+            "count": len(modes), "max": MAX_MODES})
     for mode in modes:
         problems += [f"{mode['name']}: {p}" for p in definitions.problems(mode["nodes"])
                      + definitions.readiness_problems(mode.setdefault("ready_when", []))]
         if not definitions.MODE_NAME.match(mode["name"]):
-            problems.append(f"{mode['name']!r} cannot be a mode's name (lower-case letters, digits, '-', '_').")
+            problems.append(_("%(name)s cannot be a mode's name (lower-case letters, digits, '-', '_').") % {
+                "name": repr(mode["name"])})
     return modes, problems
 
 
@@ -60,7 +66,7 @@ def _own(entries: list) -> list[dict]:
     modes = []
     for entry in entries:
         if not isinstance(entry, dict):
-            raise FileRefused("Each entry under 'modes:' must be a table with name and nodes.")
+            raise FileRefused(_("Each entry under 'modes:' must be a table with name and nodes."))
         modes.append({"name": str(entry.get("name") or ""), "description": str(entry.get("description") or ""),
                       "nodes": entry.get("nodes") if isinstance(entry.get("nodes"), dict) else {},
                       "ready_when": entry.get("ready_when") or []})
@@ -110,16 +116,17 @@ def _expand(entries: dict, name: str, state: str, mode: str, nodes: dict, proble
     """What ``name`` in ``state`` (and ``mode``) asks of the nodes it is made of."""
     params = entries.get(name)
     if params is None:
-        problems.append(f"{name} is named as a part but not described in the file.")
+        problems.append(_("%(name)s is named as a part but not described in the file.") % {"name": name})
         return
     if depth > MAX_DEPTH:
-        problems.append(f"{name}: systems nested deeper than {MAX_DEPTH} (a loop?).")
+        problems.append(_("%(name)s: systems nested deeper than %(depth)s (a loop?).") % {
+            "name": name, "depth": MAX_DEPTH})
         return
     if params.get("type") == "node":
         wanted = (params.get("modes") or {}).get(mode) or {}
         values = wanted.get("ros__parameters") if isinstance(wanted, dict) else None
         if state == "active" and mode != DEFAULT and values is None:
-            problems.append(f"{name} has no mode {mode}.")
+            problems.append(_("%(name)s has no mode %(mode)s.") % {"name": name, "mode": mode})
         entry: dict[str, Any] = {"state": state}
         if state == "active" and isinstance(values, dict) and values:
             entry["parameters"] = dict(values)
@@ -127,20 +134,22 @@ def _expand(entries: dict, name: str, state: str, mode: str, nodes: dict, proble
         return
     targets = (params.get("modes") or {}).get(mode)
     if not isinstance(targets, dict):
-        problems.append(f"system {name} has no mode {mode}.")
+        problems.append(_("system %(name)s has no mode %(mode)s.") % {"name": name, "mode": mode})
         return
     for part in _parts(params):
         target = str(targets.get(part, state if state != "active" else "active"))
-        part_state, _, part_mode = target.partition(".")
+        part_state, _dot, part_mode = target.partition(".")
         if part_state not in definitions.STATES:
-            problems.append(f"{name}: {part} is asked to be {part_state!r}, not a state a mode can ask for.")
+            problems.append(_("%(name)s: %(part)s is asked to be %(state)s, not a state a mode can ask for.") % {
+                "name": name, "part": part, "state": repr(part_state)})
             continue
         # A system that is not active takes its parts down with it.
         if state != "active":
             part_state, part_mode = _lower(state, part_state), ""
         _expand(entries, part, part_state, part_mode or DEFAULT, nodes, problems, depth + 1)
     unknown = set(targets) - set(_parts(params))
-    problems += [f"system {name}, mode {mode}: {part} is not one of its parts." for part in sorted(unknown)]
+    problems += [_("system %(name)s, mode %(mode)s: %(part)s is not one of its parts.") % {
+        "name": name, "mode": mode, "part": part} for part in sorted(unknown)]
 
 
 def _lower(a: str, b: str) -> str:

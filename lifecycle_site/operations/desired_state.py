@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 
 from django.utils import timezone
+from django.utils.translation import gettext as _
 
 from lifecycle_site.fleet.models import ManagedNode
 from lifecycle_site.refusal import Refusal
@@ -20,7 +21,7 @@ def set_desired_state(node: ManagedNode, wanted: object) -> str:
         wanted = ""
     allowed = [value for value, _ in ManagedNode._meta.get_field("desired_state").choices]
     if not isinstance(wanted, str) or wanted not in allowed:
-        raise Refusal("invalid_field", "desired_state must be unconfigured, inactive, active or null.")
+        raise Refusal("invalid_field", _("desired_state must be unconfigured, inactive, active or null."))
     node.desired_state = wanted
     node.save(update_fields=["desired_state"])
     return wanted
@@ -31,7 +32,7 @@ def set_keep(node: ManagedNode, wanted: object) -> str:
     if wanted is None:
         wanted = ""
     if not isinstance(wanted, str) or wanted not in ("", *protocol.KEEP_POLICIES):
-        raise Refusal("invalid_field", "keep must be off, alert, enforce or null (as its robot says).")
+        raise Refusal("invalid_field", _("keep must be off, alert, enforce or null (as its robot says)."))
     node.keep_desired = wanted
     node.save(update_fields=["keep_desired"])
     return wanted
@@ -40,7 +41,8 @@ def set_keep(node: ManagedNode, wanted: object) -> str:
 def resume_keeping(node: ManagedNode, user) -> None:
     """An operator lifts the pause the gateway made after a fight (its config says "enforce" again)."""
     if node.enforcement_stopped is None:
-        raise Refusal("not_stopped", f"{node.name} on {node.robot.name} is not left alone: nothing to resume.", 409)
+        raise Refusal("not_stopped", _("%(node)s on %(robot)s is not left alone: nothing to resume.") % {
+            "node": node.name, "robot": node.robot.name}, 409)
     log.info("%s resumed keeping %s in its desired state", getattr(user, "username", "?"), node.key)
     node.enforcement_stopped, node.enforcement_note, node.enforcement_resumed = None, "", timezone.now()
     node.save(update_fields=["enforcement_stopped", "enforcement_note", "enforcement_resumed"])

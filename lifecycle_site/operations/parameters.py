@@ -2,11 +2,14 @@
 each name audited whatever fails), for the API and the node page alike."""
 from __future__ import annotations
 
+from django.utils.translation import gettext_noop
+
 from lifecycle_site.audit.models import ParameterRecord
 from lifecycle_site.gateway_link import gateway_input as checks
 from lifecycle_site.gateway_link.gateway_client import GatewayError, call_gateway
 from lifecycle_site.ingest.facts import apply_facts
 from lifecycle_site.ingest.live_updates import AUDIT_STORED, push, record_messages
+from lifecycle_site.refusal import both
 from ros_gateway.shared import protocol
 
 
@@ -15,8 +18,9 @@ def fetch(node) -> list[dict]:
     listing = call_gateway(gateway, protocol.GET_PARAMETERS, robot=node.robot.name, node=node.name).get("parameters")
     if not isinstance(listing, list) or not all(isinstance(p, dict) and isinstance(p.get("name"), str)
                                                  for p in listing):
-        raise GatewayError("gateway_error", f"Gateway {gateway} answered with a parameter list the site cannot read.",
-                           carried_out=False)
+        text, english = both(gettext_noop("Gateway %(gateway)s answered with a parameter list the site cannot read."),
+                             gateway=gateway)
+        raise GatewayError("gateway_error", text, carried_out=False, english=english)
     return listing
 
 
@@ -37,7 +41,7 @@ def apply(node, values: dict, user, source: str, atomic: bool = False) -> list[d
         elif exc.carried_out is False:
             for name, value in values.items():
                 ParameterRecord(node=node, robot_name=node.robot.name, node_name=node.name, name=name,
-                                new_value=protocol.finite(value), outcome="rejected", reason=exc.message,
+                                new_value=protocol.finite(value), outcome="rejected", reason=exc.english,
                                 source=source, requested_by_id=user_id, at=exc.requested_at).save()
             push([AUDIT_STORED])
         raise
@@ -45,10 +49,11 @@ def apply(node, values: dict, user, source: str, atomic: bool = False) -> list[d
         _store(gateway, reply["facts"])
     try:
         return checks.parameter_results(reply.get("results"), values)
-    except checks.GatewayInputRefused as exc:
-        raise GatewayError("gateway_error", f"Gateway {gateway} answered with results the site cannot read ({exc}); "
-                           "the audit log shows what it reported. Check the parameters before you try again.",
-                           carried_out=None) from None
+    except checks.GatewayInputRefused as exc:  # (its reason in English, as logged and counted)
+        text, english = both(gettext_noop(
+            "Gateway %(gateway)s answered with results the site cannot read (%(reason)s); the audit log shows what it "
+            "reported. Check the parameters before you try again."), gateway=gateway, reason=exc)
+        raise GatewayError("gateway_error", text, carried_out=None, english=english) from None
 
 
 def _store(gateway: str, facts: list) -> None:

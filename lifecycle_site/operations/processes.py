@@ -17,13 +17,15 @@ from dataclasses import dataclass, field
 from datetime import datetime
 
 from django.utils import timezone
+from django.utils.translation import gettext as _
+from django.utils.translation import gettext_lazy, pgettext
 
 from lifecycle_site.audit.models import ProcessRecord
 from lifecycle_site.fleet.models import ManagedNode, ProcessProfile, Robot
 from lifecycle_site.gateway_link.gateway_client import MAX_SERVICE_TIMEOUT, GatewayError, call_gateway
 from lifecycle_site.ingest.facts import apply_facts
 from lifecycle_site.ingest.live_updates import AUDIT_STORED, push
-from lifecycle_site.refusal import Refusal, shown
+from lifecycle_site.refusal import Refusal, in_english, shown
 from ros_gateway.shared import protocol
 
 # Codes of gateway refusals that mean nothing reached the process (recorded here, then).
@@ -32,7 +34,8 @@ STATUS_BY_CODE = {"unknown_process": 404, "robot_not_watched": 409}
 
 
 HOST_PROCESS_RE = protocol.HOST_PROCESS_RE  # a container or unit: "docker:NAME", "systemd:UNIT"
-SUPERVISORS = {"launch": "launch profile", "docker": "Docker container", "systemd": "systemd unit"}
+SUPERVISORS = {"launch": gettext_lazy("launch profile"), "docker": gettext_lazy("Docker container"),
+               "systemd": gettext_lazy("systemd unit")}
 HOST_GRACE_S = 30.0  # a container's or unit's own stop time is its supervisor's; the call waits this much more
 
 
@@ -66,7 +69,7 @@ class HostProcess:
         return ProcessProfile.Status.RUNNING if self.running else ProcessProfile.Status.STOPPED
 
     def get_status_display(self) -> str:
-        return "running" if self.running else "not running"
+        return pgettext("process", "running") if self.running else pgettext("process", "not running")
 
     def as_dict(self) -> dict:
         return {"robot": self.robot.name, "name": self.name, "supervisor": self.supervisor, "nodes": self.nodes,
@@ -83,10 +86,11 @@ def hung(nodes: list[ManagedNode]) -> str:
     now = timezone.now()
     for node in nodes:
         if not node.alive and node.gone_reason == "unreachable":
-            return f"hung: {node.name} stopped answering its gateway's probes (GetState)"
+            return _("hung: %(node)s stopped answering its gateway's probes (GetState)") % {"node": node.name}
         if node.alive and node.state_id >= 10 and node.state_changed is not None and \
                 (stuck := (now - node.state_changed).total_seconds()) >= STUCK_S:
-            return f"hung: {node.name} stuck in {node.state_label} for {stuck:.0f} s"
+            return _("hung: %(node)s stuck in %(state)s for %(seconds)s s") % {
+                "node": node.name, "state": node.state_label, "seconds": f"{stuck:.0f}"}
     return ""
 
 
@@ -174,9 +178,11 @@ def profile_of(robot: Robot, name: object) -> ProcessProfile | HostProcess:
         if isinstance(name, str) else None
     if profile is None:
         names = [p.name for p in robot_processes(robot)]
-        raise ProcessRefused("unknown_process", f"Robot {robot.name} has no process {shown(name)} (its processes: "
-                             f"{', '.join(names) or 'none known yet'}; an admin registers launch profiles, the "
-                             "gateway finds containers and systemd units running the robot's nodes).", 404)
+        raise ProcessRefused("unknown_process", _(
+            "Robot %(robot)s has no process %(process)s (its processes: %(known)s; an admin registers launch "
+            "profiles, the gateway finds containers and systemd units running the robot's nodes).") % {
+            "robot": robot.name, "process": shown(name),
+            "known": ", ".join(names) or pgettext("list of processes", "none known yet")}, 404)
     return profile
 
 
@@ -184,13 +190,12 @@ def control(profile: ProcessProfile | HostProcess, action: object, user, source:
     """Carry out ``action`` (start, stop, restart) on the profile's process (or the container or
     unit); returns its record, or raises ProcessRefused (the record exists before either)."""
     if action not in protocol.PROCESS_ACTIONS:
-        raise ProcessRefused("unknown_action", f"{shown(action)} is not a process action; use one of "
-                             f"{', '.join(protocol.PROCESS_ACTIONS)}.", 400)
+        raise ProcessRefused("unknown_action", _("%(action)s is not a process action; use one of %(actions)s.") % {
+            "action": shown(action), "actions": ", ".join(protocol.PROCESS_ACTIONS)}, 400)
     robot = profile.robot
-    if not robot.enabled or not profile.enabled:
-        why = (f"Robot {robot.name} is disabled: its gateway runs none of its processes." if not robot.enabled else
-               f"The launch profile {profile.name} of {robot.name} is disabled; an admin enables it.")
-        raise ProcessRefused("process_disabled", why, 409, record_id=refused(profile, action, user, source, why).id)
+    if not robot.enabled or not profile.enabled:  # shown in the asker's language, recorded in English
+        record = refused(profile, action, user, source, in_english(disabled, profile))
+        raise ProcessRefused("process_disabled", disabled(profile), 409, record_id=record.id)
     gateway = robot.gateway.name
     grace = HOST_GRACE_S if isinstance(profile, HostProcess) else profile.stop_grace_s
     try:
@@ -199,19 +204,28 @@ def control(profile: ProcessProfile | HostProcess, action: object, user, source:
     except GatewayError as exc:
         record = _store(gateway, exc.facts)
         if record is None and (exc.code in NOT_SENT or exc.carried_out is False):
-            record = refused(profile, action, user, source, exc.message)
+            record = refused(profile, action, user, source, exc.english)
         details = {"record_id": record.id} if record is not None else {}
         raise ProcessRefused(exc.code, exc.message, STATUS_BY_CODE.get(exc.code, exc.status),
                              **exc.details, **details) from None
     record = _store(gateway, reply.get("facts") or [])
     if record is None:
-        raise ProcessRefused("gateway_error", f"Gateway {gateway} answered without a record of what it did to "
-                             f"{profile.name}; check the robot's processes before you try again.", 502)
+        raise ProcessRefused("gateway_error", _("Gateway %(gateway)s answered without a record of what it did to "
+                                                "%(process)s; check the robot's processes before you try again.") % {
+            "gateway": gateway, "process": profile.name}, 502)
     if record.outcome == "rejected":
         raise ProcessRefused("process_state", record.message, 409, record_id=record.id)
     if record.outcome == "failed":
         raise ProcessRefused("process_failed", record.message, 422, record_id=record.id)
     return record
+
+
+def disabled(profile: ProcessProfile | HostProcess) -> str:
+    """Why no action is sent: the robot, or the launch profile, is disabled."""
+    if not profile.robot.enabled:
+        return _("Robot %(robot)s is disabled: its gateway runs none of its processes.") % {"robot": profile.robot.name}
+    return _("The launch profile %(process)s of %(robot)s is disabled; an admin enables it.") % {
+        "process": profile.name, "robot": profile.robot.name}
 
 
 def _store(gateway: str, facts: list) -> ProcessRecord | None:

@@ -10,6 +10,7 @@ import time
 import uuid
 
 from django.db.models import F
+from django.utils.translation import gettext as _
 
 from lifecycle_site.fleet import roles
 from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
@@ -35,27 +36,38 @@ def start_run(
     cannot start is a Refusal (nothing recorded, but for a gateway that did not take the run)."""
     known = operations.get(operation)
     if known is None or not known.startable:
-        raise Refusal("unknown_operation", f"{operation!r} is not an operation; use one of "
-                         f"{', '.join(operations.names())}.")
-    may_start(robot, known, f"{known.button} needs", user, policy)
+        raise Refusal("unknown_operation", _("%(operation)s is not an operation; use one of %(operations)s.") % {
+            "operation": repr(operation), "operations": ", ".join(operations.names())})
+    may_start(robot, known, None, user, policy)
     nodes = list(nodes or [])
     unknown = [n for n in nodes if not ManagedNode.objects.filter(robot=robot, name=n).exists()]
     if unknown:
-        raise Refusal("not_found", f"{robot.name} has no node {', '.join(unknown)}.", 404)
+        raise Refusal("not_found", _("%(robot)s has no node %(nodes)s.") % {
+            "robot": robot.name, "nodes": ", ".join(unknown)}, 404)
     if known.scope == operations.NODE and len(nodes) != 1:
-        raise Refusal("invalid_field", f"{operation} works on exactly one node.")
+        raise Refusal("invalid_field", _("%(operation)s works on exactly one node.") % {"operation": operation})
     return launch(robot, operation, user=user, source=source, policy=policy, node_timeout=node_timeout, nodes=nodes)
 
 
-def may_start(robot: Robot, known: operations.Operation, what: str, user, policy: str) -> None:
+def may_start(robot: Robot, known: operations.Operation, needs: str | None, user, policy: str) -> None:
     """A run of ``known`` on ``robot`` by ``user`` with ``policy``, or the Refusal saying why not
-    (``what``: how the refusal names the action, "Bring up needs")."""
+    (``needs``: the refusal for a user without the role, "Applying a mode needs the %(role)s role.";
+    None: "Bring up needs the operator role.", by the operation's button)."""
     if getattr(user, "pk", None) and not roles.may_act_as(user, known.role):
-        raise Refusal("forbidden", f"{what} the {known.role} role.", 403)
+        if needs is None:  # the button's word (ros_gateway/shared/operations.py), as the pages translate it
+            text = _("%(action)s needs the %(role)s role.") % {"action": _(known.button), "role": role_name(known.role)}
+        else:
+            text = str(needs) % {"role": role_name(known.role)}
+        raise Refusal("forbidden", text, 403)
     if policy not in GroupRun.Policy.values:
-        raise Refusal("invalid_field", "policy must be 'stop' (at the first failure) or 'continue'.")
+        raise Refusal("invalid_field", _("policy must be 'stop' (at the first failure) or 'continue'."))
     if not robot.enabled:
-        raise Refusal("robot_disabled", f"Robot {robot.name} is disabled; enable it first.", 409)
+        raise Refusal("robot_disabled", _("Robot %(robot)s is disabled; enable it first.") % {"robot": robot.name}, 409)
+
+
+def role_name(role: str) -> str:
+    """A role as a refusal names it ("operator", "admin", "viewer")."""
+    return {"operator": _("operator"), "admin": _("admin"), "viewer": _("viewer")}.get(role, role)
 
 
 def launch(robot: Robot, operation: str, *, user, source: str, policy: str, node_timeout: float,
@@ -84,8 +96,9 @@ def launch(robot: Robot, operation: str, *, user, source: str, policy: str, node
         call_gateway(robot.gateway.name, protocol.START_RUN, timeout=2.0, run=spec)
     except GatewayError as exc:
         # The gateway may have taken the run all the same (no answer in time): it must not go on.
-        verdicts.publish(robot.gateway.name, [run.id], GroupRun.Status.FAILED, exc.message)
-        GroupRun.objects.filter(pk=run.pk).update(status=GroupRun.Status.FAILED, message=exc.message)
+        # (stored and sent in English: the run's summary, whoever reads it)
+        verdicts.publish(robot.gateway.name, [run.id], GroupRun.Status.FAILED, exc.english)
+        GroupRun.objects.filter(pk=run.pk).update(status=GroupRun.Status.FAILED, message=exc.english)
         raise
     return run
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from django.utils import timezone
+from django.utils.translation import gettext as _
 
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.fleet.models import ManagedNode
@@ -18,7 +19,7 @@ from lifecycle_site.gateway_link.gateway_client import GatewayError, call_gatewa
 from lifecycle_site.ingest.fact_context import Hints
 from lifecycle_site.ingest.facts import apply_facts
 from lifecycle_site.ingest.live_updates import push, record_messages
-from lifecycle_site.refusal import Refusal, shown
+from lifecycle_site.refusal import Refusal, in_english, shown
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 
@@ -53,13 +54,15 @@ def named(requested: object) -> str | int:
     """The transition asked for, as a label or an id, if it names one at all (whether the node's
     state allows it is the gateway's to check, against the node's real state)."""
     if isinstance(requested, bool) or not isinstance(requested, (str, int)):
-        raise TransitionRefused("invalid_field", "'transition' must be a label such as \"activate\" or a numeric id.")
+        raise TransitionRefused("invalid_field",
+                                _("'transition' must be a label such as \"activate\" or a numeric id."))
     try:
         sm.resolve_transition(requested, sm.UNCONFIGURED)
     except sm.UnknownTransition:
         raise TransitionRefused(
-            "unknown_transition", f"{shown(requested)} is not a lifecycle transition; use one of "
-            f"{', '.join(sm.EXTERNAL_LABELS)} or an id 1-7.") from None
+            "unknown_transition", _("%(requested)s is not a lifecycle transition; use one of %(labels)s or an id "
+                                    "1-7.") % {"requested": shown(requested), "labels": ", ".join(sm.EXTERNAL_LABELS)}
+        ) from None
     if isinstance(requested, str):  # (a name it resolved: digits are few)
         text = requested.strip()
         return int(text) if text.isascii() and text.isdigit() else text.lower()
@@ -72,12 +75,9 @@ def request_transition(node: ManagedNode, requested: object, user, source: str,
     success (the audit record exists before either)."""
     requested = named(requested)
     if not node.robot.enabled or not node.alive:
-        if not node.robot.enabled:
-            message = f"Robot {node.robot.name} is disabled: its nodes are not watched. Enable it in the admin."
-        else:
-            message = f"{node.name} is not running on {node.robot.name}; it was last seen {ago(node.last_seen)}."
-        record = record_rejection(node, requested, user, source, message)
-        raise TransitionRefused("node_offline", message, 409, state=node.state, record_id=record.id)
+        # Shown in the asker's language, recorded in English.
+        record = record_rejection(node, requested, user, source, in_english(not_watched, node))
+        raise TransitionRefused("node_offline", not_watched(node), 409, state=node.state, record_id=record.id)
     gateway = node.robot.gateway.name
     try:
         reply = call_gateway(
@@ -96,21 +96,26 @@ def request_transition(node: ManagedNode, requested: object, user, source: str,
         if record is not None:
             details["record_id"] = record.id
         elif exc.code in RECORDED_HERE:
-            details["record_id"] = record_rejection(node, requested, user, source, exc.message).id
+            details["record_id"] = record_rejection(node, requested, user, source, exc.english).id
         raise TransitionRefused(exc.code, exc.message, STATUS_BY_CODE.get(exc.code, exc.status), **details) from None
     record = _apply(gateway, reply.get("facts") or [], Hints(node, user))
     record_id = record.id if record is not None else None
     try:
         reply = checks.change_state_reply(reply)
     except checks.GatewayInputRefused as exc:
-        message = (f"Gateway {gateway} answered with a reply the site cannot read ({exc}): whether "
-                   f"{requested} reached {node.name} is not known. Check the node's state before you try again.")
+        message = _("Gateway %(gateway)s answered with a reply the site cannot read (%(reason)s): whether "
+                    "%(transition)s reached %(node)s is not known. Check the node's state before you try again.") % {
+            "gateway": gateway, "reason": exc, "transition": requested, "node": node.name}
         raise TransitionRefused("gateway_error", message, 502, state=node.state, record_id=record_id) from None
     common = {"from": reply["from"], "transition": reply["transition"], "record_id": record_id}
     outcome = reply["outcome"]
     if outcome == "succeeded":
         label = (reply["transition"] or {}).get("label", str(requested))
-        message = f"{label} succeeded: {node.name} is now {(reply['to'] or {}).get('label', 'in an unknown state')}."
+        values = {"transition": label, "node": node.name, "state": (reply["to"] or {}).get("label")}
+        if values["state"] is None:
+            message = _("%(transition)s succeeded: %(node)s is now in an unknown state.") % values
+        else:
+            message = _("%(transition)s succeeded: %(node)s is now %(state)s.") % values
         return Transitioned(message, {"success": True, **common, "to": reply["to"],
                                       "duration_ms": reply["duration_ms"]})
     if outcome == "rejected":
@@ -122,6 +127,15 @@ def request_transition(node: ManagedNode, requested: object, user, source: str,
     if outcome == protocol.PROCESS_LOST:  # the node's process ended during the transition
         raise TransitionRefused("process_lost", reply["message"], 422, **details)
     raise TransitionRefused("transition_failed", reply["message"], 422, **details)
+
+
+def not_watched(node: ManagedNode) -> str:
+    """Why no transition is sent to the node: its robot is disabled, or it is not running."""
+    if not node.robot.enabled:
+        return _("Robot %(robot)s is disabled: its nodes are not watched. Enable it in the admin.") % {
+            "robot": node.robot.name}
+    return _("%(node)s is not running on %(robot)s; it was last seen %(ago)s.") % {
+        "node": node.name, "robot": node.robot.name, "ago": ago(node.last_seen)}
 
 
 def _apply(gateway: str, facts: list, hints: Hints) -> TransitionRecord | None:
@@ -162,10 +176,10 @@ def record_rejection(node: ManagedNode, requested, user, source: str, message: s
 
 def ago(moment) -> str:
     if moment is None:
-        return "never"
+        return _("never")
     seconds = int((timezone.now() - moment).total_seconds())
     if seconds < 120:
-        return f"{seconds} s ago"
+        return _("%(n)s s ago") % {"n": seconds}
     if seconds < 7200:
-        return f"{seconds // 60} min ago"
+        return _("%(n)s min ago") % {"n": seconds // 60}
     return moment.strftime("%Y-%m-%d %H:%M UTC")

@@ -62,7 +62,7 @@ def oidc_settings(environ: Mapping[str, str] | None = None) -> dict:
         "OIDC_VERIFY_SSL": ca_file or True,  # requests' verify: a CA bundle path, or the system's
         "LIFECYCLE_OIDC_GROUPS_CLAIM": env.text("LIFECYCLE_OIDC_GROUPS_CLAIM", "groups", environ),
         "LIFECYCLE_OIDC_ROLES": role_mapping("LIFECYCLE_OIDC_ROLES", environ),
-        "LIFECYCLE_OIDC_NAME": env.text("LIFECYCLE_OIDC_NAME", "company account", environ),
+        "LIFECYCLE_OIDC_NAME": env.text("LIFECYCLE_OIDC_NAME", "", environ),  # "": "company account", translated
     }
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from django.conf import settings
 from django.db import models
+from django.utils.translation import gettext_lazy
 
 
 class DirectoryAccount(models.Model):
@@ -17,9 +18,13 @@ class DirectoryAccount(models.Model):
 
     user = models.OneToOneField(settings.AUTH_USER_MODEL, on_delete=models.CASCADE, related_name="directory_account")
     source = models.CharField(max_length=8, choices=SOURCES)
-    subject = models.CharField(max_length=255, help_text="the provider's 'sub', or the directory's user name")
-    role = models.CharField(max_length=16, blank=True, help_text="the role its groups gave at the last sign-in")
-    groups = models.TextField(blank=True, help_text="the groups it had at the last sign-in (at most 2,000 characters)")
+    subject = models.CharField(max_length=255,
+                               help_text=gettext_lazy("the provider's 'sub', or the directory's user name"))
+    role = models.CharField(max_length=16, blank=True,
+                            help_text=gettext_lazy("the role its groups gave at the last sign-in"))
+    groups = models.TextField(
+        blank=True, help_text=gettext_lazy("the groups it had at the last sign-in (at most 2,000 characters)")
+    )
     last_sign_in = models.DateTimeField(null=True, blank=True)
 
     class Meta:

@@ -8,6 +8,7 @@ from django.conf import settings
 from django.contrib.auth import views as auth_views
 from django.http import HttpResponseRedirect
 from django.shortcuts import resolve_url
+from django.utils.translation import gettext as _
 
 from lifecycle_site.login_form import LoginForm
 from lifecycle_site.sign_in import problems
@@ -21,7 +22,7 @@ class Login(auth_views.LoginView):
         code = self.request.session.pop(problems.SESSION_KEY, None) if self.request.method == "GET" else None
         context.update(
             sign_in_problem=problems.BY_CODE.get(code) if code else None,
-            oidc_name=getattr(settings, "LIFECYCLE_OIDC_NAME", "") if settings.OIDC_ON else "",
+            oidc_name=(settings.LIFECYCLE_OIDC_NAME or _("company account")) if settings.OIDC_ON else "",
             ldap_on=settings.LDAP_ON,
         )
         return context

@@ -14,17 +14,26 @@ from typing import Iterable
 from urllib.parse import quote
 
 from django.urls import reverse
+from django.utils.translation import gettext as _
+from django.utils.translation import gettext_lazy, pgettext_lazy
 
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.fleet.models import GatewayOutage, ManagedNode, Robot
 
-# What each marked outcome is called on the page (any other outcome is not marked).
-MARKED = {"failed": "failed transition", "timed_out": "transition timed out", "process_lost": "crash",
-          "process_restarted": "restart"}
+# What each marked outcome is called on the page (any other outcome is not marked), in the active
+# language when it is read (Event.title).
+MARKED = {"failed": pgettext_lazy("timeline mark", "failed transition"),
+          "timed_out": pgettext_lazy("timeline mark", "transition timed out"),
+          "process_lost": pgettext_lazy("timeline mark", "crash"),
+          "process_restarted": pgettext_lazy("timeline mark", "restart")}
+# The same with the transition's name.
+MARKED_WITH_TRANSITION = {"failed": gettext_lazy("failed transition (%(transition)s)"),
+                          "timed_out": gettext_lazy("transition timed out (%(transition)s)")}
 OUTAGE = "gateway_outage"
 # Why a gateway could take no commands (GatewayOutage.reason), in words.
-OUTAGE_REASONS = {"offline": "no heartbeat: its process ended, froze, or lost Redis",
-                  "stopped": "it said it stopped", "quarantined": "the site cut it off (quarantine)"}
+OUTAGE_REASONS = {"offline": gettext_lazy("no heartbeat: its process ended, froze, or lost Redis"),
+                  "stopped": gettext_lazy("it said it stopped"),
+                  "quarantined": gettext_lazy("the site cut it off (quarantine)")}
 MAX_EVENTS = 50  # a node's timeline; a robot's shares MAX_EVENTS_ROBOT among its nodes
 MAX_EVENTS_ROBOT = 100
 MAX_OUTAGES = 50
@@ -45,10 +54,12 @@ class Event:
 
     @property
     def title(self) -> str:
+        """In the active language."""
         if self.kind == OUTAGE:
-            return f"gateway {self.gateway} could take no commands"
-        what = MARKED[self.kind]
-        return f"{what} ({self.transition})" if self.transition and self.kind in ("failed", "timed_out") else what
+            return _("gateway %(gateway)s could take no commands") % {"gateway": self.gateway}
+        if self.transition and self.kind in MARKED_WITH_TRANSITION:
+            return str(MARKED_WITH_TRANSITION[self.kind]) % {"transition": self.transition}
+        return str(MARKED[self.kind])
 
     def audit_query(self) -> str:
         """The audit page's query narrowed to this moment (an outage: its whole stretch)."""
@@ -108,5 +119,5 @@ def outage_events(robot: Robot, start: datetime, end: datetime) -> list[Event]:
     """The outages of the robot's gateway that overlap the window, oldest first."""
     rows = (GatewayOutage.objects.filter(gateway_id=robot.gateway_id, began__lte=end).exclude(ended__lt=start)
             .order_by("-began").values_list("began", "ended", "reason", "gateway__name")[:MAX_OUTAGES])
-    return [Event(began, OUTAGE, robot.name, until=ended, reason=OUTAGE_REASONS.get(reason, reason), gateway=name)
+    return [Event(began, OUTAGE, robot.name, until=ended, reason=str(OUTAGE_REASONS.get(reason, reason)), gateway=name)
             for began, ended, reason, name in reversed(rows)]

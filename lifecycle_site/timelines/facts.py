@@ -7,6 +7,8 @@ from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import NamedTuple
 
+from django.utils.translation import pgettext_lazy
+
 from ros_gateway.shared import state_machine as sm
 
 # Outcomes that count as failures and as restarts. process_lost / process_restarted come from
@@ -23,6 +25,20 @@ UNREACHABLE = "unreachable"
 LOST = "process lost"
 NOT_READ = "not read"
 PSEUDO_STATES = (NOT_SEEN, UNKNOWN, GONE, UNREACHABLE, LOST, NOT_READ)
+# How a page names them (the names above are what the API, the drawing's data and the code say).
+PSEUDO_STATE_NAMES = {
+    NOT_SEEN: pgettext_lazy("timeline state", "not seen yet"), UNKNOWN: pgettext_lazy("timeline state", "unknown"),
+    GONE: pgettext_lazy("timeline state", "gone"), UNREACHABLE: pgettext_lazy("timeline state", "unreachable"),
+    LOST: pgettext_lazy("timeline state", "process lost"), NOT_READ: pgettext_lazy("timeline state", "not read"),
+}
+
+
+def state_name(state: str) -> str:
+    """A timeline's state as a page writes it: a ROS state as it is, a pseudo-state in the active
+    language."""
+    name = PSEUDO_STATE_NAMES.get(state)
+    return state if name is None else str(name)
+
 
 # duration_ms rather than completed_at: one date less to parse per row (a third of the read time).
 # The id comes with any index (it is the row's): the marks link to their record.

@@ -27,6 +27,8 @@ from functools import cached_property
 from typing import Iterable
 
 from django.db.models import Count
+from django.utils.formats import number_format
+from django.utils.translation import gettext
 
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.fleet.models import ManagedNode, NodeAbsence
@@ -47,6 +49,7 @@ from lifecycle_site.timelines.facts import (  # noqa: F401 (names of this module
     Absence,
     Row,
     Segment,
+    state_name,
 )
 from lifecycle_site.timelines.windows import DEFAULT_WINDOW, WINDOWS, Window, window_of  # noqa: F401
 from ros_gateway.shared import state_machine as sm
@@ -262,23 +265,30 @@ def build(node: ManagedNode, window: str, start: datetime, end: datetime, before
             builder.became(max(event.ended_at, start), event.state_after(builder.state))
     if changed is not None and start < changed <= end and changed >= builder.at and not away_now:
         builder.held(changed, node.state_label)  # the node's last state fact
-    notes: list[str] = []
+    notes: list[str] = []  # (in the active language: made for the page or the API answer that asks)
     if away_now and node.last_seen:
-        notes.append(f"Not seen since {node.last_seen:%Y-%m-%d %H:%M:%S} UTC"
-                     f"{' (its process stopped answering)' if node.gone_reason == 'unreachable' else ''}.")
+        notes.append(_not_seen(node))
     elif not node.alive and first_seen is not None:  # away since before absences were recorded
         builder.close(max(node.last_seen or start, start))
         builder.state = UNREACHABLE if node.gone_reason == "unreachable" else GONE
         if node.last_seen:
-            notes.append(f"Not seen since {node.last_seen:%Y-%m-%d %H:%M:%S} UTC"
-                         f"{' (its process stopped answering)' if node.gone_reason == 'unreachable' else ''}.")
+            notes.append(_not_seen(node))
     builder.close(end)
     if cut_before is not None:
-        notes.append(f"Only the newest {read:,} records of the window were read; before "
-                     f"{cut_before:%Y-%m-%d %H:%M:%S} UTC the timeline shows \"{NOT_READ}\". "
-                     "The counts of failures and restarts cover the whole window.")
+        notes.append(gettext("Only the newest %(count)s records of the window were read; before %(time)s UTC the "
+                             "timeline shows \"%(not_read)s\". The counts of failures and restarts cover the whole "
+                             "window.") % {"count": number_format(read, force_grouping=True),
+                                           "time": f"{cut_before:%Y-%m-%d %H:%M:%S}",
+                                           "not_read": state_name(NOT_READ)})
     went = sum(1 for a in absences if a.gone_at >= start)
     return Timeline(node, window, start, end, builder.segments, outcomes, read, cut_before, notes, went)
+
+
+def _not_seen(node: ManagedNode) -> str:
+    values = {"time": f"{node.last_seen:%Y-%m-%d %H:%M:%S}"}
+    if node.gone_reason == "unreachable":
+        return gettext("Not seen since %(time)s UTC (its process stopped answering).") % values
+    return gettext("Not seen since %(time)s UTC.") % values
 
 
 _ROW, _GONE, _BACK = 0, 1, 2  # at equal times: a process_lost record before the node.gone it comes with

@@ -9,10 +9,17 @@ from urllib.parse import urlencode
 
 from django.utils import dateparse
 from django.utils import timezone as django_timezone
+from django.utils.translation import gettext as _
+from django.utils.translation import gettext_lazy, ngettext, pgettext_lazy
 
 WINDOWS: dict[str, timedelta] = {"15min": timedelta(minutes=15), "hour": timedelta(hours=1),
                                  "day": timedelta(days=1), "week": timedelta(weeks=1)}
-LABELS = {"15min": "15 minutes", "hour": "hour", "day": "day", "week": "week"}
+# Each window's button, after "Last:" (in the active language when the page renders it).
+LABELS = {"15min": pgettext_lazy("time window", "15 minutes"), "hour": pgettext_lazy("time window", "hour"),
+          "day": pgettext_lazy("time window", "day"), "week": pgettext_lazy("time window", "week")}
+# What a page shows instead of a window it cannot show.
+SHOWING = {"15min": gettext_lazy("Showing the last 15 minutes."), "hour": gettext_lazy("Showing the last hour."),
+           "day": gettext_lazy("Showing the last day."), "week": gettext_lazy("Showing the last week.")}
 DEFAULT_WINDOW = "day"
 CUSTOM = "custom"
 # A range of one's own: long enough to hold a state, short enough that its records are still
@@ -69,16 +76,20 @@ def parse(query: Mapping[str, str], now: datetime | None = None) -> Window:
     if query.get("from") or query.get("to"):
         start, end = _moment(query.get("from", "")), _moment(query.get("to", "") or now.isoformat())
         if start is None or end is None:
-            raise WindowError("Not a date and time: write it like 2026-11-23 14:05 (UTC), or pick it in the calendar.")
+            raise WindowError(_("Not a date and time: write it like 2026-11-23 14:05 (UTC), or pick it in the "
+                                "calendar."))
         end = min(end, now)
         if end - start < MIN_CUSTOM:
-            raise WindowError("A range must start at least a minute before it ends, and before now.")
+            raise WindowError(_("A range must start at least a minute before it ends, and before now."))
         if end - start > MAX_CUSTOM:
-            raise WindowError(f"A range may span at most {MAX_CUSTOM.days} days.")
+            raise WindowError(ngettext("A range may span at most %(days)s day.",
+                                       "A range may span at most %(days)s days.", MAX_CUSTOM.days) % {
+                "days": MAX_CUSTOM.days})
         return Window(CUSTOM, start, end)
     asked = query.get("window", DEFAULT_WINDOW)
     if asked not in WINDOWS:
-        raise WindowError(f"There is no window {asked[:40]!r} (there are {', '.join(WINDOWS)}).")
+        raise WindowError(_("There is no window %(window)s (there are %(windows)s).") % {
+            "window": repr(asked[:40]), "windows": ", ".join(WINDOWS)})
     return window_of(asked, now)
 
 
@@ -87,4 +98,4 @@ def page_window(query: Mapping[str, str], now: datetime | None = None) -> tuple[
     try:
         return parse(query, now), ""
     except WindowError as exc:
-        return window_of(DEFAULT_WINDOW, now), f"{exc} Showing the last {DEFAULT_WINDOW}."
+        return window_of(DEFAULT_WINDOW, now), f"{exc} {SHOWING[DEFAULT_WINDOW]}"

@@ -20,6 +20,13 @@ EACH_NODES_OWN = -1  # Phase.target: each node to the target the run names for i
 DOWN, UP = "down", "up"  # Phase.only: the nodes whose target is below (above) their state
 
 
+def _(text: str) -> str:
+    """Marks a text for the site's translation catalogue (Django's makemessages finds ``_``)
+    without translating it: the gateway has no Django. The site translates the operation's
+    words when it shows them (lifecycle_site/operations/words.py)."""
+    return text
+
+
 @dataclass(frozen=True)
 class Phase:
     """Every node of the run driven to ``target``: in the robot's bring-up order, or in reverse;
@@ -59,36 +66,36 @@ _UP = Phase(sm.ACTIVE)
 _DOWN_TO_UNCONFIGURED = Phase(sm.UNCONFIGURED, reverse=True)
 
 OPERATIONS: tuple[Operation, ...] = (
-    Operation("bringup", "Bring up", "Bring-up", "bring the robot's nodes up: configure, then activate, in order",
-              (_UP,)),
-    Operation("pause", "Pause", "Pause", "deactivate the robot's nodes, in reverse order",
+    Operation("bringup", _("Bring up"), _("Bring-up"),
+              _("bring the robot's nodes up: configure, then activate, in order"), (_UP,)),
+    Operation("pause", _("Pause"), _("Pause"), _("deactivate the robot's nodes, in reverse order"),
               (Phase(sm.INACTIVE, reverse=True, leave_alone=(sm.UNCONFIGURED,)),)),
-    Operation("resume", "Resume", "Resume", "activate the robot's nodes, in order",
+    Operation("resume", _("Resume"), _("Resume"), _("activate the robot's nodes, in order"),
               (Phase(sm.ACTIVE, leave_alone=(sm.UNCONFIGURED,)),)),
-    Operation("reset", "Reset", "Reset", "deactivate and clean up the robot's nodes, in reverse order",
+    Operation("reset", _("Reset"), _("Reset"), _("deactivate and clean up the robot's nodes, in reverse order"),
               (_DOWN_TO_UNCONFIGURED,),
-              confirm="Reset {nodes} of {robot} to unconfigured?",
-              confirm_detail="Active nodes are deactivated first; each must be configured again before it works."),
-    Operation("restart_all", "Restart all", "Full restart",
-              "take the robot's nodes down to unconfigured in reverse order, then bring them up in order",
+              confirm=_("Reset {nodes} of {robot} to unconfigured?"),
+              confirm_detail=_("Active nodes are deactivated first; each must be configured again before it works.")),
+    Operation("restart_all", _("Restart all"), _("Full restart"),
+              _("take the robot's nodes down to unconfigured in reverse order, then bring them up in order"),
               (_DOWN_TO_UNCONFIGURED, _UP),
-              confirm="Restart {nodes} of {robot}?",
-              confirm_detail="Each is deactivated and cleaned up (in reverse order), then configured and "
-              "activated again in order; the robot's nodes stop working meanwhile."),
-    Operation("shutdown", "Shut down", "Shut-down", "shut the robot's nodes down, in reverse order",
+              confirm=_("Restart {nodes} of {robot}?"),
+              confirm_detail=_("Each is deactivated and cleaned up (in reverse order), then configured and "
+              "activated again in order; the robot's nodes stop working meanwhile.")),
+    Operation("shutdown", _("Shut down"), _("Shut-down"), _("shut the robot's nodes down, in reverse order"),
               (Phase(sm.FINALIZED, reverse=True),), danger=True,
-              confirm="Shut down {nodes} of {robot}?",
-              confirm_detail="They end finalized; only a restart of their processes brings them back."),
-    Operation("restart", "Restart", "Restart", "bring a node back to active from whatever state it is in",
+              confirm=_("Shut down {nodes} of {robot}?"),
+              confirm_detail=_("They end finalized; only a restart of their processes brings them back.")),
+    Operation("restart", _("Restart"), _("Restart"), _("bring a node back to active from whatever state it is in"),
               (_DOWN_TO_UNCONFIGURED, _UP), scope=NODE),
-    Operation("mode", "Apply", "Mode change",
-              "drive each node to its state in a mode (down in reverse order, then up in order), its "
-              "parameters set before it is activated",
+    Operation("mode", _("Apply"), _("Mode change"),
+              _("drive each node to its state in a mode (down in reverse order, then up in order), its "
+              "parameters set before it is activated"),
               (Phase(EACH_NODES_OWN, reverse=True, only=DOWN), Phase(EACH_NODES_OWN, only=UP)), scope=MODE,
-              confirm="Apply mode {mode} to {robot}?",
-              confirm_detail="Nodes are taken to the mode's states and parameters; the run lists every change."),
-    Operation("recover", "Recover", "Recovery",
-              "bring a node whose process was restarted back to its desired state (the gateway starts it)",
+              confirm=_("Apply mode {mode} to {robot}?"),
+              confirm_detail=_("Nodes are taken to the mode's states and parameters; the run lists every change.")),
+    Operation("recover", _("Recover"), _("Recovery"),
+              _("bring a node whose process was restarted back to its desired state (the gateway starts it)"),
               (), scope=GATEWAY),
 )
 BY_NAME: dict[str, Operation] = {op.name: op for op in OPERATIONS}

@@ -15,7 +15,10 @@
   // come and go live; a collapsed robot's from its counts by state.
   function robotNodes(el) {
     var section = el.closest("section.robot");
-    if (!section) return "every node";
+    // Translators: this and the next three texts fill {nodes} in the questions "Shut down {nodes} of
+    // robot_1?", "Restart {nodes} of robot_1?" and "Reset {nodes} of robot_1 to unconfigured?" (the object
+    // of the verb); where the question starts with {nodes}, the page puts a capital first.
+    if (!section) return gettext("every node");
     var count;
     if (section.querySelector("tr.node-row")) {
       count = section.querySelectorAll("tr.node-row:not([data-status='waiting'])").length;
@@ -24,7 +27,17 @@
       var waiting = summary && summary.querySelector("[data-count-status='waiting']");
       count = Number(summary ? summary.dataset.total : 0) - (waiting ? parseInt(waiting.textContent, 10) || 0 : 0);
     }
-    return count === 1 ? "the one node" : count ? "all " + count + " nodes" : "every node (none is known yet)";
+    if (count === 1) return gettext("the one node");
+    if (count) return interpolate(ngettext("all %(count)s node", "all %(count)s nodes", count), { count: count }, true);
+    return gettext("every node (none is known yet)");
+  }
+
+  // The question with {nodes} put in; where a language puts it first, it starts with a capital.
+  function question(source) {
+    var text = source.dataset.confirm;
+    var nodes = robotNodes(source);
+    if (text.indexOf("{nodes}") === 0) nodes = nodes.charAt(0).toUpperCase() + nodes.slice(1);
+    return text.replace("{nodes}", nodes);
   }
 
   function dialog() { return document.getElementById("confirm-dialog"); }
@@ -33,9 +46,9 @@
     var box = dialog();
     if (!box || typeof box.showModal !== "function") return false;  // no dialog: htmx sends as before
     pending = { source: source, elt: elt, issue: issue };
-    box.querySelector("[data-confirm-question]").textContent = source.dataset.confirm.replace("{nodes}", robotNodes(source));
+    box.querySelector("[data-confirm-question]").textContent = question(source);
     box.querySelector("[data-confirm-detail]").textContent = source.dataset.confirmDetail || "";
-    box.querySelector("button[value=confirm]").textContent = source.dataset.confirmYes || "Confirm";
+    box.querySelector("button[value=confirm]").textContent = source.dataset.confirmYes || gettext("Confirm");
     box.returnValue = "";
     box.showModal();
     box.querySelector("button[value=cancel]").focus();  // Enter right away is the safe answer

@@ -2,6 +2,13 @@
 // rows whenever htmx swaps in a live update. Filters are kept in the URL for bookmarks.
 (function () {
   "use strict";
+  // A badge's word: ROS states as they are, the fleet's own statuses in the page's language
+  // (as the server's status_word filter writes them).
+  function statusWord(status) {
+    var words = { waiting: pgettext("node status", "waiting"), lost: pgettext("node status", "lost"),
+      unreachable: pgettext("node status", "unreachable"), busy: pgettext("node status", "busy") };
+    return words[status] || status;
+  }
   var STATES = ["active", "inactive", "unconfigured", "finalized", "busy", "lost", "waiting"];
 
   function filters() {
@@ -31,19 +38,29 @@
     if (on && cell && !marker) {
       marker = document.createElement("span");
       marker.className = "attention-mark";
-      marker.title = "Needs attention: see the list at the top of the page";
+      marker.title = gettext("Needs attention: see the list at the top of the page");
       marker.setAttribute("role", "img");
-      marker.setAttribute("aria-label", "needs attention");
+      marker.setAttribute("aria-label", gettext("needs attention"));
       marker.textContent = "!";
       cell.insertBefore(marker, cell.firstChild);
     } else if (!on && marker) {
       marker.remove();
     }
   }
+  // The page's title without the server's "3 need attention · " in front: the words this script
+  // puts there for that count, else a number and the words up to the first " · ".
   var baseTitle = null;
+  function attentionTitle(count, base) {
+    // Translators: the fleet page's title (browser tab); %(title)s is the rest of it ("Fleet · Lifecycle manager").
+    return interpolate(ngettext("%(count)s needs attention · %(title)s", "%(count)s need attention · %(title)s", count),
+      { count: count, title: base }, true);
+  }
   function title(count) {
-    if (baseTitle === null) baseTitle = document.title.replace(/^\d+ needs? attention · /, "");
-    var text = count ? count + (count === 1 ? " needs" : " need") + " attention · " + baseTitle : baseTitle;
+    if (baseTitle === null) {
+      var served = document.title, counted = attentionTitle(count, "");
+      baseTitle = count && served.indexOf(counted) === 0 ? served.slice(counted.length) : served.replace(/^\d+ [^·]*· /, "");
+    }
+    var text = count ? attentionTitle(count, baseTitle) : baseTitle;
     if (document.title !== text) document.title = text;
   }
 
@@ -79,9 +96,9 @@
         if (visible) shown += 1;
       });
       var text = STATES.filter(function (s) { return counts[s]; })
-        .map(function (s) { return counts[s] + " " + s; }).join(" · ");
+        .map(function (s) { return counts[s] + " " + statusWord(s); }).join(" · ");
       var countsEl = section.querySelector("[data-counts-for]");
-      if (countsEl) countsEl.textContent = summary ? "" : (text || "no nodes");
+      if (countsEl) countsEl.textContent = summary ? "" : (text || gettext("no nodes"));
       var group = section.closest("section.gateway");
       var head = group && group.querySelector("[data-gateway-online]");
       var gatewayDown = !!head && head.dataset.gatewayOnline !== "true";
@@ -89,20 +106,32 @@
       // (as its rows' transitions): the buttons say so instead of answering with a refusal.
       section.querySelectorAll("form.operations button").forEach(function (button) {
         button.disabled = gatewayDown;
-        if (gatewayDown) button.title = "The gateway is offline: no command can be sent.";
+        if (gatewayDown) button.title = gettext("The gateway is offline: no command can be sent.");
         else button.removeAttribute("title");
       });
+      // The badge is this script's while it is empty or says what this script put there: the
+      // server's words ("disabled", in the page's language) stay.
       var onlineEl = section.querySelector("[data-online-for]");
-      if (onlineEl && onlineEl.textContent !== "disabled") {
+      var onlineWords = [gettext("online"), gettext("offline")];
+      if (onlineEl && (!onlineEl.textContent || onlineWords.indexOf(onlineEl.textContent) !== -1)) {
         var online = alive > 0 && !gatewayDown;
-        onlineEl.textContent = online ? "online" : "offline";
+        onlineEl.textContent = online ? onlineWords[0] : onlineWords[1];
         onlineEl.className = "robot-online badge " + (online ? "online" : "offline");
       }
     });
     var totalEl = document.querySelector(".fleet-total");
     var filtering = f.q || f.state || f.robot;
-    if (totalEl) totalEl.textContent = !filtering ? total + " nodes" :
-      shown + " of " + total + " nodes" + (collapsed.length ? " (and matches in collapsed robots)" : "");
+    if (totalEl) {
+      var totalText;
+      // Translators: the English says "nodes" for one node too; the singular form is for 1.
+      if (!filtering) totalText = ngettext("%(total)s nodes", "%(total)s nodes", total);
+      // Translators: the English says "nodes" for one node too; the singular form is for 1 (the total).
+      else if (!collapsed.length) totalText = ngettext("%(shown)s of %(total)s nodes", "%(shown)s of %(total)s nodes", total);
+      // Translators: the English says "nodes" for one node too; the singular form is for 1 (the total).
+      else totalText = ngettext("%(shown)s of %(total)s nodes (and matches in collapsed robots)",
+        "%(shown)s of %(total)s nodes (and matches in collapsed robots)", total);
+      totalEl.textContent = interpolate(totalText, { shown: shown, total: total }, true);
+    }
     find(f, collapsed);
   }
 

@@ -28,7 +28,7 @@
     // says what now (the login form, or the no-role page).
     if (code === 4401 || code === 4403) { window.location.reload(); return; }
     if (code === LINK_LOST) {
-      banner(true, "The site has lost its link to Redis; reconnecting when it is back…");
+      banner(true, gettext("The site has lost its link to Redis; reconnecting when it is back…"));
       var socket = e.detail.socketWrapper;
       if (socket && socket.reconnect) setTimeout(socket.reconnect, delay(linkRetries++));
       return;
@@ -49,24 +49,34 @@
   window.lifecycleBanner = banner;
 
   // "for 12 s" beside a transition under way (data-elapsed-from: when the node entered the state).
+  function elapsed(seconds) {
+    if (seconds < 120) return interpolate(gettext("%(seconds)s s"), { seconds: seconds }, true);
+    if (seconds < 7200) return interpolate(gettext("%(minutes)s min"), { minutes: Math.floor(seconds / 60) }, true);
+    if (seconds < 172800) {
+      return interpolate(gettext("%(hours)s h %(minutes)s min"),
+        { hours: Math.floor(seconds / 3600), minutes: Math.floor(seconds % 3600 / 60) }, true);
+    }
+    var days = Math.floor(seconds / 86400);
+    return interpolate(ngettext("%(count)s day", "%(count)s days", days), { count: days }, true);
+  }
   setInterval(function () {
     document.querySelectorAll("[data-elapsed-from]").forEach(function (el) {
-      var seconds = Math.max(0, Math.round((Date.now() - Date.parse(el.dataset.elapsedFrom)) / 1000));
-      el.textContent = seconds < 120 ? seconds + " s" : seconds < 7200 ? Math.floor(seconds / 60) + " min"
-        : seconds < 172800 ? Math.floor(seconds / 3600) + " h " + Math.floor(seconds % 3600 / 60) + " min"
-        : Math.floor(seconds / 86400) + " days";
+      el.textContent = elapsed(Math.max(0, Math.round((Date.now() - Date.parse(el.dataset.elapsedFrom)) / 1000)));
     });
   }, 1000);
 
   // "3 min ago" beside a last known state (fleet rows, the node page), a gateway's outage (the
   // banner) or a run stays true while the page is open.
+  function age(seconds) {
+    if (seconds < 60) return interpolate(gettext("%(seconds)s s ago"), { seconds: seconds }, true);
+    if (seconds < 3600) return interpolate(gettext("%(minutes)s min ago"), { minutes: Math.floor(seconds / 60) }, true);
+    return interpolate(gettext("%(hours)s h ago"), { hours: Math.floor(seconds / 3600) }, true);
+  }
   setInterval(function () {
     document.querySelectorAll("[data-age]").forEach(function (el) {
       var when = Date.parse(el.dataset.age);
       if (isNaN(when)) return;  // no time known: the server's text stays
-      var seconds = Math.max(0, Math.round((Date.now() - when) / 1000));
-      el.textContent = seconds < 60 ? seconds + " s ago" : seconds < 3600 ? Math.floor(seconds / 60) + " min ago"
-        : Math.floor(seconds / 3600) + " h ago";
+      el.textContent = age(Math.max(0, Math.round((Date.now() - when) / 1000)));
     });
   }, 1000);
 

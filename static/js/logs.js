@@ -13,7 +13,9 @@
   var MAX_PAUSED = 5000;      // lines held back while paused
   var MAX_PATTERN = 200;      // characters of a filter (log_views.MAX_FILTER_CHARS)
   var LEVELS = { DEBUG: 10, INFO: 20, WARN: 30, ERROR: 40, FATAL: 50 };
-  var TEXT_FIELDS = [["q", "text", "Text"], ["not", "not", "Not"], ["node", "node", "Nodes"], ["xnode", "xnode", "Hide nodes"]];
+  // The filter fields: query parameter, data-log name, and the field's label (as on the page).
+  var TEXT_FIELDS = [["q", "text", pgettext("log filter", "Text")], ["not", "not", pgettext("log filter", "Not")],
+                     ["node", "node", pgettext("log filter", "Nodes")], ["xnode", "xnode", pgettext("log filter", "Hide nodes")]];
 
   var root = document.getElementById("log-console");
   if (!root) return;
@@ -48,14 +50,16 @@
       if (!value) return;
       if (!regexEl.checked) { tests[field[0]] = plainTest(field[0], value); return; }
       if (value.length > MAX_PATTERN) {
-        problems.push(field[2] + ": the expression is longer than " + MAX_PATTERN + " characters; it is ignored.");
+        problems.push(interpolate(gettext("%(field)s: the expression is longer than %(max)s characters; it is ignored."),
+          { field: field[2], max: MAX_PATTERN }, true));
         return;
       }
       try {
         var pattern = new RegExp(value, "i");
         tests[field[0]] = function (text) { return pattern.test(text); };
       } catch (error) {
-        problems.push(field[2] + ": not a valid regular expression (" + error.message + "); it is ignored until it is fixed.");
+        problems.push(interpolate(gettext("%(field)s: not a valid regular expression (%(reason)s); it is ignored until it is fixed."),
+          { field: field[2], reason: error.message }, true));
       }
     });
     errorEl.textContent = problems.join(" ");
@@ -136,9 +140,17 @@
       total += 1;
       if (!line.hidden) shown += 1;
     }
-    var parts = [shown === total ? total + " lines shown" : shown + " of " + total + " lines shown"];
-    parts[0] += " (the newest " + MAX_LINES + " are kept)";
-    if (paused) parts.push("paused, " + held.length + " waiting" + (heldDropped ? ", " + heldDropped + " dropped" : ""));
+    // Translators: the English says "lines" for one line too; the singular form is for 1.
+    var lineCount = shown === total ? ngettext("%(total)s lines shown (the newest %(max)s are kept)",
+      "%(total)s lines shown (the newest %(max)s are kept)", total)
+      // Translators: the English says "lines" for one line too; the singular form is for 1 (the total).
+      : ngettext("%(shown)s of %(total)s lines shown (the newest %(max)s are kept)",
+        "%(shown)s of %(total)s lines shown (the newest %(max)s are kept)", total);
+    var parts = [interpolate(lineCount, { shown: shown, total: total, max: MAX_LINES }, true)];
+    if (paused) {
+      parts.push(interpolate(heldDropped ? gettext("paused, %(held)s waiting, %(dropped)s dropped") : gettext("paused, %(held)s waiting"),
+        { held: held.length, dropped: heldDropped }, true));
+    }
     if (extra) parts.push(extra);
     statusEl.textContent = parts.join(" · ");
   }
@@ -162,12 +174,16 @@
     event.preventDefault();
     var query = params();
     query.set("format", "json");
-    status("preparing the download…");
+    status(gettext("preparing the download…"));
     fetch(downloadBase + "?" + query.toString(), { credentials: "same-origin" })
-      .then(function (r) { if (!r.ok) throw new Error("the server answered " + r.status); return r.json(); })
+      .then(function (r) {
+        if (!r.ok) throw new Error(interpolate(gettext("the server answered %(status)s"), { status: r.status }, true));
+        return r.json();
+      })
       .then(function (body) {
         // The server names the filters (log_views.download_names), as in its own text file.
-        var text = ["# /rosout of " + body.title + ", downloaded " + when(new Date().toISOString()), body.filters];
+        var text = [interpolate(gettext("# /rosout of %(title)s, downloaded %(moment)s"),
+          { title: body.title, moment: when(new Date().toISOString()) }, true), body.filters];
         body.records.filter(visible).forEach(function (r) {
           text.push(when(r.stamp) + " [" + r.level + "] [" + r.logger + "] " + r.message);
         });
@@ -180,7 +196,9 @@
         setTimeout(function () { URL.revokeObjectURL(link.href); }, 10000);
         status();
       })
-      .catch(function (error) { status("download failed: " + error.message + "; try again"); });
+      .catch(function (error) {
+        status(interpolate(gettext("download failed: %(reason)s; try again"), { reason: error.message }, true));
+      });
   }
 
   // -- gaps ---------------------------------------------------------------------------
@@ -195,9 +213,13 @@
       div.dataset.gap = gap.id;
       // An outage still going on has no end yet (the gateway offline, stopped or quarantined).
       var seconds = Math.round((Date.parse(gap.ended) - Date.parse(gap.began)) / 1000);
-      var stretch = gap.ended ? "from " + when(gap.began) + " to " + when(gap.ended) : "since " + when(gap.began);
-      div.textContent = "gateway " + gap.gateway + " could not be reached " + stretch +
-        (isNaN(seconds) ? "" : " (" + seconds + " s)") + ": /rosout of that time was not received";
+      var words = !gap.ended
+        ? gettext("gateway %(gateway)s could not be reached since %(began)s: /rosout of that time was not received")
+        : isNaN(seconds)
+          ? gettext("gateway %(gateway)s could not be reached from %(began)s to %(ended)s: /rosout of that time was not received")
+          : gettext("gateway %(gateway)s could not be reached from %(began)s to %(ended)s (%(seconds)s s): /rosout of that time was not received");
+      div.textContent = interpolate(words,
+        { gateway: gap.gateway, began: when(gap.began), ended: gap.ended ? when(gap.ended) : "", seconds: seconds }, true);
       if (known) return;
       var after = null;
       for (var line = lines.firstElementChild; line; line = line.nextElementSibling) {
@@ -216,7 +238,7 @@
   root.querySelector("form[data-local]").addEventListener("submit", function (event) { event.preventDefault(); });
   pauseEl.addEventListener("click", function () {
     paused = !paused;
-    pauseEl.textContent = paused ? "Resume" : "Pause";
+    pauseEl.textContent = paused ? gettext("Resume") : gettext("Pause");
     pauseEl.setAttribute("aria-pressed", String(paused));
     if (!paused) {
       var backlog = held; held = []; heldDropped = 0;
@@ -250,7 +272,7 @@
     };
     socket.onclose = function (event) {
       if (event.code === 4401 || event.code === 4404) {
-        status(event.code === 4401 ? "logged out: reload the page to log in" : "no longer exists");
+        status(event.code === 4401 ? gettext("logged out: reload the page to log in") : gettext("no longer exists"));
         return;
       }
       if (window.lifecycleBanner) window.lifecycleBanner(true);
@@ -265,13 +287,14 @@
     var at = Date.parse(root.dataset.at);
     paused = true;
     followEl.checked = false;
-    pauseEl.textContent = "Resume";
+    pauseEl.textContent = gettext("Resume");
     pauseEl.setAttribute("aria-pressed", "true");
     var line = lines.firstElementChild;
     while (line && Date.parse(line.record.stamp) < at) line = line.nextElementSibling;
     var marker = document.createElement("div");
     marker.className = "log-moment";
-    marker.textContent = "▶ " + when(new Date(at).toISOString()) + " (the moment from the timeline)";
+    marker.textContent = interpolate(gettext("▶ %(moment)s (the moment from the timeline)"),
+      { moment: when(new Date(at).toISOString()) }, true);
     lines.insertBefore(marker, line);
     marker.scrollIntoView({ block: "center" });
     status();

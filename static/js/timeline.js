@@ -46,8 +46,8 @@
     var lane = bar.closest(".tl-lane");
     var from = start + 1000 * Number(bar.dataset.s), to = start + 1000 * Number(bar.dataset.e);
     var links = element("p");
-    links.append(link("the log at its start", lane.dataset.logs + "?at=" + iso(from) + "Z"), " · ",
-      link("audit records of this stretch", lane.dataset.audit + "&since=" + iso(from) + "&until=" + iso(to + 1000)));
+    links.append(link(gettext("the log at its start"), lane.dataset.logs + "?at=" + iso(from) + "Z"), " · ",
+      link(gettext("audit records of this stretch"), lane.dataset.audit + "&since=" + iso(from) + "&until=" + iso(to + 1000)));
     return [element("p", bar.querySelector("title").textContent), links];
   }
 

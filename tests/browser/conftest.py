@@ -39,7 +39,7 @@ def submit_login(page, username: str, password: str = PASSWORD) -> None:
     """Fill in and send the site's login form, open on ``page``."""
     page.fill("#id_username", username)
     page.fill("#id_password", password)
-    page.click("button[type=submit]")
+    page.click("main form button[type=submit]")  # (the header's language choice has buttons too)
 
 
 DESKTOP = {"width": 1440, "height": 900}

@@ -50,7 +50,7 @@ def log_in(username: str, password: str = PASSWORD) -> tuple[Client, object]:
 def refused_with(answer, problem: problems.Problem) -> None:
     assert answer.status_code == 200, answer.status_code  # the login page again
     assert f'data-problem="{problem.code}"' in answer.text, answer.text
-    assert problem.words in answer.text
+    assert str(problem.words) in answer.text
 
 
 def last_denial() -> AccessDenial:

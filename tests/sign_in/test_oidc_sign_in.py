@@ -86,8 +86,8 @@ def sign_in(client: Client, sub: str):
 def login_page_says(client: Client, answer, problem: problems.Problem) -> None:
     assert answer.status_code == 302 and answer["Location"] == "/login/", answer
     page = client.get("/login/")
-    assert f'data-problem="{problem.code}"' in page.text and problem.words in page.text, page.text
-    assert problem.words not in client.get("/login/").text  # said once, not on every later visit
+    assert f'data-problem="{problem.code}"' in page.text and str(problem.words) in page.text, page.text
+    assert str(problem.words) not in client.get("/login/").text  # said once, not on every later visit
 
 
 @pytest.mark.django_db

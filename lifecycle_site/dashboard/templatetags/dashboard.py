@@ -4,8 +4,11 @@ from __future__ import annotations
 import json
 
 from django import template
+from django.utils.translation import gettext as _
+from django.utils.translation import ngettext, pgettext
 
 from lifecycle_site.audit.models import TransitionRecord
+from lifecycle_site.operations import words
 from ros_gateway.shared import operations
 
 register = template.Library()
@@ -28,6 +31,16 @@ def node_status(node: dict) -> str:
     if node.get("last_seen") is None:
         return "waiting"
     return "unreachable" if node.get("gone_reason") == "unreachable" else "lost"
+
+
+@register.filter
+def status_word(status: str) -> str:
+    """A badge's word for a node_status() (or a collapsed robot's count status): a ROS state as it
+    is, the others in the active language. node_status() itself stays the code's word (classes,
+    data-status, fleet.js)."""
+    names = {"waiting": pgettext("node status", "waiting"), "lost": pgettext("node status", "lost"),
+             "unreachable": pgettext("node status", "unreachable"), "busy": pgettext("node status", "busy")}
+    return names.get(status, status)
 
 
 @register.filter
@@ -100,14 +113,23 @@ def all_successful(results: dict) -> bool:
 @register.filter
 def operation_label(operation: str) -> str:
     known = operations.get(operation)
-    return known.title if known else operation
+    return words.title(known) if known else operation
+
+
+@register.filter
+def run_status_word(status: str) -> str:
+    """A group run's status as its panel shows it: the stored word, in the active language."""
+    known = {"queued": pgettext("run status", "queued"), "running": pgettext("run status", "running"),
+             "succeeded": pgettext("run status", "succeeded"), "failed": pgettext("run status", "failed"),
+             "partial": pgettext("run status", "partial")}
+    return known.get(status, status)
 
 
 @register.simple_tag
 def robot_operations(robot: str) -> list[dict]:
     """The fleet page's buttons for a robot, from the shared table (confirmation with its name)."""
-    return [{"name": op.name, "button": op.button, "help": op.help, "danger": op.danger,
-             "confirm": op.confirm_text(robot), "confirm_detail": op.confirm_detail}
+    return [{"name": op.name, "button": words.button(op), "help": words.help_line(op), "danger": op.danger,
+             "confirm": words.question(op, robot), "confirm_detail": words.question_detail(op)}
             for op in operations.OPERATIONS if op.scope == operations.ROBOT]
 
 
@@ -125,27 +147,23 @@ def run_done(status: str) -> bool:
     return status in DONE_STATUSES
 
 
-RUN_SOURCES = {"api": "through the API", "cli": "from the command line", "dashboard": "", "external": ""}
-
-
 @register.filter
 def run_by(run: dict) -> str:
     """Who started a run: 'by ivan', 'by ivan through the API', 'automatic recovery'."""
     source = run.get("source") or ""
     if source == "recovery" or run.get("operation") == "recover":
-        return "automatic recovery"
-    how = RUN_SOURCES.get(source, "")
-    if run.get("requested_by"):
-        return f"by {run['requested_by']}" + (f" {how}" if how else "")
-    return f"started {how}" if how else "started"
+        return _("automatic recovery")
+    user = run.get("requested_by")
+    if source == "api":
+        return _("by %(user)s through the API") % {"user": user} if user else _("started through the API")
+    if source == "cli":
+        return _("by %(user)s from the command line") % {"user": user} if user else _("started from the command line")
+    return _("by %(user)s") % {"user": user} if user else _("started")
 
 
 # The gateway drives a run's nodes in steps (operations/runs.py tiers(), ros_gateway/groups.py): one per
 # position of the robot's bring-up order, the nodes without one last, side by side (up to 8 at a
 # time). With the "stop" policy a failure starts no further node; those already under way finish.
-SIDE_BY_SIDE = "no bring-up order among its nodes: they run side by side, up to 8 at a time"
-
-
 @register.filter
 def run_policy_words(run: dict) -> str:
     """What a run's failure policy does, as its steps make it work ('' for one node)."""
@@ -155,10 +173,13 @@ def run_policy_words(run: dict) -> str:
     stop = run.get("policy") != "continue"
     steps = run.get("steps")
     if steps is not None and steps > 1:
-        return "in the bring-up order; " + ("stops at the first failure" if stop else "continues past failures")
+        return _("in the bring-up order; stops at the first failure") if stop else \
+            _("in the bring-up order; continues past failures")
     if steps is not None:
-        return SIDE_BY_SIDE + ("; after a failure it starts no further node" if stop else "; continues past failures")
-    return "after a failure it starts no further node" if stop else "continues past failures"
+        return _("no bring-up order among its nodes: they run side by side, up to 8 at a time; after a failure it "
+                 "starts no further node") if stop else \
+            _("no bring-up order among its nodes: they run side by side, up to 8 at a time; continues past failures")
+    return _("after a failure it starts no further node") if stop else _("continues past failures")
 
 
 @register.filter
@@ -170,10 +191,10 @@ def age(iso: str | None) -> str:
 
     seconds = max(0, int((datetime.now(timezone.utc) - datetime.fromisoformat(iso)).total_seconds()))
     if seconds < 60:
-        return f"{seconds} s ago"
+        return _("%(n)s s ago") % {"n": seconds}
     if seconds < 3600:
-        return f"{seconds // 60} min ago"
-    return f"{seconds // 3600} h ago"
+        return _("%(n)s min ago") % {"n": seconds // 60}
+    return _("%(n)s h ago") % {"n": seconds // 3600}
 
 
 @register.filter
@@ -189,7 +210,10 @@ def elapsed(iso: str | None) -> str:
         return f"{seconds} s"
     if seconds < 7200:
         return f"{seconds // 60} min"
-    return f"{seconds // 3600} h {seconds % 3600 // 60} min" if seconds < 172800 else f"{seconds // 86400} days"
+    if seconds < 172800:
+        return f"{seconds // 3600} h {seconds % 3600 // 60} min"
+    days = seconds // 86400
+    return ngettext("%(n)s day", "%(n)s days", days) % {"n": days}
 
 
 OUTCOME_LABELS = dict(TransitionRecord.Outcome.choices)

@@ -1,6 +1,7 @@
 """``manage.py lifecycle VERB ...``: ``ros2 lifecycle`` against the site, through the gateway.
 
-``manage.py lifecycle --help`` describes the verbs, the node names and the exit statuses.
+``manage.py lifecycle --help`` describes the verbs, the node names and the exit statuses. Its
+human output is in German or English: languages/cli.py ($LIFECYCLE_LANGUAGE, else $LANG).
 """
 from __future__ import annotations
 
@@ -14,12 +15,14 @@ from django.contrib.auth import get_user_model
 from django.core.management.base import BaseCommand, CommandError
 from django.db import DatabaseError
 from django.db.models import Q
-from django.utils import timezone
+from django.utils import timezone, translation
+from django.utils.translation import gettext as _
 
 from lifecycle_site.diagnostics import tree
 from lifecycle_site.diagnostics.models import Status
 from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
 from lifecycle_site.gateway_link.gateway_client import GatewayError, GatewayOffline, call_gateway
+from lifecycle_site.languages.cli import InCliLanguage, cli_language
 from lifecycle_site.modes import drift
 from lifecycle_site.operations import cli_output as out
 from lifecycle_site.operations import modes, processes
@@ -40,19 +43,24 @@ class CliExit(CommandError):
         self.message, self.code, self.details = message, code, details
 
 
-class Command(BaseCommand):
+class Command(InCliLanguage, BaseCommand):
     help = out.DESCRIPTION
     requires_system_checks: list[str] = []  # a quick CLI: the site and the gateway run the checks
 
     def create_parser(self, prog_name: str, subcommand: str, **kwargs: Any):
         parser = super().create_parser(prog_name, subcommand, formatter_class=out.HelpFormatter, **kwargs)
-        parser.epilog = out.EPILOG
+        parser.epilog = str(out.EPILOG)
         return parser
 
     def add_arguments(self, parser) -> None:
         out.add_verbs(parser)
 
     def execute(self, *args: Any, **options: Any) -> None:
+        # The CLI's language for all of it: handle() and the error written here after it.
+        with translation.override(cli_language()):
+            self._execute(*args, **options)
+
+    def _execute(self, *args: Any, **options: Any) -> None:
         try:
             super().execute(*args, **options)
             return
@@ -123,12 +131,13 @@ class Command(BaseCommand):
                     continue
                 except GatewayOffline as exc:
                     offline.add(gateway)
-                    self.stderr.write(f"{exc.message} Showing the last known state instead.")
+                    self.stderr.write(_("%(reason)s Showing the last known state instead.") % {"reason": exc.message})
                 except GatewayError as exc:
-                    self.stderr.write(f"{node.key}: {exc.message} Showing its last known state.")
+                    self.stderr.write(_("%(node)s: %(reason)s Showing its last known state.") % {
+                        "node": node.key, "reason": exc.message})
             elif not node.alive and len(nodes) == 1:
-                self.stderr.write(f"{node.key} is not running (last seen {ago(node.last_seen)}); "
-                                  "showing its last known state.")
+                self.stderr.write(_("%(node)s is not running (last seen %(ago)s); showing its last known state.") % {
+                    "node": node.key, "ago": ago(node.last_seen)})
             readings.append((node.state, False))
         return readings
 
@@ -157,13 +166,13 @@ class Command(BaseCommand):
         except TransitionRefused as refused:
             if refused.code == "gateway_offline":
                 raise CliExit(EXIT_OFFLINE, refused.message, refused.code, **refused.details) from None
-            self.emit(opts, refused.as_json(), ["Transitioning failed"])
+            self.emit(opts, refused.as_json(), [_("Transitioning failed")])
             self.stderr.write(refused.message)
             if refused.code == "invalid_transition" and not opts.json:
                 state_id = refused.details["state"]["id"]
                 self.stderr.write("\n".join(out.available_lines(state_id, refused.details.get("valid_transitions"))))
             return EXIT_FAILED
-        self.emit(opts, done.data, ["Transitioning successful"])
+        self.emit(opts, done.data, [_("Transitioning successful")])
         return EXIT_OK
 
     def do_process(self, opts: SimpleNamespace) -> int:
@@ -173,14 +182,14 @@ class Command(BaseCommand):
             found = processes.robot_processes(robot)
             measured = processes.usage(robot, {p.name for p in found}) if found else {}
             lines = [out.process_line(p, measured.get(p.name)) for p in found] or [
-                f"{robot.name} has no launch profiles, and its gateway has found none of its nodes in a container "
-                "or systemd unit it can reach."]
+                _("%(robot)s has no launch profiles, and its gateway has found none of its nodes in a container or "
+                  "systemd unit it can reach.") % {"robot": robot.name}]
             self.emit(opts, {"robot": robot.name, "processes": [{**p.as_dict(), "usage": measured.get(p.name)}
                                                                 for p in found]}, lines)
             return EXIT_OK
         if not opts.action:
-            raise CliExit(EXIT_USAGE, f"What should happen to {opts.process}? Give an action: "
-                                      f"{', '.join(protocol.PROCESS_ACTIONS)}.")
+            raise CliExit(EXIT_USAGE, _("What should happen to %(process)s? Give an action: %(actions)s.") % {
+                "process": opts.process, "actions": ", ".join(protocol.PROCESS_ACTIONS)})
         try:
             profile = processes.profile_of(robot, opts.process)
         except Refusal as exc:
@@ -190,7 +199,7 @@ class Command(BaseCommand):
         except Refusal as refused:
             if refused.code == "gateway_offline":
                 raise CliExit(EXIT_OFFLINE, refused.message, refused.code, **refused.details) from None
-            self.emit(opts, refused.as_json(), [f"{opts.action} failed"])
+            self.emit(opts, refused.as_json(), [_("%(action)s failed") % {"action": opts.action}])
             self.stderr.write(refused.message)
             return EXIT_FAILED
         self.emit(opts, {"record": record.as_dict()}, [record.message])
@@ -223,11 +232,13 @@ class Command(BaseCommand):
             return EXIT_OK
         if opts.action == "drift":
             lines = [d["message"] for d in summary["drift"]] or (
-                [f"{robot.name} is in mode {summary['mode']}"] if summary["mode"] else [f"{robot.name} has no mode"])
+                [_("%(robot)s is in mode %(mode)s") % {"robot": robot.name, "mode": summary["mode"]}]
+                if summary["mode"] else [_("%(robot)s has no mode") % {"robot": robot.name}])
             self.emit(opts, {"robot": robot.name, **summary}, lines)
             return EXIT_FAILED if summary["drift"] else EXIT_OK
         if not opts.mode:
-            raise CliExit(EXIT_USAGE, f"Which mode? Give MODE after the robot ({opts.action} ROBOT MODE).")
+            raise CliExit(EXIT_USAGE, _("Which mode? Give MODE after the robot (%(action)s ROBOT MODE).") % {
+                "action": opts.action})
         try:
             mode = modes.mode_of(robot, opts.mode)
             if opts.action == "show":
@@ -270,15 +281,16 @@ class Command(BaseCommand):
         try:
             run = wait_for(run, opts.wait, None if opts.json else progress)
         except KeyboardInterrupt:
-            raise CliExit(EXIT_INTERRUPTED, f"Interrupted: stopped following run {run.id}; "
-                                            "it goes on in the gateway.") from None
+            raise CliExit(EXIT_INTERRUPTED, _("Interrupted: stopped following run %(run)s; it goes on in the "
+                                              "gateway.") % {"run": run.id}) from None
         if opts.json:
             self.stdout.write(out.to_json({"run": run.as_dict()}))
         else:
             progress(run)
             self.stdout.write(out.summary_line(run))
         if not run.done:
-            self.stderr.write(f"Run {run.id} was still {run.status} after {opts.wait:g} s; it goes on in the gateway.")
+            self.stderr.write(_("Run %(run)s was still %(status)s after %(seconds)s s; it goes on in the gateway.") % {
+                "run": run.id, "status": run.get_status_display(), "seconds": f"{opts.wait:g}"})
         return EXIT_OK if run.status == GroupRun.Status.SUCCEEDED else EXIT_FAILED
 
     # --- what the arguments name -----------------------------------------------------------
@@ -294,10 +306,12 @@ class Command(BaseCommand):
 
     def robot_name(self, opts: SimpleNamespace) -> str:
         if opts.robot_name and opts.robot and opts.robot_name != opts.robot:
-            raise CliExit(EXIT_USAGE, f"ROBOT {opts.robot_name!r} and --robot {opts.robot!r} differ; give one.")
+            raise CliExit(EXIT_USAGE, _("ROBOT %(robot)s and --robot %(option)s differ; give one.") % {
+                "robot": repr(opts.robot_name), "option": repr(opts.robot)})
         if not (opts.robot_name or opts.robot):
             known = list(Robot.objects.values_list("name", flat=True))
-            raise CliExit(EXIT_USAGE, f"Which robot? Give ROBOT, one of: {out.sample(known, 'see the admin')}.")
+            raise CliExit(EXIT_USAGE, _("Which robot? Give ROBOT, one of: %(known)s.") % {
+                "known": out.sample(known, _("see the admin"))})
         return opts.robot_name or opts.robot
 
     def listed(self, robot: Robot | None, include_lost: bool) -> list[ManagedNode]:
@@ -344,8 +358,8 @@ class Command(BaseCommand):
         if user is None:
             raise CliExit(EXIT_USAGE, out.no_user(name, chosen is not None), "no_user")
         if not user.is_active or not user.has_perm("fleet.operate_node"):
-            raise CliExit(EXIT_USAGE, f"Site user {name!r} may not operate nodes (inactive, or without the operator "
-                          "role).", "forbidden")
+            raise CliExit(EXIT_USAGE, _("Site user %(name)s may not operate nodes (inactive, or without the operator "
+                                        "role).") % {"name": repr(name)}, "forbidden")
         return user
 
 
@@ -359,8 +373,9 @@ def as_exit(exc: BaseException) -> CliExit:
     if isinstance(exc, GatewayOffline):
         return CliExit(EXIT_OFFLINE, exc.message, exc.code)
     if isinstance(exc, DatabaseError):
-        return CliExit(EXIT_OFFLINE, f"The site's database is unreachable: {exc}", "database_error")
-    return CliExit(EXIT_INTERRUPTED, "Interrupted.")
+        return CliExit(EXIT_OFFLINE, _("The site's database is unreachable: %(error)s") % {"error": exc},
+                       "database_error")
+    return CliExit(EXIT_INTERRUPTED, _("Interrupted."))
 
 
 def login_name() -> str:

@@ -1,0 +1,12 @@
+from django.conf import settings
+from django.db import models
+
+
+class LanguageChoice(models.Model):
+    """The language a user chose in the page header; it follows them to every browser."""
+
+    user = models.OneToOneField(settings.AUTH_USER_MODEL, on_delete=models.CASCADE, related_name="language_choice")
+    language = models.CharField(max_length=8, choices=settings.LANGUAGES)
+
+    def __str__(self) -> str:
+        return f"{self.user}: {self.language}"
