@@ -49,7 +49,7 @@ cp -a "$HERE/runtime" "$CONTEXT/runtime"
 cp "$HERE/VERSION" "$CONTEXT/VERSION"
 # The application: only what runs (no tests, venv, local data, caches).
 tar -C "$ROOT" --exclude='__pycache__' --exclude='*.pyc' --exclude='.DS_Store' \
-    -cf - manage.py lifecycle_site ros_gateway templates static | tar -C "$CONTEXT/app" -xf -
+    -cf - manage.py lifecycle_site ros_gateway templates static locale | tar -C "$CONTEXT/app" -xf -
 
 step "docker build $IMAGE (offline, from $BASE_IMAGE)"
 docker build --network none --pull=false \

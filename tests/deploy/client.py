@@ -73,7 +73,7 @@ class Browser:
         assert page.status == 200, f"login page: {page}"
         match = re.search(r'name="csrfmiddlewaretoken" value="([^"]+)"', page.text)
         assert match, "the login form has no CSRF token"
-        action = re.search(r'<form[^>]*method="post"[^>]*action="([^"]*)"', page.text)
+        action = re.search(r'<form[^>]*method="post"[^>]*action="([^"]*/login/)"', page.text)  # not the language form
         target = action.group(1) if action and action.group(1) else f"{prefix}/login/"
         form = urlencode({"username": username, "password": password,
                           "csrfmiddlewaretoken": match.group(1), "next": f"{prefix}/"})

@@ -157,6 +157,8 @@ def test_site_served_under_the_prefix(stack, browser):
     asset = browser.get(stylesheet, cookies=False)
     assert asset.status == 200 and b"{" in asset.body, "static files are served by the app (WhiteNoise)"
     assert browser.get(PREFIX, cookies=False).status == 301  # /lifecycle -> /lifecycle/, as on the device
+    german = browser.get(f"{PREFIX}/login/", cookies=False, headers={"Accept-Language": "de-DE,de;q=0.9"})
+    assert '<html lang="de">' in german.text and "<h1>Anmelden</h1>" in german.text, "the image has the catalogue"
 
 
 def test_login_through_the_proxy(stack, logged_in):
