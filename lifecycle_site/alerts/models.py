@@ -59,31 +59,33 @@ class Receiver(models.Model):
         WEBHOOK = "webhook", gettext_lazy("webhook")
         EMAIL = "email", gettext_lazy("e-mail")
 
-    name = models.CharField(max_length=80, unique=True)
-    kind = models.CharField(max_length=8, choices=Kind.choices, default=Kind.WEBHOOK)
+    name = models.CharField(gettext_lazy("name"), max_length=80, unique=True)
+    kind = models.CharField(gettext_lazy("kind"), max_length=8, choices=Kind.choices, default=Kind.WEBHOOK)
     url = models.CharField(
         gettext_lazy("webhook URL"), max_length=500, blank=True, validators=[URLValidator(schemes=["http", "https"])],
         help_text=gettext_lazy("http:// or https:// address that takes a JSON POST (redirects are not followed)."),
     )
     # Kept in the database (as a Django SECRET_KEY would be in the environment); shown nowhere, never logged.
     secret = models.CharField(
-        max_length=200, blank=True,
+        gettext_lazy("secret"), max_length=200, blank=True,
         help_text=gettext_lazy("Key of the HMAC-SHA256 signature sent in X-Lifecycle-Signature; empty: unsigned."),
     )
     emails = models.TextField(
         gettext_lazy("e-mail addresses"), blank=True, validators=[validate_emails],
         help_text=gettext_lazy("Comma-separated."),
     )
-    enabled = models.BooleanField(default=True)
+    enabled = models.BooleanField(gettext_lazy("enabled"), default=True)
     # Counted by the ingest process (monotonic: the delivery log is pruned, these are not).
-    delivered = models.PositiveBigIntegerField(default=0, editable=False)
-    failed = models.PositiveBigIntegerField(default=0, editable=False,
+    delivered = models.PositiveBigIntegerField(gettext_lazy("delivered"), default=0, editable=False)
+    failed = models.PositiveBigIntegerField(gettext_lazy("failed"), default=0, editable=False,
                                             help_text=gettext_lazy("Gave up after every retry."))
-    dropped = models.PositiveBigIntegerField(default=0, editable=False,
+    dropped = models.PositiveBigIntegerField(gettext_lazy("dropped"), default=0, editable=False,
                                              help_text=gettext_lazy("Not sent: the queue was full."))
 
     class Meta:
         ordering = ["name"]
+        verbose_name = gettext_lazy("receiver")
+        verbose_name_plural = gettext_lazy("receivers")
 
     def __str__(self) -> str:
         return f"{self.name} ({self.get_kind_display()})"
@@ -119,10 +121,10 @@ class Rule(models.Model):
 
     STATE_CHOICES = [(label, label) for state_id, label in sorted(sm.STATE_LABELS.items()) if state_id]
 
-    name = models.CharField(max_length=80, unique=True)
-    kind = models.CharField(max_length=16, choices=Kind.choices)
+    name = models.CharField(gettext_lazy("name"), max_length=80, unique=True)
+    kind = models.CharField(gettext_lazy("kind"), max_length=16, choices=Kind.choices)
     state = models.CharField(
-        max_length=16, blank=True, choices=STATE_CHOICES,
+        gettext_lazy("state"), max_length=16, blank=True, choices=STATE_CHOICES,
         help_text=gettext_lazy("For 'node is in a state': e.g. errorprocessing (fires on entering it, however "
                                "briefly) or finalized."),
     )
@@ -138,28 +140,33 @@ class Rule(models.Model):
                                "errorprocessing is over within milliseconds)."),
     )
     # Scope: all of these that are set must match; none set: the whole fleet.
-    gateway = models.ForeignKey("fleet.Gateway", null=True, blank=True, on_delete=models.CASCADE, related_name="+",
+    gateway = models.ForeignKey("fleet.Gateway", verbose_name=gettext_lazy("gateway"), null=True, blank=True,
+                                on_delete=models.CASCADE, related_name="+",
                                 help_text=gettext_lazy("Only this gateway (or its robots' nodes)."))
-    robot = models.ForeignKey("fleet.Robot", null=True, blank=True, on_delete=models.CASCADE, related_name="+",
+    robot = models.ForeignKey("fleet.Robot", verbose_name=gettext_lazy("robot"), null=True, blank=True,
+                              on_delete=models.CASCADE, related_name="+",
                               help_text=gettext_lazy("Only this robot's nodes (or its gateway)."))
     node_pattern = models.CharField(
-        max_length=255, blank=True,
+        gettext_lazy("node pattern"), max_length=255, blank=True,
         help_text=gettext_lazy("Only nodes whose fully qualified name matches this pattern (* and ?, e.g. "
                                "/agv1/*_driver)."),
     )
     status_pattern = models.CharField(
-        max_length=256, blank=True,
+        gettext_lazy("status pattern"), max_length=256, blank=True,
         help_text=gettext_lazy("For diagnostic rules: a status name (with what is below it, e.g. /Robot/Sensors), or "
                                "a pattern with * and ? (e.g. lidar_driver: *); empty: every status."),
     )
-    level = models.CharField(max_length=8, blank=True, choices=Level.choices,
+    level = models.CharField(gettext_lazy("level"), max_length=8, blank=True, choices=Level.choices,
                              help_text=gettext_lazy("For diagnostic rules: the level that fires it."))
-    receivers = models.ManyToManyField(Receiver, blank=True, related_name="rules")
-    enabled = models.BooleanField(default=True)
-    created = models.DateTimeField(auto_now_add=True)
+    receivers = models.ManyToManyField(Receiver, verbose_name=gettext_lazy("receivers"), blank=True,
+                                       related_name="rules")
+    enabled = models.BooleanField(gettext_lazy("enabled"), default=True)
+    created = models.DateTimeField(gettext_lazy("created"), auto_now_add=True)
 
     class Meta:
         ordering = ["name"]
+        verbose_name = gettext_lazy("rule")
+        verbose_name_plural = gettext_lazy("rules")
 
     def __str__(self) -> str:
         return self.name
@@ -239,22 +246,23 @@ class Alert(models.Model):
     ACTIVE = (Status.FIRING, Status.ACKNOWLEDGED)
 
     # Kept (by name) when its rule is deleted; an active one is then resolved.
-    rule = models.ForeignKey(Rule, null=True, blank=True, on_delete=models.SET_NULL, related_name="alerts")
-    rule_name = models.CharField(max_length=80)
+    rule = models.ForeignKey(Rule, verbose_name=gettext_lazy("rule"), null=True, blank=True, on_delete=models.SET_NULL,
+                             related_name="alerts")
+    rule_name = models.CharField(gettext_lazy("rule name"), max_length=80)
     # A node's key (robot.node) or a gateway's name: what the alert is about.
-    subject = models.CharField(max_length=320)
-    gateway_name = models.CharField(max_length=63, blank=True)
-    robot_name = models.CharField(max_length=63, blank=True)
-    node_name = models.CharField(max_length=255, blank=True)
-    status = models.CharField(max_length=16, choices=Status.choices, default=Status.FIRING)
-    summary = models.TextField()
-    since = models.DateTimeField(help_text=gettext_lazy("When the condition began."))
-    fired_at = models.DateTimeField()
-    resolved_at = models.DateTimeField(null=True, blank=True)
-    acknowledged_at = models.DateTimeField(null=True, blank=True)
-    acknowledged_by = models.ForeignKey(settings.AUTH_USER_MODEL, null=True, blank=True,
-                                        on_delete=models.SET_NULL, related_name="+")
-    acknowledged_by_name = models.CharField(max_length=150, blank=True)
+    subject = models.CharField(pgettext_lazy("alert", "subject"), max_length=320)
+    gateway_name = models.CharField(gettext_lazy("gateway name"), max_length=63, blank=True)
+    robot_name = models.CharField(gettext_lazy("robot name"), max_length=63, blank=True)
+    node_name = models.CharField(gettext_lazy("node name"), max_length=255, blank=True)
+    status = models.CharField(gettext_lazy("status"), max_length=16, choices=Status.choices, default=Status.FIRING)
+    summary = models.TextField(gettext_lazy("summary"))
+    since = models.DateTimeField(gettext_lazy("since"), help_text=gettext_lazy("When the condition began."))
+    fired_at = models.DateTimeField(gettext_lazy("fired at"))
+    resolved_at = models.DateTimeField(gettext_lazy("resolved at"), null=True, blank=True)
+    acknowledged_at = models.DateTimeField(gettext_lazy("acknowledged at"), null=True, blank=True)
+    acknowledged_by = models.ForeignKey(settings.AUTH_USER_MODEL, verbose_name=gettext_lazy("acknowledged by"),
+                                        null=True, blank=True, on_delete=models.SET_NULL, related_name="+")
+    acknowledged_by_name = models.CharField(gettext_lazy("acknowledged by name"), max_length=150, blank=True)
 
     class Meta:
         ordering = ["-fired_at", "-id"]
@@ -265,6 +273,8 @@ class Alert(models.Model):
                                     name="one_active_alert_per_rule_subject"),
         ]
         indexes = [models.Index(fields=["status", "-fired_at"], name="alert_status_recent")]
+        verbose_name = gettext_lazy("alert")
+        verbose_name_plural = gettext_lazy("alerts")
 
     def __str__(self) -> str:
         return f"{self.rule_name}: {self.subject} ({self.status})"
@@ -304,20 +314,23 @@ class Delivery(models.Model):
         FAILED = "failed", gettext_lazy("failed, gave up")
         DROPPED = "dropped", gettext_lazy("dropped (queue full)")
 
-    alert = models.ForeignKey(Alert, null=True, on_delete=models.SET_NULL, related_name="deliveries")
-    receiver = models.ForeignKey(Receiver, null=True, on_delete=models.SET_NULL, related_name="deliveries")
-    receiver_name = models.CharField(max_length=80)
-    event = models.CharField(max_length=16)  # firing | resolved
-    attempt = models.PositiveSmallIntegerField(default=1)
-    outcome = models.CharField(max_length=16, choices=Outcome.choices)
-    status_code = models.PositiveSmallIntegerField(null=True, blank=True)
-    error = models.TextField(blank=True)
-    duration_ms = models.FloatField(null=True, blank=True)
-    at = models.DateTimeField()
+    alert = models.ForeignKey(Alert, verbose_name=gettext_lazy("alert"), null=True, on_delete=models.SET_NULL,
+                              related_name="deliveries")
+    receiver = models.ForeignKey(Receiver, verbose_name=gettext_lazy("receiver"), null=True, on_delete=models.SET_NULL,
+                                 related_name="deliveries")
+    receiver_name = models.CharField(gettext_lazy("receiver name"), max_length=80)
+    event = models.CharField(gettext_lazy("event"), max_length=16)  # firing | resolved
+    attempt = models.PositiveSmallIntegerField(gettext_lazy("attempt"), default=1)
+    outcome = models.CharField(gettext_lazy("outcome"), max_length=16, choices=Outcome.choices)
+    status_code = models.PositiveSmallIntegerField(gettext_lazy("status code"), null=True, blank=True)
+    error = models.TextField(gettext_lazy("error"), blank=True)
+    duration_ms = models.FloatField(gettext_lazy("duration ms"), null=True, blank=True)
+    at = models.DateTimeField(gettext_lazy("at"))
 
     class Meta:
         ordering = ["-at", "-id"]
         verbose_name_plural = gettext_lazy("deliveries")
+        verbose_name = gettext_lazy("delivery")
 
     def __str__(self) -> str:
         return f"{self.event} to {self.receiver_name}: {self.outcome}"

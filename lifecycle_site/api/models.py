@@ -34,16 +34,20 @@ class TooManyTokens(Exception):
 
 
 class ApiToken(models.Model):
-    user = models.ForeignKey(settings.AUTH_USER_MODEL, on_delete=models.CASCADE, related_name="api_tokens")
-    name = models.CharField(max_length=100, blank=True, help_text=gettext_lazy("What the token is for."))
-    digest = models.CharField(max_length=64, unique=True, editable=False)
-    hint = models.CharField(max_length=12, editable=False,
+    user = models.ForeignKey(settings.AUTH_USER_MODEL, verbose_name=gettext_lazy("user"), on_delete=models.CASCADE,
+                             related_name="api_tokens")
+    name = models.CharField(gettext_lazy("name"), max_length=100, blank=True,
+                            help_text=gettext_lazy("What the token is for."))
+    digest = models.CharField(gettext_lazy("digest"), max_length=64, unique=True, editable=False)
+    hint = models.CharField(gettext_lazy("hint"), max_length=12, editable=False,
                             help_text=gettext_lazy("First characters, to tell tokens apart."))
-    created = models.DateTimeField(auto_now_add=True)
-    last_used = models.DateTimeField(null=True, blank=True)
+    created = models.DateTimeField(gettext_lazy("created"), auto_now_add=True)
+    last_used = models.DateTimeField(gettext_lazy("last used"), null=True, blank=True)
 
     class Meta:
         ordering = ["-created"]
+        verbose_name = gettext_lazy("api token")
+        verbose_name_plural = gettext_lazy("api tokens")
 
     def __str__(self) -> str:
         return f"{self.hint}… ({self.user})"
@@ -74,23 +78,25 @@ class TokenEvent(models.Model):
 
     CREATED, REVOKED = "created", "revoked"
 
-    at = models.DateTimeField(auto_now_add=True, db_index=True)
-    action = models.CharField(max_length=8, choices=[(CREATED, gettext_lazy("created")),
+    at = models.DateTimeField(gettext_lazy("at"), auto_now_add=True, db_index=True)
+    action = models.CharField(gettext_lazy("action"), max_length=8, choices=[(CREATED, gettext_lazy("created")),
                                                      (REVOKED, gettext_lazy("revoked"))])
     hint = models.CharField(gettext_lazy("token"), max_length=12,
                             help_text=gettext_lazy("The token's first characters."))
-    token_name = models.CharField(max_length=100, blank=True)
-    owner = models.ForeignKey(settings.AUTH_USER_MODEL, null=True, blank=True, on_delete=models.SET_NULL,
-                              related_name="+")
+    token_name = models.CharField(gettext_lazy("token name"), max_length=100, blank=True)
+    owner = models.ForeignKey(settings.AUTH_USER_MODEL, verbose_name=gettext_lazy("owner"), null=True, blank=True,
+                              on_delete=models.SET_NULL, related_name="+")
     owner_name = models.CharField(gettext_lazy("token of"), max_length=150)
-    actor = models.ForeignKey(settings.AUTH_USER_MODEL, null=True, blank=True, on_delete=models.SET_NULL,
-                              related_name="+")
+    actor = models.ForeignKey(settings.AUTH_USER_MODEL, verbose_name=gettext_lazy("actor"), null=True, blank=True,
+                              on_delete=models.SET_NULL, related_name="+")
     actor_name = models.CharField(gettext_lazy("by"), max_length=150, blank=True)
-    via = models.CharField(max_length=32, blank=True,
+    via = models.CharField(gettext_lazy("via"), max_length=32, blank=True,
                            help_text=gettext_lazy("admin, the API tokens page, the command line"))
 
     class Meta:
         ordering = ["-at", "-id"]
+        verbose_name = gettext_lazy("token event")
+        verbose_name_plural = gettext_lazy("token events")
 
     def __str__(self) -> str:
         return _("%(hint)s… %(action)s by %(actor)s") % {

@@ -22,9 +22,10 @@ class AppendOnlyRecord(models.Model):
     """Base of audit records: written once, never changed or deleted (nor through querysets)."""
 
     requested_by = models.ForeignKey(
-        settings.AUTH_USER_MODEL, null=True, blank=True, on_delete=models.SET_NULL, related_name="+"
+        settings.AUTH_USER_MODEL, verbose_name=gettext_lazy("requested by"), null=True, blank=True,
+        on_delete=models.SET_NULL, related_name="+"
     )
-    requested_by_name = models.CharField(max_length=150, blank=True)
+    requested_by_name = models.CharField(gettext_lazy("requested by name"), max_length=150, blank=True)
 
     objects = AppendOnlyQuerySet.as_manager()
 
@@ -63,31 +64,34 @@ class TransitionRecord(AppendOnlyRecord):
 
     # Kept as plain text too, so the record stays readable after a node or robot is deleted.
     node = models.ForeignKey(
-        "fleet.ManagedNode", null=True, blank=True, on_delete=models.SET_NULL, related_name="transitions"
+        "fleet.ManagedNode", verbose_name=gettext_lazy("node"), null=True, blank=True, on_delete=models.SET_NULL,
+        related_name="transitions"
     )
     robot = models.ForeignKey(
-        "fleet.Robot", null=True, blank=True, on_delete=models.SET_NULL, related_name="transitions"
+        "fleet.Robot", verbose_name=gettext_lazy("robot"), null=True, blank=True, on_delete=models.SET_NULL,
+        related_name="transitions"
     )
-    robot_name = models.CharField(max_length=63)
-    node_name = models.CharField(max_length=255)
-    transition_id = models.PositiveSmallIntegerField(null=True, blank=True)
-    transition_label = models.CharField(max_length=64, blank=True)
-    start_state_id = models.PositiveSmallIntegerField(null=True, blank=True)
-    start_state_label = models.CharField(max_length=32, blank=True)
-    goal_state_id = models.PositiveSmallIntegerField(null=True, blank=True)
-    goal_state_label = models.CharField(max_length=32, blank=True)
-    result_state_id = models.PositiveSmallIntegerField(null=True, blank=True)
-    result_state_label = models.CharField(max_length=32, blank=True)
-    outcome = models.CharField(max_length=20, choices=Outcome.choices)
-    source = models.CharField(max_length=16, choices=Source.choices)
-    requested_at = models.DateTimeField()
-    completed_at = models.DateTimeField(null=True, blank=True)
-    duration_ms = models.FloatField(null=True, blank=True)
-    error = models.TextField(blank=True)
-    run_id = models.CharField(max_length=64, blank=True,
+    robot_name = models.CharField(gettext_lazy("robot name"), max_length=63)
+    node_name = models.CharField(gettext_lazy("node name"), max_length=255)
+    transition_id = models.PositiveSmallIntegerField(gettext_lazy("transition id"), null=True, blank=True)
+    transition_label = models.CharField(gettext_lazy("transition label"), max_length=64, blank=True)
+    start_state_id = models.PositiveSmallIntegerField(gettext_lazy("start state id"), null=True, blank=True)
+    start_state_label = models.CharField(gettext_lazy("start state label"), max_length=32, blank=True)
+    goal_state_id = models.PositiveSmallIntegerField(gettext_lazy("goal state id"), null=True, blank=True)
+    goal_state_label = models.CharField(gettext_lazy("goal state label"), max_length=32, blank=True)
+    result_state_id = models.PositiveSmallIntegerField(gettext_lazy("result state id"), null=True, blank=True)
+    result_state_label = models.CharField(gettext_lazy("result state label"), max_length=32, blank=True)
+    outcome = models.CharField(gettext_lazy("outcome"), max_length=20, choices=Outcome.choices)
+    source = models.CharField(gettext_lazy("source"), max_length=16, choices=Source.choices)
+    requested_at = models.DateTimeField(gettext_lazy("requested at"))
+    completed_at = models.DateTimeField(gettext_lazy("completed at"), null=True, blank=True)
+    duration_ms = models.FloatField(gettext_lazy("duration ms"), null=True, blank=True)
+    error = models.TextField(gettext_lazy("error"), blank=True)
+    run_id = models.CharField(gettext_lazy("run id"), max_length=64, blank=True,
                               help_text=gettext_lazy("Groups the steps of one group operation."))
     # The id of the gateway's fact this record was made from: applying a fact twice makes one record.
-    fact_id = models.CharField(max_length=32, null=True, blank=True, unique=True, editable=False)
+    fact_id = models.CharField(gettext_lazy("fact id"), max_length=32, null=True, blank=True, unique=True,
+                               editable=False)
 
     class Meta:
         ordering = ["-requested_at", "-id"]
@@ -100,6 +104,8 @@ class TransitionRecord(AppendOnlyRecord):
             models.Index(fields=["node", "requested_at", "outcome"], name="audit_node_outcomes"),
             models.Index(fields=["robot_name", "outcome", "requested_at", "node"], name="audit_robot_outcomes"),
         ]
+        verbose_name = gettext_lazy("transition record")
+        verbose_name_plural = gettext_lazy("transition records")
 
     def __str__(self) -> str:
         return f"{self.robot_name}:{self.node_name} {self.transition_label} {self.outcome}"
@@ -134,25 +140,31 @@ class ParameterRecord(AppendOnlyRecord):
     """One parameter change (or refused attempt), append-only like TransitionRecord."""
 
     node = models.ForeignKey(
-        "fleet.ManagedNode", null=True, blank=True, on_delete=models.SET_NULL, related_name="parameter_changes"
+        "fleet.ManagedNode", verbose_name=gettext_lazy("node"), null=True, blank=True, on_delete=models.SET_NULL,
+        related_name="parameter_changes"
     )
-    robot_name = models.CharField(max_length=63)
-    node_name = models.CharField(max_length=255)
+    robot_name = models.CharField(gettext_lazy("robot name"), max_length=63)
+    node_name = models.CharField(gettext_lazy("node name"), max_length=255)
     name = models.CharField(gettext_lazy("parameter"), max_length=255)
-    old_value = models.JSONField(null=True, blank=True)
-    new_value = models.JSONField(null=True, blank=True)
-    outcome = models.CharField(max_length=16, choices=[("succeeded", pgettext_lazy("outcome", "succeeded")),
+    old_value = models.JSONField(gettext_lazy("old value"), null=True, blank=True)
+    new_value = models.JSONField(gettext_lazy("new value"), null=True, blank=True)
+    outcome = models.CharField(gettext_lazy("outcome"), max_length=16,
+                               choices=[("succeeded", pgettext_lazy("outcome", "succeeded")),
                                                         ("rejected", pgettext_lazy("outcome", "rejected")),
                                                         ("observed", pgettext_lazy("outcome", "observed"))])
-    reason = models.TextField(blank=True)
-    source = models.CharField(max_length=16, choices=TransitionRecord.Source.choices)
-    at = models.DateTimeField()
-    fact_id = models.CharField(max_length=32, null=True, blank=True, unique=True, editable=False)
-    run_id = models.CharField(max_length=64, blank=True, help_text=gettext_lazy("The run (a mode's) that set it."))
+    reason = models.TextField(gettext_lazy("reason"), blank=True)
+    source = models.CharField(gettext_lazy("source"), max_length=16, choices=TransitionRecord.Source.choices)
+    at = models.DateTimeField(gettext_lazy("at"))
+    fact_id = models.CharField(gettext_lazy("fact id"), max_length=32, null=True, blank=True, unique=True,
+                               editable=False)
+    run_id = models.CharField(gettext_lazy("run id"), max_length=64, blank=True,
+                              help_text=gettext_lazy("The run (a mode's) that set it."))
 
     class Meta:
         ordering = ["-at", "-id"]
         indexes = [models.Index(fields=["node", "-at"], name="param_node_recent")]
+        verbose_name = gettext_lazy("parameter record")
+        verbose_name_plural = gettext_lazy("parameter records")
 
     def as_dict(self) -> dict:
         return {
@@ -213,6 +225,8 @@ class ProcessRecord(AppendOnlyRecord):
     class Meta:
         ordering = ["-at", "-id"]
         indexes = [models.Index(fields=["robot_name", "-at"], name="process_robot_recent")]
+        verbose_name = gettext_lazy("process record")
+        verbose_name_plural = gettext_lazy("process records")
 
     def as_dict(self) -> dict:
         return {
@@ -228,24 +242,26 @@ class AccessDenial(models.Model):
     """A refused attempt: a change without the role for it, a bad token or session, a failed
     login. Kept for review by admins, bounded (audit/denials.py prunes the oldest)."""
 
-    at = models.DateTimeField(auto_now_add=True, db_index=True)
-    user = models.ForeignKey(settings.AUTH_USER_MODEL, null=True, blank=True, on_delete=models.SET_NULL,
-                             related_name="+")
-    username = models.CharField(max_length=150, blank=True,
+    at = models.DateTimeField(gettext_lazy("at"), auto_now_add=True, db_index=True)
+    user = models.ForeignKey(settings.AUTH_USER_MODEL, verbose_name=gettext_lazy("user"), null=True, blank=True,
+                             on_delete=models.SET_NULL, related_name="+")
+    username = models.CharField(gettext_lazy("username"), max_length=150, blank=True,
                                 help_text=gettext_lazy("The account, or the name tried at login."))
-    client = models.CharField(max_length=64, blank=True,
+    client = models.CharField(gettext_lazy("client"), max_length=64, blank=True,
                               help_text=gettext_lazy("The client's address as the site saw it."))
-    method = models.CharField(max_length=8)
-    path = models.CharField(max_length=300)
-    status = models.PositiveSmallIntegerField()
+    method = models.CharField(gettext_lazy("method"), max_length=8)
+    path = models.CharField(gettext_lazy("path"), max_length=300)
+    status = models.PositiveSmallIntegerField(gettext_lazy("status"))
     code = models.CharField(
-        max_length=32, help_text="unauthorized, forbidden, csrf_failed, bad_token, login_failed, socket_origin"
+        gettext_lazy("code"), max_length=32,
+        help_text="unauthorized, forbidden, csrf_failed, bad_token, login_failed, socket_origin"
     )
-    detail = models.CharField(max_length=200, blank=True)
+    detail = models.CharField(gettext_lazy("detail"), max_length=200, blank=True)
 
     class Meta:
         ordering = ["-at"]
-        verbose_name = "refused attempt"
+        verbose_name = gettext_lazy("refused attempt")
+        verbose_name_plural = gettext_lazy("refused attempts")
 
     def __str__(self) -> str:
         return f"{self.at:%Y-%m-%d %H:%M:%S} {self.code} {self.username or self.client} {self.method} {self.path}"

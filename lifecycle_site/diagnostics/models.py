@@ -4,6 +4,7 @@ history of level changes. Written by the ingest process (ingest/diagnostic_facts
 from __future__ import annotations
 
 from django.db import models
+from django.utils.translation import gettext_lazy
 
 from ros_gateway.shared import protocol
 
@@ -37,6 +38,8 @@ class Status(models.Model):
     class Meta:
         constraints = [models.UniqueConstraint(fields=["robot", "name"], name="diagnostic_status_once")]
         ordering = ["robot", "name"]
+        verbose_name = gettext_lazy("status")
+        verbose_name_plural = gettext_lazy("statuss")
 
     def __str__(self) -> str:
         return f"{self.name} ({self.word})"
@@ -69,6 +72,8 @@ class LevelChange(models.Model):
     class Meta:
         indexes = [models.Index(fields=["robot", "name", "at"], name="diagnostic_history")]
         ordering = ["-at", "-id"]
+        verbose_name = gettext_lazy("level change")
+        verbose_name_plural = gettext_lazy("level changes")
 
     def as_dict(self) -> dict:
         return {"at": self.at.isoformat(), "level": LEVEL_WORDS.get(self.level, "ERROR"), "message": self.message}
@@ -81,3 +86,7 @@ class Intake(models.Model):
                                  related_name="diagnostics_intake")
     left_out_by_gateway = models.PositiveBigIntegerField(default=0)  # over the gateway's statuses per robot
     left_out_here = models.PositiveBigIntegerField(default=0)  # over the site's statuses per robot
+
+    class Meta:
+        verbose_name = gettext_lazy("intake")
+        verbose_name_plural = gettext_lazy("intakes")

@@ -52,6 +52,8 @@ class GroupRun(models.Model):
 
     class Meta:
         ordering = ["-created"]
+        verbose_name = gettext_lazy("group run")
+        verbose_name_plural = gettext_lazy("group runs")
 
     def __str__(self) -> str:
         return f"{self.get_operation_display()} {self.robot.name} ({self.status})"

@@ -32,58 +32,68 @@ class Gateway(models.Model):
     comes from its heartbeat in Redis (``gateway_link.gateways.status``), not from this row.
     """
 
-    name = models.CharField(max_length=63, unique=True, validators=[GATEWAY_NAME_VALIDATOR])
-    description = models.TextField(blank=True)
-    created = models.DateTimeField(auto_now_add=True)
+    name = models.CharField(gettext_lazy("name"), max_length=63, unique=True, validators=[GATEWAY_NAME_VALIDATOR])
+    description = models.TextField(gettext_lazy("description"), blank=True)
+    created = models.DateTimeField(gettext_lazy("created"), auto_now_add=True)
     # Its Redis user's password, hashed as Redis's ACL takes it; the password itself is shown once.
-    redis_password_sha256 = models.CharField(max_length=64, blank=True, editable=False)
+    redis_password_sha256 = models.CharField(gettext_lazy("redis password sha256"), max_length=64, blank=True,
+                                             editable=False)
     # From its heartbeat (copied by the ingest process).
-    last_beat = models.DateTimeField(null=True, blank=True)
-    started = models.DateTimeField(null=True, blank=True)
-    stopped = models.BooleanField(default=False, help_text=gettext_lazy("Its last heartbeat said it stopped cleanly."))
-    instance = models.CharField(max_length=32, blank=True, help_text=gettext_lazy("Id of its running process."))
-    version = models.CharField(max_length=64, blank=True)
-    host = models.CharField(max_length=255, blank=True)
-    pid = models.PositiveIntegerField(null=True, blank=True)
+    last_beat = models.DateTimeField(gettext_lazy("last beat"), null=True, blank=True)
+    started = models.DateTimeField(gettext_lazy("started"), null=True, blank=True)
+    stopped = models.BooleanField(gettext_lazy("stopped"), default=False,
+                                  help_text=gettext_lazy("Its last heartbeat said it stopped cleanly."))
+    instance = models.CharField(gettext_lazy("instance"), max_length=32, blank=True,
+                                help_text=gettext_lazy("Id of its running process."))
+    version = models.CharField(gettext_lazy("version"), max_length=64, blank=True)
+    host = models.CharField(gettext_lazy("host"), max_length=255, blank=True)
+    pid = models.PositiveIntegerField(gettext_lazy("pid"), null=True, blank=True)
     domains = models.JSONField(gettext_lazy("ROS domains"), default=list, blank=True)
     dds = models.JSONField(gettext_lazy("DDS discovery settings"), default=dict, blank=True)
     node_count = models.PositiveIntegerField(gettext_lazy("nodes"), default=0)
-    outbox = models.JSONField(default=dict, blank=True,
+    outbox = models.JSONField(gettext_lazy("outbox"), default=dict, blank=True,
                               help_text=gettext_lazy("What it held or dropped while Redis was away."))
     # Kept by the ingest process.
-    backlog = models.PositiveIntegerField(default=0, help_text=gettext_lazy("Entries of its streams not yet stored."))
+    backlog = models.PositiveIntegerField(gettext_lazy("backlog"), default=0,
+                                          help_text=gettext_lazy("Entries of its streams not yet stored."))
     facts_lost = models.PositiveBigIntegerField(
-        default=0, help_text=gettext_lazy("Facts trimmed from Redis before they were read.")
+        gettext_lazy("facts lost"), default=0, help_text=gettext_lazy("Facts trimmed from Redis before they were read.")
     )
-    facts_rejected = models.PositiveBigIntegerField(default=0,
+    facts_rejected = models.PositiveBigIntegerField(gettext_lazy("facts rejected"), default=0,
                                                     help_text=gettext_lazy("Facts the site could not apply."))
-    logs_lost = models.PositiveBigIntegerField(default=0,
+    logs_lost = models.PositiveBigIntegerField(gettext_lazy("logs lost"), default=0,
                                                help_text=gettext_lazy("Log batches trimmed before they were read."))
-    logs_dropped = models.PositiveBigIntegerField(default=0, help_text=gettext_lazy("Log records its buffer dropped."))
-    logs_received = models.PositiveBigIntegerField(default=0, help_text=gettext_lazy("Log records stored from it."))
-    facts_cursor = models.CharField(max_length=40, blank=True,
+    logs_dropped = models.PositiveBigIntegerField(gettext_lazy("logs dropped"), default=0,
+                                                  help_text=gettext_lazy("Log records its buffer dropped."))
+    logs_received = models.PositiveBigIntegerField(gettext_lazy("logs received"), default=0,
+                                                   help_text=gettext_lazy("Log records stored from it."))
+    facts_cursor = models.CharField(gettext_lazy("facts cursor"), max_length=40, blank=True,
                                     help_text=gettext_lazy("Last applied entry of its facts stream."))
-    logs_cursor = models.CharField(max_length=40, blank=True,
+    logs_cursor = models.CharField(gettext_lazy("logs cursor"), max_length=40, blank=True,
                                    help_text=gettext_lazy("Last stored entry of its logs stream."))
-    facts_instance = models.CharField(max_length=32, blank=True)
-    facts_seq = models.PositiveBigIntegerField(default=0)
-    logs_instance = models.CharField(max_length=32, blank=True)
-    logs_seq = models.PositiveBigIntegerField(default=0)
+    facts_instance = models.CharField(gettext_lazy("facts instance"), max_length=32, blank=True)
+    facts_seq = models.PositiveBigIntegerField(gettext_lazy("facts seq"), default=0)
+    logs_instance = models.CharField(gettext_lazy("logs instance"), max_length=32, blank=True)
+    logs_seq = models.PositiveBigIntegerField(gettext_lazy("logs seq"), default=0)
     # Kept by the site's checks of what the gateway sends and holds (gateway_link/quarantine.py).
     quarantined = models.DateTimeField(
-        null=True, blank=True, editable=False,
+        gettext_lazy("quarantined"), null=True, blank=True, editable=False,
         help_text=gettext_lazy("When the site cut it off (its Redis user disabled, its streams no longer read); "
                                "empty while it may work."),
     )
-    quarantine_reason = models.TextField(blank=True, editable=False)
-    quarantines = models.PositiveIntegerField(default=0, editable=False,
+    quarantine_reason = models.TextField(gettext_lazy("quarantine reason"), blank=True, editable=False)
+    quarantines = models.PositiveIntegerField(gettext_lazy("quarantines"), default=0, editable=False,
                                               help_text=gettext_lazy("How often it was cut off."))
-    live_refused = models.PositiveBigIntegerField(default=0, help_text=gettext_lazy("Live updates the site refused."))
+    live_refused = models.PositiveBigIntegerField(gettext_lazy("live refused"), default=0,
+                                                  help_text=gettext_lazy("Live updates the site refused."))
     redis_bytes = models.PositiveBigIntegerField(
-        default=0, editable=False, help_text=gettext_lazy("What its Redis keys held at the site's last count."))
+        gettext_lazy("redis bytes"), default=0, editable=False,
+        help_text=gettext_lazy("What its Redis keys held at the site's last count."))
 
     class Meta:
         ordering = ["name"]
+        verbose_name = gettext_lazy("gateway")
+        verbose_name_plural = gettext_lazy("gateways")
 
     def __str__(self) -> str:
         return self.name
@@ -109,29 +119,30 @@ KEEP_CHOICES = [(policy, policy) for policy in protocol.KEEP_POLICIES]
 class Robot(models.Model):
     """A robot is a ROS domain, optionally narrowed to a namespace within it."""
 
-    name = models.CharField(max_length=63, unique=True, validators=[ROBOT_NAME_VALIDATOR])
+    name = models.CharField(gettext_lazy("name"), max_length=63, unique=True, validators=[ROBOT_NAME_VALIDATOR])
     domain_id = models.PositiveSmallIntegerField(
         gettext_lazy("ROS domain id"),
         validators=[MinValueValidator(0), MaxValueValidator(232)],
         help_text=gettext_lazy("ROS_DOMAIN_ID the robot's nodes use (0-232)."),
     )
     namespace = models.CharField(
-        max_length=200,
+        gettext_lazy("namespace"), max_length=200,
         blank=True,
         validators=[NAMESPACE_VALIDATOR],
         help_text=gettext_lazy("Only nodes under this namespace belong to the robot; empty for all of the domain."),
     )
     gateway = models.ForeignKey(
-        Gateway,
+        Gateway, verbose_name=gettext_lazy("gateway"),
         on_delete=models.PROTECT,
         related_name="robots",
         default=default_gateway_id,
         help_text=gettext_lazy("The gateway that reaches this robot's ROS domain."),
     )
-    description = models.TextField(blank=True)
-    enabled = models.BooleanField(default=True, help_text=gettext_lazy("The gateway watches enabled robots only."))
+    description = models.TextField(gettext_lazy("description"), blank=True)
+    enabled = models.BooleanField(gettext_lazy("enabled"), default=True,
+                                  help_text=gettext_lazy("The gateway watches enabled robots only."))
     auto_recover = models.BooleanField(
-        default=False,
+        gettext_lazy("auto recover"), default=False,
         help_text=gettext_lazy("When a node comes back after its process was restarted, drive it to its desired "
                                "state."),
     )
@@ -140,10 +151,12 @@ class Robot(models.Model):
         help_text=gettext_lazy("When another tool moves a node away from its desired state: nothing (off), an alert, "
                                "or the gateway drives it back (enforce; it stops and says so when another manager "
                                "keeps moving it)."))
-    created = models.DateTimeField(auto_now_add=True)
+    created = models.DateTimeField(gettext_lazy("created"), auto_now_add=True)
 
     class Meta:
         ordering = ["name"]
+        verbose_name = gettext_lazy("robot")
+        verbose_name_plural = gettext_lazy("robots")
 
     def __str__(self) -> str:
         return self.name
@@ -156,47 +169,49 @@ class Robot(models.Model):
 class ManagedNode(models.Model):
     """A lifecycle node seen on a robot (or pinned by name before it shows up)."""
 
-    robot = models.ForeignKey(Robot, on_delete=models.CASCADE, related_name="nodes")
+    robot = models.ForeignKey(Robot, verbose_name=gettext_lazy("robot"), on_delete=models.CASCADE, related_name="nodes")
     name = models.CharField(gettext_lazy("fully qualified name"), max_length=255)
-    key = models.CharField(max_length=320, unique=True, editable=False)
-    state_id = models.PositiveSmallIntegerField(default=sm.UNKNOWN)
-    state_label = models.CharField(max_length=32, default="unknown")
-    alive = models.BooleanField(default=False)
+    key = models.CharField(gettext_lazy("key"), max_length=320, unique=True, editable=False)
+    state_id = models.PositiveSmallIntegerField(gettext_lazy("state id"), default=sm.UNKNOWN)
+    state_label = models.CharField(gettext_lazy("state label"), max_length=32, default="unknown")
+    alive = models.BooleanField(gettext_lazy("alive"), default=False)
     gone_reason = models.CharField(
-        max_length=16, blank=True, default="",
+        gettext_lazy("gone reason"), max_length=16, blank=True, default="",
         help_text=gettext_lazy("Why a node that is not alive went: 'process_lost' (its process ended, or its node "
                                "left the ROS graph), 'unreachable' (its process stopped answering the gateway's "
                                "probes: its host or link may be down), or empty (not known, or its robot is no "
                                "longer watched)."),
     )
     process_status = models.CharField(
-        max_length=16, blank=True, default="",
+        gettext_lazy("process status"), max_length=16, blank=True, default="",
         choices=[("", "-"), ("lost", pgettext_lazy("node process", "lost")),
                  ("restarted", pgettext_lazy("node process", "restarted"))],
         help_text=gettext_lazy("What was last seen of the node's process: lost, or restarted (a new instance)."),
     )
-    process_since = models.DateTimeField(null=True, blank=True, help_text=gettext_lazy("When that was seen."))
+    process_since = models.DateTimeField(gettext_lazy("process since"), null=True, blank=True,
+                                         help_text=gettext_lazy("When that was seen."))
     supervised_by = models.CharField(
-        max_length=64, blank=True, editable=False,
+        gettext_lazy("supervised by"), max_length=64, blank=True, editable=False,
         help_text=gettext_lazy("The launch profile whose process runs this node, as its gateway last saw ('' none "
                                "known)."),
     )
-    first_seen = models.DateTimeField(null=True, blank=True)
-    last_seen = models.DateTimeField(null=True, blank=True)
-    state_changed = models.DateTimeField(null=True, blank=True)
+    first_seen = models.DateTimeField(gettext_lazy("first seen"), null=True, blank=True)
+    last_seen = models.DateTimeField(gettext_lazy("last seen"), null=True, blank=True)
+    state_changed = models.DateTimeField(gettext_lazy("state changed"), null=True, blank=True)
     # The audit chain (ingest/state_chain.py): the state the node's records leave it in, as of
     # when, and since when the node has been seen in another state that no record explains yet.
-    audited_state_id = models.PositiveSmallIntegerField(null=True, blank=True, editable=False)
-    audited_at = models.DateTimeField(null=True, blank=True, editable=False)
-    unexplained_since = models.DateTimeField(null=True, blank=True, editable=False)
+    audited_state_id = models.PositiveSmallIntegerField(gettext_lazy("audited state id"), null=True, blank=True,
+                                                        editable=False)
+    audited_at = models.DateTimeField(gettext_lazy("audited at"), null=True, blank=True, editable=False)
+    unexplained_since = models.DateTimeField(gettext_lazy("unexplained since"), null=True, blank=True, editable=False)
     order = models.PositiveIntegerField(
-        null=True,
+        gettext_lazy("order"), null=True,
         blank=True,
         help_text=gettext_lazy("Position in the robot's bring-up order, lowest first; nodes sharing a position go "
                                "together. Empty: after the others, side by side with the other unordered nodes."),
     )
     desired_state = models.CharField(
-        max_length=16,
+        gettext_lazy("desired state"), max_length=16,
         blank=True,
         choices=[("", pgettext_lazy("desired state", "none")), *((label, label) for label in sm.DESIRED_STATES)],
         help_text=gettext_lazy("The state automatic recovery brings this node back to after a restart of its "
@@ -207,14 +222,18 @@ class ManagedNode(models.Model):
         choices=[("", gettext_lazy("as its robot")), *KEEP_CHOICES],
         help_text=gettext_lazy("Whether its desired state is kept against other tools; empty: as its robot says."))
     # Set when the gateway stopped keeping it (another manager keeps moving it); cleared by an operator.
-    enforcement_stopped = models.DateTimeField(null=True, blank=True, editable=False)
-    enforcement_note = models.TextField(blank=True, editable=False)
-    enforcement_resumed = models.DateTimeField(null=True, blank=True, editable=False)  # tells the gateway
+    enforcement_stopped = models.DateTimeField(gettext_lazy("enforcement stopped"), null=True, blank=True,
+                                               editable=False)
+    enforcement_note = models.TextField(gettext_lazy("enforcement note"), blank=True, editable=False)
+    enforcement_resumed = models.DateTimeField(gettext_lazy("enforcement resumed"), null=True, blank=True,
+                                               editable=False)  # tells the gateway
 
     class Meta:
         ordering = ["robot__name", "name"]
         constraints = [models.UniqueConstraint(fields=["robot", "name"], name="unique_node_per_robot")]
         permissions = [("operate_node", "Can trigger lifecycle transitions")]
+        verbose_name = gettext_lazy("managed node")
+        verbose_name_plural = gettext_lazy("managed nodes")
 
     def __str__(self) -> str:
         return f"{self.robot.name}:{self.name}"
@@ -250,10 +269,12 @@ class NodeAbsence(models.Model):
     REASONS = [("", pgettext_lazy("node absence", "left")), ("process_lost", gettext_lazy("process lost")),
                ("unreachable", pgettext_lazy("node status", "unreachable"))]
 
-    node = models.ForeignKey(ManagedNode, on_delete=models.CASCADE, related_name="absences")
-    gone_at = models.DateTimeField()
-    back_at = models.DateTimeField(null=True, blank=True, help_text=gettext_lazy("Empty while the node is still away."))
-    reason = models.CharField(max_length=16, blank=True, default="", choices=REASONS)
+    node = models.ForeignKey(ManagedNode, verbose_name=gettext_lazy("node"), on_delete=models.CASCADE,
+                             related_name="absences")
+    gone_at = models.DateTimeField(gettext_lazy("gone at"))
+    back_at = models.DateTimeField(gettext_lazy("back at"), null=True, blank=True,
+                                   help_text=gettext_lazy("Empty while the node is still away."))
+    reason = models.CharField(gettext_lazy("reason"), max_length=16, blank=True, default="", choices=REASONS)
 
     class Meta:
         ordering = ["-gone_at"]
@@ -263,6 +284,8 @@ class NodeAbsence(models.Model):
             models.UniqueConstraint(fields=["node"], condition=models.Q(back_at__isnull=True),
                                     name="one_open_absence_per_node"),
         ]
+        verbose_name = gettext_lazy("node absence")
+        verbose_name_plural = gettext_lazy("node absences")
 
     def __str__(self) -> str:
         return f"{self.node} away from {self.gone_at:%Y-%m-%d %H:%M:%S}"
@@ -286,6 +309,8 @@ class GatewayOutage(models.Model):
             models.UniqueConstraint(fields=["gateway"], condition=models.Q(ended__isnull=True),
                                     name="one_open_outage_per_gateway"),
         ]
+        verbose_name = gettext_lazy("gateway outage")
+        verbose_name_plural = gettext_lazy("gateway outages")
 
     def __str__(self) -> str:
         return f"{self.gateway} {self.reason or 'offline'} from {self.began:%Y-%m-%d %H:%M:%S}"
@@ -323,6 +348,8 @@ class LogRecord(models.Model):
             models.Index(fields=["robot", "logger", "-id"], name="log_logger_recent"),
             models.Index(fields=["stamp"], name="log_stamp"),
         ]
+        verbose_name = gettext_lazy("log record")
+        verbose_name_plural = gettext_lazy("log records")
 
     @property
     def level_name(self) -> str:

@@ -12,7 +12,7 @@ from django.db import models
 from django.utils.translation import gettext_lazy
 
 PROCESS_NAME = RegexValidator(r"^[A-Za-z0-9_.-]{1,64}$", gettext_lazy("1-64 letters, digits, '_', '.' or '-'."))
-STOP_SIGNALS = [(signal.SIGTERM.name, "SIGTERM"), (signal.SIGINT.name, "SIGINT (as Ctrl-C; ros2 launch)")]
+STOP_SIGNALS = [(signal.SIGTERM.name, "SIGTERM"), (signal.SIGINT.name, gettext_lazy("SIGINT (as Ctrl-C; ros2 launch)"))]
 
 
 class ProcessProfile(models.Model):
@@ -26,44 +26,58 @@ class ProcessProfile(models.Model):
         BACKING_OFF = "backing_off", gettext_lazy("exited, starting again soon")
         GIVEN_UP = "given_up", gettext_lazy("given up (kept failing)")
 
-    robot = models.ForeignKey("fleet.Robot", on_delete=models.CASCADE, related_name="process_profiles")
-    name = models.CharField(max_length=64, validators=[PROCESS_NAME],
-                            help_text="How operators and the audit log name the process, e.g. 'drivers'.")
-    command = models.CharField(max_length=4096, help_text="The executable: an absolute path or a name on the "
-                                                          "gateway's PATH (e.g. ros2, python3).")
-    args = models.JSONField("arguments", default=list, blank=True,
-                            help_text='A JSON list of strings, e.g. ["launch", "agv_bringup", "drivers.launch.py"].')
-    env = models.JSONField("environment", default=dict, blank=True,
-                           help_text='Added to the gateway\'s environment, shown to admins: {"ROS_DOMAIN_ID": "21"}.')
-    secret_env = models.JSONField("secret environment", default=dict, blank=True, editable=False,
-                                  help_text="Values never shown again once saved (tokens, passwords).")
-    cwd = models.CharField("working directory", max_length=4096, blank=True)
-    enabled = models.BooleanField(default=True, help_text="Started by the gateway; off: registered, not run.")
-    respawn = models.BooleanField(default=True, help_text="Started again when it exits without being asked to.")
-    respawn_delay_s = models.FloatField(default=1.0, validators=[MinValueValidator(0.0), MaxValueValidator(300.0)],
-                                        help_text="Before the first respawn; doubles while it keeps exiting at once.")
-    max_failures = models.PositiveIntegerField(default=5, validators=[MinValueValidator(1), MaxValueValidator(100)],
-                                               help_text="Exits within the window after which it is not respawned.")
-    failure_window_s = models.FloatField(default=300.0, validators=[MinValueValidator(1.0),
-                                                                    MaxValueValidator(86400.0)])
-    stop_signal = models.CharField(max_length=8, choices=STOP_SIGNALS, default=signal.SIGINT.name)
-    stop_grace_s = models.FloatField(default=10.0, validators=[MinValueValidator(0.0), MaxValueValidator(300.0)],
-                                     help_text="After the stop signal, before SIGKILL.")
+    robot = models.ForeignKey("fleet.Robot", verbose_name=gettext_lazy("robot"), on_delete=models.CASCADE,
+                              related_name="process_profiles")
+    name = models.CharField(gettext_lazy("name"), max_length=64, validators=[PROCESS_NAME],
+                            help_text=gettext_lazy("How operators and the audit log name the process, e.g. 'drivers'."))
+    command = models.CharField(gettext_lazy("command"), max_length=4096,
+                               help_text=gettext_lazy("The executable: an absolute path or a name on the gateway's "
+                                                      "PATH (e.g. ros2, python3)."))
+    args = models.JSONField(gettext_lazy("arguments"), default=list, blank=True,
+                            help_text=gettext_lazy('A JSON list of strings, e.g. ["launch", "agv_bringup", '
+                                                   '"drivers.launch.py"].'))
+    env = models.JSONField(gettext_lazy("environment"), default=dict, blank=True,
+                           help_text=gettext_lazy("Added to the gateway's environment, shown to admins: "
+                                                  '{"ROS_DOMAIN_ID": "21"}.'))
+    secret_env = models.JSONField(gettext_lazy("secret environment"), default=dict, blank=True, editable=False,
+                                  help_text=gettext_lazy("Values never shown again once saved (tokens, passwords)."))
+    cwd = models.CharField(gettext_lazy("working directory"), max_length=4096, blank=True)
+    enabled = models.BooleanField(gettext_lazy("enabled"), default=True,
+                                  help_text=gettext_lazy("Started by the gateway; off: registered, not run."))
+    respawn = models.BooleanField(gettext_lazy("respawn"), default=True,
+                                  help_text=gettext_lazy("Started again when it exits without being asked to."))
+    respawn_delay_s = models.FloatField(gettext_lazy("respawn delay s"), default=1.0,
+                                        validators=[MinValueValidator(0.0), MaxValueValidator(300.0)],
+                                        help_text=gettext_lazy("Before the first respawn; doubles while it keeps "
+                                                               "exiting at once."))
+    max_failures = models.PositiveIntegerField(gettext_lazy("max failures"), default=5,
+                                               validators=[MinValueValidator(1), MaxValueValidator(100)],
+                                               help_text=gettext_lazy("Exits within the window after which it is not "
+                                                                      "respawned."))
+    failure_window_s = models.FloatField(gettext_lazy("failure window s"), default=300.0,
+                                         validators=[MinValueValidator(1.0), MaxValueValidator(86400.0)])
+    stop_signal = models.CharField(gettext_lazy("stop signal"), max_length=8, choices=STOP_SIGNALS,
+                                   default=signal.SIGINT.name)
+    stop_grace_s = models.FloatField(gettext_lazy("stop grace s"), default=10.0,
+                                     validators=[MinValueValidator(0.0), MaxValueValidator(300.0)],
+                                     help_text=gettext_lazy("After the stop signal, before SIGKILL."))
 
     # As last reported by the gateway (ingest/process_facts.py); never edited.
-    status = models.CharField(max_length=16, choices=Status.choices, default=Status.UNKNOWN, editable=False)
-    pid = models.PositiveIntegerField(null=True, blank=True, editable=False)
-    status_since = models.DateTimeField(null=True, blank=True, editable=False)
-    restarts = models.PositiveIntegerField(default=0, editable=False)
-    last_exit_code = models.IntegerField(null=True, blank=True, editable=False)
-    last_exit_signal = models.CharField(max_length=16, blank=True, editable=False)
-    last_exit_at = models.DateTimeField(null=True, blank=True, editable=False)
-    last_message = models.TextField(blank=True, editable=False)
+    status = models.CharField(gettext_lazy("status"), max_length=16, choices=Status.choices, default=Status.UNKNOWN,
+                              editable=False)
+    pid = models.PositiveIntegerField(gettext_lazy("pid"), null=True, blank=True, editable=False)
+    status_since = models.DateTimeField(gettext_lazy("status since"), null=True, blank=True, editable=False)
+    restarts = models.PositiveIntegerField(gettext_lazy("restarts"), default=0, editable=False)
+    last_exit_code = models.IntegerField(gettext_lazy("last exit code"), null=True, blank=True, editable=False)
+    last_exit_signal = models.CharField(gettext_lazy("last exit signal"), max_length=16, blank=True, editable=False)
+    last_exit_at = models.DateTimeField(gettext_lazy("last exit at"), null=True, blank=True, editable=False)
+    last_message = models.TextField(gettext_lazy("last message"), blank=True, editable=False)
 
     class Meta:
         ordering = ["robot__name", "name"]
         constraints = [models.UniqueConstraint(fields=["robot", "name"], name="process_name_per_robot")]
-        verbose_name = "launch profile"
+        verbose_name = gettext_lazy("launch profile")
+        verbose_name_plural = gettext_lazy("launch profiles")
 
     def __str__(self) -> str:
         return f"{self.name} on {self.robot.name}" if self.robot_id else self.name

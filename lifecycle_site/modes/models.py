@@ -15,13 +15,14 @@ MODE_NAME_VALIDATOR = RegexValidator(
 
 
 class Mode(models.Model):
-    name = models.CharField(max_length=63, unique=True, validators=[MODE_NAME_VALIDATOR])
-    description = models.TextField(blank=True)
-    robots = models.ManyToManyField("fleet.Robot", related_name="modes", blank=True,
+    name = models.CharField(gettext_lazy("name"), max_length=63, unique=True, validators=[MODE_NAME_VALIDATOR])
+    description = models.TextField(gettext_lazy("description"), blank=True)
+    robots = models.ManyToManyField("fleet.Robot", verbose_name=gettext_lazy("robots"), related_name="modes",
+                                    blank=True,
                                     help_text=gettext_lazy("The robots it is for: one, or several with the same node "
                                                            "names."))
     nodes = models.JSONField(
-        default=dict, blank=True, validators=[definitions.validate_nodes],
+        gettext_lazy("nodes"), default=dict, blank=True, validators=[definitions.validate_nodes],
         help_text=gettext_lazy('Per node: {"/lidar_driver": {"state": "active", "parameters": {"scan_rate_hz": 8.0}}}; '
                                'state null (or no state) leaves the node where it is.'))
     ready_when = models.JSONField(
@@ -30,12 +31,14 @@ class Mode(models.Model):
                                '"active"}, {"node": "/lidar_driver", "parameter": "scan_rate_hz", "min": 5, "max": '
                                '20}, {"topic": "/scan", "min_hz": 5, "window_s": 5}]; the topic rates are measured by '
                                'the gateway.'))
-    updated = models.DateTimeField(auto_now=True)
-    updated_by = models.ForeignKey(settings.AUTH_USER_MODEL, null=True, blank=True, on_delete=models.SET_NULL,
-                                   related_name="+", editable=False)
+    updated = models.DateTimeField(gettext_lazy("updated"), auto_now=True)
+    updated_by = models.ForeignKey(settings.AUTH_USER_MODEL, verbose_name=gettext_lazy("updated by"), null=True,
+                                   blank=True, on_delete=models.SET_NULL, related_name="+", editable=False)
 
     class Meta:
         ordering = ["name"]
+        verbose_name = gettext_lazy("mode")
+        verbose_name_plural = gettext_lazy("modes")
 
     def __str__(self) -> str:
         return self.name
@@ -55,15 +58,21 @@ class Mode(models.Model):
 class CurrentMode(models.Model):
     """The mode a robot is in: the last one applied to it (by whom, when, with which run)."""
 
-    robot = models.OneToOneField("fleet.Robot", primary_key=True, on_delete=models.CASCADE,
-                                 related_name="current_mode")
-    mode = models.ForeignKey(Mode, on_delete=models.CASCADE, related_name="current_on")
-    since = models.DateTimeField()
-    applied_by = models.ForeignKey(settings.AUTH_USER_MODEL, null=True, blank=True, on_delete=models.SET_NULL,
-                                   related_name="+")
-    run = models.ForeignKey("fleet.GroupRun", null=True, blank=True, on_delete=models.SET_NULL, related_name="+")
-    not_ready_since = models.DateTimeField(null=True, blank=True,
+    robot = models.OneToOneField("fleet.Robot", verbose_name=gettext_lazy("robot"), primary_key=True,
+                                 on_delete=models.CASCADE, related_name="current_mode")
+    mode = models.ForeignKey(Mode, verbose_name=gettext_lazy("mode"), on_delete=models.CASCADE,
+                             related_name="current_on")
+    since = models.DateTimeField(gettext_lazy("since"))
+    applied_by = models.ForeignKey(settings.AUTH_USER_MODEL, verbose_name=gettext_lazy("applied by"), null=True,
+                                   blank=True, on_delete=models.SET_NULL, related_name="+")
+    run = models.ForeignKey("fleet.GroupRun", verbose_name=gettext_lazy("run"), null=True, blank=True,
+                            on_delete=models.SET_NULL, related_name="+")
+    not_ready_since = models.DateTimeField(gettext_lazy("not ready since"), null=True, blank=True,
                                            help_text=gettext_lazy("Since when a readiness predicate fails."))
+
+    class Meta:
+        verbose_name = gettext_lazy("current mode")
+        verbose_name_plural = gettext_lazy("current modes")
 
     def __str__(self) -> str:
         return f"{self.robot} in {self.mode}"
@@ -85,3 +94,5 @@ class TopicRate(models.Model):
 
     class Meta:
         constraints = [models.UniqueConstraint(fields=["robot", "topic"], name="one_rate_per_robot_topic")]
+        verbose_name = gettext_lazy("topic rate")
+        verbose_name_plural = gettext_lazy("topic rates")

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from django.conf import settings
 from django.db import models
-from django.utils.translation import gettext_lazy
+from django.utils.translation import gettext_lazy, pgettext_lazy
 
 
 class DirectoryAccount(models.Model):
@@ -16,19 +16,23 @@ class DirectoryAccount(models.Model):
     OIDC = "oidc"
     SOURCES = [(LDAP, "LDAP / Active Directory"), (OIDC, "OpenID Connect")]
 
-    user = models.OneToOneField(settings.AUTH_USER_MODEL, on_delete=models.CASCADE, related_name="directory_account")
-    source = models.CharField(max_length=8, choices=SOURCES)
-    subject = models.CharField(max_length=255,
+    user = models.OneToOneField(settings.AUTH_USER_MODEL, verbose_name=gettext_lazy("user"), on_delete=models.CASCADE,
+                                related_name="directory_account")
+    source = models.CharField(gettext_lazy("source"), max_length=8, choices=SOURCES)
+    subject = models.CharField(pgettext_lazy("directory account", "subject"), max_length=255,
                                help_text=gettext_lazy("the provider's 'sub', or the directory's user name"))
-    role = models.CharField(max_length=16, blank=True,
+    role = models.CharField(gettext_lazy("role"), max_length=16, blank=True,
                             help_text=gettext_lazy("the role its groups gave at the last sign-in"))
     groups = models.TextField(
-        blank=True, help_text=gettext_lazy("the groups it had at the last sign-in (at most 2,000 characters)")
+        gettext_lazy("groups"), blank=True,
+        help_text=gettext_lazy("the groups it had at the last sign-in (at most 2,000 characters)")
     )
-    last_sign_in = models.DateTimeField(null=True, blank=True)
+    last_sign_in = models.DateTimeField(gettext_lazy("last sign in"), null=True, blank=True)
 
     class Meta:
         constraints = [models.UniqueConstraint(fields=["source", "subject"], name="one_account_per_directory_subject")]
+        verbose_name = gettext_lazy("directory account")
+        verbose_name_plural = gettext_lazy("directory accounts")
 
     def __str__(self) -> str:
         return f"{self.user} ({self.get_source_display()})"
