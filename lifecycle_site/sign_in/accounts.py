@@ -14,6 +14,12 @@ from lifecycle_site.sign_in.config import ROLE_ORDER
 from lifecycle_site.sign_in.models import DirectoryAccount
 
 GROUPS_KEPT = 2000  # characters of the group list kept for the admin to see
+MAX_GROUPS = 500  # groups read per user: a directory's answer is bounded like any other input
+
+
+def fitted(field: str, value: object) -> str:
+    """A directory's value for a user field, cut to what the user table holds (the model says)."""
+    return str(value)[:get_user_model()._meta.get_field(field).max_length]
 
 
 def role_for(groups: Iterable[str], mapping: dict[str, str]) -> str | None:

@@ -24,8 +24,6 @@ from lifecycle_site.sign_in import accounts, problems
 from lifecycle_site.sign_in.models import DirectoryAccount
 
 log = logging.getLogger("lifecycle.sign_in")
-MAX_GROUPS = 500  # groups read per user: a directory answer is bounded like any other input
-FIELD_LENGTHS = {"username": 150, "first_name": 150, "last_name": 150, "email": 254}
 
 
 class Refused(Exception):
@@ -38,7 +36,7 @@ def clean_user_data(fields: dict) -> dict:
     """LDAP_AUTH_CLEAN_USER_DATA: before the library writes the account. Refuses a name that
     belongs to a local account (the directory's spelling, which may differ in case from what was
     typed), and cuts the directory's values to what the user table holds."""
-    fields = {name: str(value)[:FIELD_LENGTHS.get(name, 150)] for name, value in fields.items()}
+    fields = {name: accounts.fitted(name, value) for name, value in fields.items()}
     if accounts.is_local(fields.get("username", "")):
         raise Refused(problems.LOCAL_NAME)
     return fields
@@ -46,11 +44,11 @@ def clean_user_data(fields: dict) -> dict:
 
 def groups_of(connection: ldap3.Connection, dn: str, attributes: dict) -> list[str]:
     """The names (cn) and DNs of the groups that list ``dn`` as a member, plus any memberOf."""
-    found: list[str] = [str(g) for g in (attributes.get("memberOf") or [])][:MAX_GROUPS]
+    found: list[str] = [str(g) for g in (attributes.get("memberOf") or [])][:accounts.MAX_GROUPS]
     try:
         connection.search(search_base=settings.LIFECYCLE_LDAP_GROUP_BASE,
                           search_filter=f"(member={escape_filter_chars(dn)})", search_scope=ldap3.SUBTREE,
-                          attributes=["cn"], size_limit=MAX_GROUPS)
+                          attributes=["cn"], size_limit=accounts.MAX_GROUPS)
     except LDAPException as error:  # raised out of the library's connection(), which re-yields on its own errors
         log.warning("company directory: the groups of %s could not be read: %s", dn, error)
         raise Refused(problems.DIRECTORY_UNREACHABLE) from error

@@ -27,14 +27,13 @@ from lifecycle_site.sign_in import accounts, problems
 from lifecycle_site.sign_in.models import DirectoryAccount
 
 log = logging.getLogger("lifecycle.sign_in")
-MAX_GROUPS = 500
 MAX_GROUP_LENGTH = 256
-FIELD_LENGTHS = {"username": 150, "first_name": 150, "last_name": 150, "email": 254}
 
 
-def _text(claims: dict, name: str) -> str:
+def _text(claims: dict, name: str, field: str) -> str:
+    """Claim ``name`` for the user field ``field``, cut to fit ("" unless the claim is text)."""
     value = claims.get(name)
-    return value[:FIELD_LENGTHS.get(name, 150)] if isinstance(value, str) else ""
+    return accounts.fitted(field, value) if isinstance(value, str) else ""
 
 
 def groups_in(claims: dict) -> list[str]:
@@ -44,7 +43,7 @@ def groups_in(claims: dict) -> list[str]:
         value = value.split()
     if not isinstance(value, list):
         return []
-    return [g[:MAX_GROUP_LENGTH] for g in value[:MAX_GROUPS] if isinstance(g, str)]
+    return [g[:MAX_GROUP_LENGTH] for g in value[:accounts.MAX_GROUPS] if isinstance(g, str)]
 
 
 class Backend(OIDCAuthenticationBackend):
@@ -103,15 +102,13 @@ class Backend(OIDCAuthenticationBackend):
         return [user] if user is not None else []
 
     def create_user(self, claims):
-        user = get_user_model().objects.create_user(self._free_username(claims), email=_text(claims, "email"),
-                                                    first_name=_text(claims, "given_name"),
-                                                    last_name=_text(claims, "family_name"))
-        return self.update_user(user, claims)
+        user = get_user_model().objects.create_user(self._free_username(claims))  # no password: the provider's
+        return self.update_user(user, claims)  # its e-mail, names, role
 
     def update_user(self, user, claims):
         for field, claim in (("email", "email"), ("first_name", "given_name"), ("last_name", "family_name")):
-            if _text(claims, claim):
-                setattr(user, field, _text(claims, claim))
+            if _text(claims, claim, field):
+                setattr(user, field, _text(claims, claim, field))
         user.save()
         groups = groups_in(claims)
         accounts.signed_in(user, DirectoryAccount.OIDC, claims["sub"][:255],
@@ -126,7 +123,8 @@ class Backend(OIDCAuthenticationBackend):
     def _free_username(claims: dict) -> str:
         """The provider's user name (else the e-mail, else the subject); with a part of the
         subject's hash after it when another account already has that name."""
-        wanted = (_text(claims, "preferred_username") or _text(claims, "email") or claims["sub"])[:130]
+        wanted = (_text(claims, "preferred_username", "username") or _text(claims, "email", "username")
+                  or claims["sub"])[:130]
         users = get_user_model().objects
         if not users.filter(username=wanted).exists():
             return wanted
