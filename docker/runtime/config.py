@@ -55,6 +55,7 @@ from pathlib import Path
 # (sys.path[0]); this script prints them and does what needs Django. healthcheck.py imports this
 # module and uses config.read_config and config.gateway_env.
 from config_env import CONFIG_FILE, ConfigError, _text, gateway_env, read_config, robots_wanted, settings_env
+from sign_in_env import sign_in_env
 
 # The gateway the site's own compose file runs; robots of other gateways (cells) are added with
 # `manage.py add_robot NAME --domain N --gateway CELL` or in the admin.
@@ -67,13 +68,15 @@ def log(message: str) -> None:
 
 def cmd_env(role: str = "web") -> None:
     config = read_config()
-    # The sign-in CA certificates (signIn.*.caCertificate) are written where the sign-in settings
-    # go (web and its `setup`, manage): each container has its own /tmp, and the site's settings
-    # refuse an LDAP CA file that is not there. Nothing secret: a CA's certificate.
-    env = settings_env(config, write_files=True)
-    if role in ("ingest", "gateway"):
-        # They sign nobody in: the client secret and the bind password stay with web (and manage).
-        env = {k: v for k, v in env.items() if not k.startswith(("LIFECYCLE_OIDC_", "LIFECYCLE_LDAP_"))}
+    env = settings_env(config)
+    # The sign-in part is checked in every container (a bad one stops each with the reason), but
+    # only web and manage sign people in: the client secret and the bind password stay with them,
+    # and so do the CA files (each container has its own /tmp; the site's settings refuse an LDAP
+    # CA file that is not there).
+    signs_in = role not in ("ingest", "gateway")
+    sign_in = sign_in_env(config, write_files=signs_in)
+    if signs_in:
+        env.update(sign_in)
     if role == "gateway":
         env.update(gateway_env(config, write_files=True))
     robots_wanted(config)  # refuse a bad robot list now, in every container, with the reason

@@ -1,10 +1,9 @@
 """On an Industrial Edge device the app configuration (cfg-data/param.json) sets company sign-in
-and the language: docker/runtime/config_env.py turns part "signIn" and site.language into the
+and the language: docker/runtime/sign_in_env.py turns part "signIn" (config_env.py site.language) into the
 variables of docs/sign-in.md and docs/translation.md, checks what it can without Django, and
 writes the CA certificates given as PEM to files the variables name."""
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import shlex
@@ -17,11 +16,21 @@ import pytest
 from lifecycle_site.sign_in import config as site_sign_in
 
 RUNTIME = Path(__file__).resolve().parents[2] / "docker" / "runtime"
-# Loaded from its file (docker/runtime is no package), under a name of its own.
-_spec = importlib.util.spec_from_file_location("lifecycle_runtime_config_env", RUNTIME / "config_env.py")
-config_env = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(config_env)
+# docker/runtime is no package: its scripts import each other from their own folder (sys.path[0]),
+# and so do these tests; a module of that name from elsewhere must not stand in for them.
+sys.path.insert(0, str(RUNTIME))
+for _name in ("config_env", "sign_in_env"):
+    sys.modules.pop(_name, None)
+import config_env  # noqa: E402
+import sign_in_env  # noqa: E402
+
+sys.path.remove(str(RUNTIME))
 ConfigError = config_env.ConfigError
+
+
+def all_env(config: dict, write_files: bool = False) -> dict[str, str]:
+    """What a web container exports: settings_env's variables and sign_in_env's."""
+    return {**config_env.settings_env(config), **sign_in_env.sign_in_env(config, write_files)}
 
 PEM = "-----BEGIN CERTIFICATE-----\nMIIBszCCAVmgAwIBAgIUXtestonly\n-----END CERTIFICATE-----"
 IDP = "https://idp.plant.local/realms/plant/protocol/openid-connect"
@@ -52,12 +61,12 @@ def full_config() -> dict:
 @pytest.fixture(autouse=True)
 def ca_files(monkeypatch, tmp_path):
     """The CA files in this test's folder; no sign-in variable of this process's environment
-    (config_env fills a gap from there)."""
+    (sign_in_env fills a gap from there)."""
     for name in list(os.environ):
         if name.startswith(("LIFECYCLE_OIDC_", "LIFECYCLE_LDAP_")):
             monkeypatch.delenv(name)
-    monkeypatch.setattr(config_env, "OIDC_CA_FILE", tmp_path / "oidc-ca.crt")
-    monkeypatch.setattr(config_env, "LDAP_CA_FILE", tmp_path / "ldap-ca.crt")
+    monkeypatch.setattr(sign_in_env, "OIDC_CA_FILE", tmp_path / "oidc-ca.crt")
+    monkeypatch.setattr(sign_in_env, "LDAP_CA_FILE", tmp_path / "ldap-ca.crt")
     return tmp_path / "oidc-ca.crt", tmp_path / "ldap-ca.crt"
 
 
@@ -71,7 +80,7 @@ def read(monkeypatch, tmp_path, config) -> dict:
 
 def test_a_full_sign_in_part_becomes_the_variables_of_docs_sign_in(monkeypatch, tmp_path, ca_files):
     oidc_ca, ldap_ca = ca_files
-    env = config_env.settings_env(read(monkeypatch, tmp_path, full_config()))
+    env = all_env(read(monkeypatch, tmp_path, full_config()))
     assert env == {
         "LIFECYCLE_LANGUAGE": "de",
         "LIFECYCLE_OIDC_CLIENT_ID": "lifecycle",
@@ -95,7 +104,7 @@ def test_a_full_sign_in_part_becomes_the_variables_of_docs_sign_in(monkeypatch, 
         "LIFECYCLE_LDAP_BIND_PASSWORD": "b1nd pw",
     }
     # Written out, the site's own reading of the variables accepts them as they are.
-    env = config_env.settings_env(full_config(), write_files=True)
+    env = all_env(full_config(), write_files=True)
     oidc = site_sign_in.oidc_settings(env)
     assert oidc["OIDC_VERIFY_SSL"] == str(oidc_ca) and oidc["LIFECYCLE_OIDC_ROLES"] == {
         "lifecycle-operators": "operator", "plant-it": "admin"}
@@ -107,7 +116,7 @@ def test_a_full_sign_in_part_becomes_the_variables_of_docs_sign_in(monkeypatch, 
 def test_an_empty_sign_in_part_sets_nothing(monkeypatch, tmp_path):
     """What the IEM form writes when nobody fills it in (the demo's param.json)."""
     demo = json.loads((RUNTIME.parent / "edge" / "cfg-data" / "param.json").read_text())
-    env = config_env.settings_env(read(monkeypatch, tmp_path, demo), write_files=True)
+    env = all_env(read(monkeypatch, tmp_path, demo), write_files=True)
     assert not [name for name in env if name.startswith(("LIFECYCLE_OIDC_", "LIFECYCLE_LDAP_"))]
     assert not list(tmp_path.glob("*.crt"))
 
@@ -122,9 +131,9 @@ def test_the_roles_object_becomes_the_role_text(roles, text):
     config = {"signIn": {"ldap": {"url": "ldap://dir.plant.local", "userBase": "dc=plant", "roles": roles}}}
     if text is None:
         with pytest.raises(ConfigError, match=r"signIn\.ldap\.roles"):  # url set: the roles are needed
-            config_env.settings_env(config)
+            all_env(config)
         return
-    env = config_env.settings_env(config)
+    env = all_env(config)
     assert env["LIFECYCLE_LDAP_ROLES"] == text
     assert site_sign_in.role_mapping("LIFECYCLE_LDAP_ROLES", env)  # the site reads it
 
@@ -155,15 +164,15 @@ LDAP_ON = {"url": "ldaps://dir.plant.local", "userBase": "dc=plant", "roles": "a
 ])
 def test_what_cannot_work_is_refused_naming_the_key(config, key, monkeypatch, tmp_path, ca_files):
     with pytest.raises(ConfigError) as refused:
-        config_env.settings_env(read(monkeypatch, tmp_path, config), write_files=True)
+        all_env(read(monkeypatch, tmp_path, config), write_files=True)
     assert key in str(refused.value)
     assert not any(path.exists() for path in ca_files)
 
 
 def test_the_language_message_names_the_choices():
     with pytest.raises(ConfigError, match=r"site\.language 'fr' must be one of en, de"):
-        config_env.settings_env({"site": {"language": "fr"}})
-    assert config_env.settings_env({"site": {"language": "en"}}) == {"LIFECYCLE_LANGUAGE": "en"}
+        all_env({"site": {"language": "fr"}})
+    assert all_env({"site": {"language": "en"}}) == {"LIFECYCLE_LANGUAGE": "en"}
 
 
 @pytest.mark.parametrize("config, says", [
@@ -181,16 +190,16 @@ def test_what_the_environment_gives_completes_the_configuration(monkeypatch):
     environment's secret stays in force (nothing is exported for it)."""
     monkeypatch.setenv("LIFECYCLE_OIDC_CLIENT_SECRET", "from-the-environment")
     oidc = {k: v for k, v in OIDC_ON.items() if k != "clientSecret"}
-    env = config_env.settings_env({"signIn": {"oidc": oidc}})
+    env = all_env({"signIn": {"oidc": oidc}})
     assert env["LIFECYCLE_OIDC_CLIENT_ID"] == "lifecycle" and "LIFECYCLE_OIDC_CLIENT_SECRET" not in env
 
 
 def test_the_ca_files_are_written_only_with_write_files(ca_files):
     oidc_ca, ldap_ca = ca_files
-    env = config_env.settings_env(full_config())
+    env = all_env(full_config())
     assert env["LIFECYCLE_OIDC_CA_FILE"] == str(oidc_ca) and env["LIFECYCLE_LDAP_CA_FILE"] == str(ldap_ca)
     assert not oidc_ca.exists() and not ldap_ca.exists()
-    assert config_env.settings_env(full_config(), write_files=True) == env
+    assert all_env(full_config(), write_files=True) == env
     assert oidc_ca.read_text() == PEM + "\n" and ldap_ca.read_text() == PEM + "\n"
 
 
@@ -240,7 +249,7 @@ def test_a_bad_sign_in_part_stops_the_container_with_the_reason(tmp_path):
 
 
 def test_config_env_imports_neither_django_nor_the_site():
-    code = ("import sys; sys.path.insert(0, sys.argv[1]); import config_env; "
+    code = ("import sys; sys.path.insert(0, sys.argv[1]); import config_env, sign_in_env; "
             "print(sorted(m for m in sys.modules if m.split('.')[0] in ('django', 'lifecycle_site')))")
     result = subprocess.run([sys.executable, "-c", code, str(RUNTIME)], capture_output=True, text=True, timeout=60)
     assert result.returncode == 0 and result.stdout.strip() == "[]", result.stderr
