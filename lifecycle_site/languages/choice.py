@@ -52,6 +52,7 @@ def of_scope(scope: dict) -> str:
     if chosen:
         return chosen
     for code, _quality in trans_real.parse_accept_lang_header(headers.get(b"accept-language", b"").decode("latin-1")):
-        if code != "*" and supported(code):
-            return supported(code)
+        chosen = supported(code) if code != "*" else None
+        if chosen:
+            return chosen
     return supported(settings.LANGUAGE_CODE) or "en"

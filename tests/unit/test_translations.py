@@ -154,3 +154,16 @@ def test_alert_mails_and_summaries_are_in_the_sites_language(settings):
     assert gone.startswith("Knoten /lidar auf Roboter agv-1 antwortet nicht mehr")
     settings.LANGUAGE_CODE = "en"
     assert engine.email_text(alert, "resolved")[0] == "[RESOLVED] lidar down: agv-1./lidar"
+
+
+def test_a_live_socket_takes_its_pages_language():
+    from lifecycle_site.languages.choice import of_scope
+
+    def scope(session=None, **headers):
+        return {"session": session, "headers": [(k.replace("_", "-").encode(), v.encode()) for k, v in headers.items()]}
+
+    assert of_scope(scope(accept_language="fr-FR,de;q=0.8,en;q=0.5")) == "de"  # the first one the site has
+    assert of_scope(scope(accept_language="*")) == "en"
+    assert of_scope(scope(cookie="django_language=de; csrftoken=x", accept_language="en")) == "de"
+    assert of_scope(scope(cookie='bad"cookie=; django_language', accept_language="de")) == "de"
+    assert of_scope(scope({"language": "en"}, cookie="django_language=de", accept_language="de")) == "en"
