@@ -26,8 +26,12 @@ system-packages:
 demo: setup
 	$(BIN)/python manage.py run_demo
 
+# The tests run in TEST_WORKERS pytest-xdist processes, a test file each at a time (its module's
+# stack is started once), each worker a run of its own (tests/settings.py). TEST_WORKERS=0: one process.
+TEST_WORKERS ?= 2
+XDIST = $(if $(filter-out 0,$(TEST_WORKERS)),-n $(TEST_WORKERS) --dist loadfile)
 test: system-packages setup
-	$(BIN)/python -m pytest --ignore=tests/deploy $(foreach m,$(POSTGRES_ONLY),--ignore=$(m)) $(PYTEST_ARGS)
+	$(BIN)/python -m pytest $(XDIST) --ignore=tests/deploy $(foreach m,$(POSTGRES_ONLY),--ignore=$(m)) $(PYTEST_ARGS)
 	$(MAKE) --no-print-directory test-postgres
 
 # The integration tests again with the site's database on PostgreSQL: a throw-away cluster of
@@ -45,7 +49,7 @@ POSTGRES_DESELECT := test_gateways.py::test_nothing_is_lost_while_the_ingest_pro
 	test_gateways.py::test_a_gateway_that_loses_redis_for_a_minute_delivers_what_happened_meanwhile
 POSTGRES_ONLY := tests/unit/test_fact_conflicts.py
 test-postgres: system-packages setup
-	LIFECYCLE_TEST_DATABASE=postgres $(BIN)/python -m pytest tests/integration tests/unit/test_log_store.py \
+	LIFECYCLE_TEST_DATABASE=postgres $(BIN)/python -m pytest $(XDIST) tests/integration tests/unit/test_log_store.py \
 		tests/unit/test_database_input.py $(POSTGRES_ONLY) \
 		$(foreach m,$(POSTGRES_LEAVE_OUT),--ignore=tests/integration/$(m).py) \
 		$(foreach t,$(POSTGRES_DESELECT),--deselect=tests/integration/$(t)) \

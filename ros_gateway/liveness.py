@@ -17,7 +17,8 @@ A node restarted under the same name would otherwise flash "unreachable" just af
 A process of the gateway's own host whose pid is known (processes.py) cannot lose its link,
 and its end is seen in /proc at once: its probes only find a hang (a callback that never
 returns), and come every LOCAL_EVERY passes. With 20 such processes at rest the probes were
-most of the gateway's CPU (0.9 of 2.3 % of a core).
+most of the gateway's CPU (0.9 of 2.3 % of a core). One that /proc shows stopped (SIGSTOP, a
+debugger) is probed at every pass, as a remote one: found within interval + misses x timeout.
 
 A process busy in a transition (a node of it in a transition state, or one our command is
 driving) is not probed: a single-threaded robot cannot answer while its callback runs. Unless

@@ -117,6 +117,11 @@ class LocalProcesses:
         """Whether the participant may be a process of this host not matched yet (looked for again later)."""
         return self.host is None or (self.ours(prefix) and (domain_id, prefix) not in self._known)
 
+    def stopped(self, process: OsProcess) -> bool:
+        """Whether the process is stopped (SIGSTOP, a debugger's hold): it answers nothing."""
+        fields = stat_fields(self.proc, process.pid)
+        return fields is not None and fields[0] in ("T", "t")
+
     def _match(self, domain_id: int, prefix: bytes) -> OsProcess | None:
         low = int.from_bytes(prefix[4:6], "little")
         try:

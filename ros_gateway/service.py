@@ -157,8 +157,10 @@ class Gateway:
                                      f"previous instance (it was killed) ended: pid {', '.join(map(str, pids))}.")
 
     def _of_this_host(self, domain_id: int, participant: bytes) -> bool:
-        """Whether the participant is a process of this host (its end is then seen in /proc by discovery)."""
-        return self.processes.process(domain_id, participant) is not None
+        """Whether the participant is a running process of this host (its end is then seen in /proc
+        by discovery). A stopped one is not: liveness probes it at every pass, as a remote one."""
+        found = self.processes.process(domain_id, participant)
+        return found is not None and not self.processes.stopped(found)
 
     async def _refresh_owners(self) -> None:
         await self.owners.refresh()

@@ -19,9 +19,25 @@ FAILURE_ERROR_LINES = 200
 _STARTED = pytest.StashKey[float]()
 
 
+def pytest_configure(config):
+    # `make test` runs in pytest-xdist workers, each a run of its own (tests/settings.py): the
+    # controller, which runs no test, hands back what it drew for itself before they start.
+    if config.getoption("dist", default="no") != "no" and not hasattr(config, "workerinput"):
+        from tests import settings
+
+        settings.give_back_to_workers()
+
+
 @pytest.hookimpl(tryfirst=True)
 def pytest_runtest_setup(item):
     item.stash[_STARTED] = time.time()
+    if "live_db" in item.fixturenames:
+        committed_by_live_tests[0] = True
+
+
+# Whether a test that commits what it stores (integration, browser: ``live_db``) ran in this
+# process since the database was last emptied: unit tests start from an empty one (tests/unit).
+committed_by_live_tests = [False]
 
 
 @pytest.hookimpl(hookwrapper=True)
@@ -74,7 +90,20 @@ def django_db_setup(django_test_environment, django_db_blocker):
         config = setup_databases(verbosity=0, interactive=False, aliases={"default"})
     yield
     with django_db_blocker.unblock():
+        _end_other_sessions()
         teardown_databases(config, verbosity=0)
+
+
+def _end_other_sessions() -> None:
+    """On PostgreSQL, end what still holds a session to the test database (a process a test
+    killed, whose backend has not noticed yet): DROP DATABASE refuses while any is open."""
+    from django.db import connection
+
+    if connection.vendor != "postgresql":
+        return
+    with connection.cursor() as cursor:
+        cursor.execute("SELECT pg_terminate_backend(pid) FROM pg_stat_activity "
+                       "WHERE datname = current_database() AND pid <> pg_backend_pid()")
 
 
 @pytest.fixture(scope="session")

@@ -57,17 +57,20 @@ def _release_all() -> None:
     release(list(_held))
 
 
-def claim_block(low: int, high: int, size: int) -> int:
-    """Claim ``size`` consecutive domains in one of the slots low, low + size, ... (each ending
-    by ``high``), tried in random order; returns the base. Slots, not any base: one run at a
-    random base could otherwise leave no room for a second one."""
-    bases = list(range(low, high - size + 1, size))
-    random.shuffle(bases)
+def claim_block(size: int, *ranges: tuple[int, int]) -> int:
+    """Claim ``size`` consecutive domains in one of the slots low, low + size, ... of each range
+    (ending by its high), a range's slots tried in random order, the first range's first; returns
+    the base. Slots, not any base: one run at
+    a random base could otherwise leave no room for a second one."""
+    slots = [random.sample(range(low, high - size + 1, size), len(range(low, high - size + 1, size)))
+             for low, high in ranges]
+    bases = [base for slot in slots for base in slot]  # the first range's first, in random order
     for base in bases:
         try:
             claim(list(range(base, base + size)))
         except DomainInUse:
             continue
         return base
-    raise DomainInUse(f"all {len(bases)} blocks of {size} ROS domains between {low} and {high - 1} are in use "
-                      "by other test runs on this machine")
+    spans = ", ".join(f"{low}-{high - 1}" for low, high in ranges)
+    raise DomainInUse(f"all {len(bases)} blocks of {size} ROS domains in {spans} are in use by other test runs "
+                      "on this machine")

@@ -12,7 +12,14 @@ def _free_port() -> int:
         return probe.getsockname()[1]
 
 
-# Set once per run (the values travel to pytest's subprocesses through the environment).
+# Set once per run (the values travel to pytest's subprocesses through the environment). Each
+# pytest-xdist worker is a run of its own: it draws its own scratch dir, Redis port, ROS domains and
+# database instead of sharing those its controller drew; what a worker starts inherits the worker's.
+_run = os.environ.get("PYTEST_XDIST_WORKER", "main")
+if os.environ.get("LIFECYCLE_TEST_RUN", _run) != _run:
+    for _key in ("LIFECYCLE_DATA_DIR", "REDIS_URL", "LIFECYCLE_TEST_DOMAIN_BASE", "ROS_DOMAIN_ID", "DATABASE_URL"):
+        os.environ.pop(_key, None)
+os.environ["LIFECYCLE_TEST_RUN"] = _run
 if "LIFECYCLE_DATA_DIR" not in os.environ:  # the run's first process: its scratch dir, gone with it
     import atexit
     import shutil
@@ -23,9 +30,11 @@ os.environ.setdefault("REDIS_URL", f"redis://127.0.0.1:{_free_port()}/0")
 if "LIFECYCLE_TEST_DOMAIN_BASE" not in os.environ:  # the run's first process claims them
     from tests import domains
 
-    # Offsets 0-44 (tests.stack.domain): one of two blocks of 45 of the domains 30-119, held for the
-    # run's life (the benchmarks take 120-131, and may run beside a test run).
-    os.environ["LIFECYCLE_TEST_DOMAIN_BASE"] = str(domains.claim_block(30, 120, 45))
+    # Offsets 0-44 (tests.stack.domain): one of four blocks of 45 of the domains 30-119 and 132-221,
+    # held for the run's life (the benchmarks take 120-131, and may run beside a test run). Those
+    # above 101 come second: their DDS ports lie in Linux's ephemeral range, where a free port drawn
+    # for a server may meet them. An xdist controller gives its block back (tests/conftest.py).
+    os.environ["LIFECYCLE_TEST_DOMAIN_BASE"] = str(domains.claim_block(45, (30, 120), (132, 222)))
 os.environ.setdefault("LIFECYCLE_CHANNEL_PREFIX", "lifecycle-test")
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.setdefault("ROS_DOMAIN_ID", os.environ["LIFECYCLE_TEST_DOMAIN_BASE"])
@@ -60,3 +69,14 @@ from lifecycle_site.settings import DATABASES  # noqa: E402
 # pytest-django creates this file (not an in-memory DB), or this database on PostgreSQL, under the
 # name the URL gives: other processes share it.
 DATABASES["default"]["TEST"] = {"NAME": DATABASES["default"]["NAME"]}
+
+
+def give_back_to_workers() -> None:
+    """An xdist controller runs no test: its ROS domains and database go before it starts the
+    workers, which draw their own."""
+    from tests import domains
+
+    base = int(os.environ.pop("LIFECYCLE_TEST_DOMAIN_BASE"))
+    domains.release(list(range(base, base + 45)))
+    if "_cluster" in globals():
+        _cluster.stop()

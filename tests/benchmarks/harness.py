@@ -4,7 +4,7 @@ subprocesses the site's ingest process, one registered gateway (with its own Red
 no database) and daphne; robot processes on demand. Everything is stopped on exit.
 
 DDS stays on this machine (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST) and the benchmark uses
-ROS domains 120-129 only, apart from the tests (30-119) and the demo (21, 22). Each
+ROS domains 120-131 only, apart from the tests (30-119, 132-221) and the demo (21, 22). Each
 scenario claims its domains (tests/domains.py), so two runs on one machine cannot share one.
 """
 from __future__ import annotations

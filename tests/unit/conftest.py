@@ -1,6 +1,21 @@
 import pytest
 
 
+@pytest.fixture(scope="module", autouse=True)
+def empty_database(django_db_setup, django_db_blocker):
+    """Unit tests start from an empty database (the roles and installed rules as migrations
+    leave them). Live tests commit what they store; in a pytest-xdist worker any of them may
+    have run just before, not only the whole lot before every unit test as in one process."""
+    from django.core.management import call_command
+
+    from tests.conftest import committed_by_live_tests
+
+    if committed_by_live_tests[0]:
+        with django_db_blocker.unblock():
+            call_command("flush", interactive=False, verbosity=0)
+        committed_by_live_tests[0] = False
+
+
 @pytest.fixture(autouse=True)
 def fresh_site_caches():
     """The site's per-process caches (what a token grants, the gateway's heartbeat, the local-memory cache) start empty

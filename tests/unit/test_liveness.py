@@ -50,3 +50,34 @@ def test_processes_of_this_host_are_probed_every_few_passes_others_every_pass(mo
     probed.clear()
     asyncio.run(passes(2))
     assert probed.count("/local_node") == 2 * liveness.misses  # every pass, each with its retries
+
+
+def test_a_stopped_process_of_this_host_is_told_from_a_running_one():
+    """A frozen local process (SIGSTOP) is probed at every pass, as a remote one: the gateway's
+    ``local`` answer leaves it out (ros_gateway/service.py) once /proc shows it stopped."""
+    import signal
+    import subprocess
+
+    from ros_gateway.processes import LocalProcesses, OsProcess
+
+    child = subprocess.Popen(["sleep", "30"])
+    try:
+        processes, process = LocalProcesses(), OsProcess(child.pid, "")
+        assert not processes.stopped(process)
+        child.send_signal(signal.SIGSTOP)
+        wait_until(lambda: processes.stopped(process))
+        child.send_signal(signal.SIGCONT)
+        wait_until(lambda: not processes.stopped(process))
+    finally:
+        child.kill()
+        child.wait(5)
+    assert not processes.stopped(process)  # gone: not stopped either
+
+
+def wait_until(condition, timeout: float = 5.0) -> None:
+    import time
+
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, "the process's state did not change"
+        time.sleep(0.01)
