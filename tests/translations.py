@@ -206,7 +206,8 @@ def update() -> None:
             # empty plural entry as translated: so the existing catalogue goes in with its
             # translated entries only, the rest come from the parts (or stay empty).
             translated, merged = po.with_suffix(".translated"), po.with_suffix(".merged")
-            subprocess.run(["msgattrib", "--force-po", "--translated", "--no-fuzzy", "-o", str(translated), str(po)], check=True)
+            subprocess.run(["msgattrib", "--force-po", "--translated", "--no-fuzzy", "-o", str(translated), str(po)],
+                           check=True)
             compendiums = [arg for part in parts for arg in ("--compendium", str(part))]
             subprocess.run(["msgmerge", "--quiet", "--no-fuzzy-matching", *compendiums, "-o", str(merged),
                             str(translated), str(po)], check=True)

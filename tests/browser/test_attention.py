@@ -37,7 +37,8 @@ def title_says_the_count(page: Page, strip) -> None:
     robot process restarted by an earlier test, may come or go meanwhile)."""
     def same() -> bool:
         count = len(strip.locator("li.attention-item").all())
-        return count > 0 and page.title().startswith(f"{count} need") and strip.get_attribute("data-count") == str(count)
+        counted = strip.get_attribute("data-count") == str(count)
+        return count > 0 and counted and page.title().startswith(f"{count} need")
 
     stack.wait_for(same, WAIT_MS / 1000, "the title to count the strip's items")
 
