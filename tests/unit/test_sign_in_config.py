@@ -71,3 +71,20 @@ def test_ldap_always_checks_the_directory_certificate(tmp_path):
 
 def test_origin_of_an_end_session_address():
     assert config.origin("https://idp.plant:8443/realms/x/logout?y=1") == "https://idp.plant:8443"
+
+
+def test_the_compose_file_and_env_example_carry_every_sign_in_variable():
+    """An operator's docker/.env reaches the site: the web service passes each variable the sign-in
+    settings read, and docker/env.example lists it."""
+    import re
+    from pathlib import Path
+
+    import yaml
+
+    root = Path(__file__).resolve().parents[2]
+    read = set(re.findall(r"LIFECYCLE_(?:OIDC|LDAP)_[A-Z_]+", Path(config.__file__).read_text()))
+    web = yaml.safe_load((root / "docker" / "docker-compose.yml").read_text())["services"]["web"]["environment"]
+    example = set(re.findall(r"^(LIFECYCLE_[A-Z_]+)=", (root / "docker" / "env.example").read_text(), re.M))
+    assert len(read) > 20
+    assert read - set(web) == set(), "not passed to the web service"
+    assert read - example == set(), "not in docker/env.example"
