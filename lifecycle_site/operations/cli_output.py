@@ -343,7 +343,7 @@ def mode_lines(modes: list[dict], current: str | None, since: str | None) -> lis
         if name == current:
             name = _("%(mode)s (current since %(since)s)") % {"mode": name, "since": since}
         count = len(mode["nodes"])
-        nodes = ngettext("%(n)s node(s)", "%(n)s node(s)", count) % {"n": count}
+        nodes = ngettext("%(n)s node", "%(n)s nodes", count) % {"n": count}
         about = f": {mode['description'].splitlines()[0]}" if mode["description"] else ""
         lines.append(f"{name}, {nodes}{about}")
     return lines or [_("(no modes; an admin defines them)")]

@@ -134,6 +134,9 @@ def not_watched(node: ManagedNode) -> str:
     if not node.robot.enabled:
         return _("Robot %(robot)s is disabled: its nodes are not watched. Enable it in the admin.") % {
             "robot": node.robot.name}
+    if node.last_seen is None:
+        return _("%(node)s is not running on %(robot)s, and has never been seen running.") % {
+            "node": node.name, "robot": node.robot.name}
     return _("%(node)s is not running on %(robot)s; it was last seen %(ago)s.") % {
         "node": node.name, "robot": node.robot.name, "ago": ago(node.last_seen)}
 

@@ -20,7 +20,7 @@ def node(db) -> ManagedNode:
 
 @pytest.mark.parametrize("case, says", [
     ("robot disabled", "Robot unit-agv is disabled: its nodes are not watched. Enable it in the admin."),
-    ("node gone", "/joy_to_vel is not running on unit-agv; it was last seen never."),
+    ("node gone", "/joy_to_vel is not running on unit-agv, and has never been seen running."),
 ])
 def test_what_cannot_reach_a_node_is_refused_and_recorded_with_who_and_why(node, case, says):
     if case == "robot disabled":
