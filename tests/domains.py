@@ -58,13 +58,15 @@ def _release_all() -> None:
 
 
 def claim_block(size: int, *ranges: tuple[int, int]) -> int:
-    """Claim ``size`` consecutive domains in one of the slots low, low + size, ... of each range
-    (ending by its high), a range's slots tried in random order, the first range's first; returns
-    the base. Slots, not any base: one run at
-    a random base could otherwise leave no room for a second one."""
-    slots = [random.sample(range(low, high - size + 1, size), len(range(low, high - size + 1, size)))
-             for low, high in ranges]
-    bases = [base for slot in slots for base in slot]  # the first range's first, in random order
+    """Claim ``size`` consecutive domains in one of the slots low, low + size, ... of the ranges
+    (each ending by its high); returns the base. The first range's slots are tried first, each
+    range's in random order. Slots, not any base: one run at a random base could otherwise leave
+    no room for a second one."""
+    bases: list[int] = []
+    for low, high in ranges:
+        slots = list(range(low, high - size + 1, size))
+        random.shuffle(slots)
+        bases += slots
     for base in bases:
         try:
             claim(list(range(base, base + size)))

@@ -12,6 +12,8 @@ def _free_port() -> int:
         return probe.getsockname()[1]
 
 
+DOMAIN_BLOCK = 45  # ROS domains of one run: tests.stack.domain(0) to domain(44)
+
 # Set once per run (the values travel to pytest's subprocesses through the environment). Each
 # pytest-xdist worker is a run of its own: it draws its own scratch dir, Redis port, ROS domains and
 # database instead of sharing those its controller drew; what a worker starts inherits the worker's.
@@ -34,7 +36,7 @@ if "LIFECYCLE_TEST_DOMAIN_BASE" not in os.environ:  # the run's first process cl
     # held for the run's life (the benchmarks take 120-131, and may run beside a test run). Those
     # above 101 come second: their DDS ports lie in Linux's ephemeral range, where a free port drawn
     # for a server may meet them. An xdist controller gives its block back (tests/conftest.py).
-    os.environ["LIFECYCLE_TEST_DOMAIN_BASE"] = str(domains.claim_block(45, (30, 120), (132, 222)))
+    os.environ["LIFECYCLE_TEST_DOMAIN_BASE"] = str(domains.claim_block(DOMAIN_BLOCK, (30, 120), (132, 222)))
 os.environ.setdefault("LIFECYCLE_CHANNEL_PREFIX", "lifecycle-test")
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.setdefault("ROS_DOMAIN_ID", os.environ["LIFECYCLE_TEST_DOMAIN_BASE"])
@@ -77,6 +79,6 @@ def give_back_to_workers() -> None:
     from tests import domains
 
     base = int(os.environ.pop("LIFECYCLE_TEST_DOMAIN_BASE"))
-    domains.release(list(range(base, base + 45)))
+    domains.release(list(range(base, base + DOMAIN_BLOCK)))
     if "_cluster" in globals():
         _cluster.stop()
