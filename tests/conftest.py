@@ -20,8 +20,8 @@ _STARTED = pytest.StashKey[float]()
 
 
 def pytest_configure(config):
-    # `make test` runs in pytest-xdist workers, each a run of its own (tests/settings.py): the
-    # controller, which runs no test, hands back what it drew for itself before they start.
+    # With pytest-xdist (`make test TEST_WORKERS=2`) each worker is a run of its own (tests/settings.py):
+    # the controller, which runs no test, hands back what it drew for itself before they start.
     if config.getoption("dist", default="no") != "no" and not hasattr(config, "workerinput"):
         from tests import settings
 

@@ -4,8 +4,8 @@ import pytest
 @pytest.fixture(scope="module", autouse=True)
 def empty_database(django_db_setup, django_db_blocker):
     """Unit tests start from an empty database (the roles and installed rules as migrations
-    leave them). Live tests commit what they store; in a pytest-xdist worker any of them may
-    have run just before, not only the whole lot before every unit test as in one process."""
+    leave them). Live tests commit what they store: in one process pytest runs tests/unit before
+    them, but in a pytest-xdist worker a live test may have run just before."""
     from django.core.management import call_command
 
     from tests.conftest import committed_by_live_tests

@@ -59,25 +59,18 @@ def test_a_stopped_process_of_this_host_is_told_from_a_running_one():
     import subprocess
 
     from ros_gateway.processes import LocalProcesses, OsProcess
+    from tests import stack
 
     child = subprocess.Popen(["sleep", "30"])
     try:
         processes, process = LocalProcesses(), OsProcess(child.pid, "")
         assert not processes.stopped(process)
         child.send_signal(signal.SIGSTOP)
-        wait_until(lambda: processes.stopped(process))
+        stack.wait_for(lambda: processes.stopped(process), 5, "the process to show stopped")
         child.send_signal(signal.SIGCONT)
-        wait_until(lambda: not processes.stopped(process))
+        stack.wait_for(lambda: not processes.stopped(process), 5, "the process to run again")
     finally:
         child.kill()
         child.wait(5)
     assert not processes.stopped(process)  # gone: not stopped either
 
-
-def wait_until(condition, timeout: float = 5.0) -> None:
-    import time
-
-    deadline = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < deadline, "the process's state did not change"
-        time.sleep(0.01)
