@@ -26,12 +26,11 @@ system-packages:
 demo: setup
 	$(BIN)/python manage.py run_demo
 
-# TEST_WORKERS=N runs the tests in N pytest-xdist processes, a test file each at a time (its
-# module's stack is started once), each worker a run of its own (tests/settings.py): 16 instead of
-# 27 minutes with 2. Not the default yet: there a few tests still depend on what ran before them
-# in their process (tests/unit/test_ingest.py beside a live ingest process, a rare hang in
-# tests/unit/test_socket_origin.py). TEST_WORKERS=0: one process.
-TEST_WORKERS ?= 0
+# The tests run in TEST_WORKERS pytest-xdist processes, a test file each at a time (its module's
+# stack is started once), each worker a run of its own (tests/settings.py): 16 instead of 27
+# minutes with 2 on a 2-core machine. TEST_WORKERS=0: all in one process (slower; the order in
+# which pytest collects them).
+TEST_WORKERS ?= 2
 XDIST = $(if $(filter-out 0,$(TEST_WORKERS)),-n $(TEST_WORKERS) --dist loadfile)
 test: system-packages setup
 	$(BIN)/python -m pytest $(XDIST) --ignore=tests/deploy $(foreach m,$(POSTGRES_ONLY),--ignore=$(m)) $(PYTEST_ARGS)

@@ -20,7 +20,7 @@ _STARTED = pytest.StashKey[float]()
 
 
 def pytest_configure(config):
-    # With pytest-xdist (`make test TEST_WORKERS=2`) each worker is a run of its own (tests/settings.py):
+    # With pytest-xdist (`make test`, TEST_WORKERS=2 by default) each worker is a run of its own (tests/settings.py):
     # the controller, which runs no test, hands back what it drew for itself before they start.
     if config.getoption("dist", default="no") != "no" and not hasattr(config, "workerinput"):
         from tests import settings
@@ -151,8 +151,28 @@ def ingest(redis_server, live_db):
 
     holder = stack.Restartable(start, stop, "the ingest process")
     holder.start()
+    _session_ingest.append(holder)
     yield holder
+    _session_ingest.clear()
     holder.stop()
+
+
+_session_ingest: list[stack.Restartable] = []  # the run's ingest process, once a test started it
+
+
+@pytest.fixture(scope="module")
+def live_ingest_set_aside():
+    """For unit tests that drive Ingest objects of their own on this run's Redis and database:
+    the run's ingest process, if a live test in this process started it (pytest-xdist runs test
+    files in any order), would take their lease and read their streams. It is stopped for the
+    module and started again after it."""
+    holder = _session_ingest[0] if _session_ingest else None
+    running = holder is not None and holder.current is not None
+    if running:
+        holder.stop()
+    yield
+    if running:
+        holder.start()
 
 
 def session_of(user):

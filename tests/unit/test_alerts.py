@@ -234,7 +234,7 @@ def test_rule_validation():
 
 
 @pytest.fixture
-def ingest_cell(transactional_db, redis_server):
+def ingest_cell(transactional_db, redis_server, live_ingest_set_aside):
     forget_ingest_processes()
     clear_streams("al-ingest")
     robot = Robot.objects.create(name="al-ingest-agv", domain_id=63, gateway=Gateway.objects.create(name="al-ingest"))

@@ -52,7 +52,7 @@ def test_a_clock_a_little_ahead_is_fine():
 
 
 @pytest.fixture
-def cell(transactional_db, redis_server) -> Gateway:
+def cell(transactional_db, redis_server, live_ingest_set_aside) -> Gateway:
     forget_ingest_processes()
     clear_streams("cell-t")
     row = Gateway.objects.create(name="cell-t")

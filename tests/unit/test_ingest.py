@@ -27,7 +27,7 @@ from tests.gateway_part import GatewayPart, clear_streams, forget_ingest_process
 
 
 @pytest.fixture
-def cell(transactional_db, redis_server) -> tuple[GatewayPart, Robot]:
+def cell(transactional_db, redis_server, live_ingest_set_aside) -> tuple[GatewayPart, Robot]:
     forget_ingest_processes()
     clear_streams("cell-i")
     robot = Robot.objects.create(name="ingest-agv", domain_id=42, gateway=Gateway.objects.create(name="cell-i"))

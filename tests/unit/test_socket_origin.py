@@ -33,8 +33,10 @@ def opens(cookie: str, origin: str | None, host: str = SITE, **headers: str) -> 
         communicator = WebsocketCommunicator(application, "/ws/fleet/", headers=sent)
         communicator.scope["client"] = ("192.0.2.7", 50123)
         connected, _ = await communicator.connect(timeout=10)
-        if connected:
-            await communicator.disconnect(timeout=10)  # let it end by itself: a cancelled consumer may hang the loop
+        # Closed or open, the consumer (the site's, or Channels' denier that answered 403) waits
+        # for the browser's goodbye, as daphne sends it: without it the loop's end would cancel a
+        # consumer inside a Redis channel read, which may never return (a hang seen in a worker).
+        await communicator.disconnect(timeout=10)
         return connected
 
     return async_to_sync(attempt)()
