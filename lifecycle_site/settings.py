@@ -137,6 +137,7 @@ AUTHENTICATION_BACKENDS = ["axes.backends.AxesStandaloneBackend", "django.contri
 _LDAP = sign_in_config.ldap_settings()
 _OIDC = sign_in_config.oidc_settings()
 LDAP_ON, OIDC_ON = bool(_LDAP), bool(_OIDC)
+LIFECYCLE_DIRECTORY_SESSION_HOURS = sign_in_config.directory_session_hours()
 globals().update(_LDAP)
 globals().update(_OIDC)
 if LDAP_ON:

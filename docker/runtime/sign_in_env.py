@@ -63,6 +63,9 @@ def sign_in_env(config: dict, write_files: bool = False) -> dict[str, str]:
                 value = _text(part.get(key))
             if value:
                 env[name] = value
+    hours = sign_in.get("sessionHours")
+    if hours not in (None, ""):
+        env["LIFECYCLE_DIRECTORY_SESSION_HOURS"] = _session_hours(hours)
     if env.get("LIFECYCLE_OIDC_CLIENT_ID"):
         _needed(env, OIDC_KEYS, "signIn.oidc", "clientId",
                 ("clientSecret", "authorizationUrl", "tokenUrl", "userinfoUrl", "jwksUrl", "roles"))
@@ -81,6 +84,18 @@ def sign_in_env(config: dict, write_files: bool = False) -> dict[str, str]:
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_text(certificate + "\n")
     return env
+
+
+def _session_hours(value) -> str:
+    """signIn.sessionHours: how long a directory account's session lasts (as the site reads it)."""
+    try:
+        hours = float(value)
+        if isinstance(value, bool) or not 0 < hours <= 336:
+            raise ValueError
+    except (TypeError, ValueError):
+        raise ConfigError("signIn.sessionHours must be a number of hours, more than 0 and at most 336 "
+                          "(two weeks), e.g. 8") from None
+    return f"{hours:g}"
 
 
 def _object(value, where: str) -> dict:

@@ -1,9 +1,12 @@
 """A directory user's account here: refused for local names, its role from its groups at every
-sign-in (a group removed in the directory takes the role away at the next one)."""
+sign-in (a group removed in the directory takes the role away at the next one), its session
+bounded so that the next one comes."""
 from __future__ import annotations
 
 from collections.abc import Iterable
+from datetime import timedelta
 
+from django.conf import settings
 from django.contrib.auth import get_user_model
 from django.contrib.auth.models import AbstractBaseUser, Group
 from django.db import transaction
@@ -52,3 +55,11 @@ def signed_in(user: AbstractBaseUser, source: str, subject: str, role: str, grou
         user.groups.remove(*others)
     if not user.groups.filter(pk=wanted.pk).exists():
         user.groups.add(wanted)
+
+
+def bound_session(sender, request, user, **kwargs) -> None:
+    """user_logged_in: a directory account's session ends LIFECYCLE_DIRECTORY_SESSION_HOURS after
+    the sign-in, however active (a fixed end, not an idle one: the role must be read again)."""
+    if request is None or not hasattr(request, "session") or not DirectoryAccount.objects.filter(user=user).exists():
+        return
+    request.session.set_expiry(timezone.now() + timedelta(hours=settings.LIFECYCLE_DIRECTORY_SESSION_HOURS))

@@ -122,6 +122,14 @@ def ldap_settings(environ: Mapping[str, str] | None = None) -> dict:
     }
 
 
+def directory_session_hours(environ: Mapping[str, str] | None = None) -> float:
+    """How long a session of a directory account lasts after its sign-in: its role comes from its
+    groups at sign-in, so a group taken away in the directory takes the role away by then at the
+    latest. 12 hours (a long shift) by default; local accounts keep Django's two weeks."""
+    return env.number("LIFECYCLE_DIRECTORY_SESSION_HOURS", 12.0, above=0, maximum=336, unit="hours", example=8,
+                      environ=environ)
+
+
 def origin(url: str) -> str:
     """``https://idp.plant:8443/realms/x/logout`` -> ``https://idp.plant:8443`` (for a CSP source)."""
     from urllib.parse import urlsplit

@@ -7,6 +7,7 @@ from __future__ import annotations
 import time
 
 import pytest
+from django.conf import settings
 from django.contrib.auth import get_user_model
 from django.test import Client, override_settings
 
@@ -92,6 +93,26 @@ def test_the_role_follows_the_directory_at_every_sign_in(directory):
         refused_with(answer, problems.NO_ROLE)
     denial = last_denial()
     assert (denial.code, denial.username, denial.detail) == ("login_failed", "ines", problems.NO_ROLE.summary)
+
+
+@pytest.mark.django_db
+def test_a_directory_session_ends_after_its_hours_and_the_next_sign_in_reads_the_groups(directory):
+    """A group taken away in the directory cannot be seen until the next sign-in: that comes after
+    LIFECYCLE_DIRECTORY_SESSION_HOURS however busy the session. Local accounts keep Django's."""
+    dn = directory.add_user("sven", PASSWORD, groups=["lifecycle-operators"])
+    with directory_settings(directory), override_settings(LIFECYCLE_DIRECTORY_SESSION_HOURS=2 / 3600):
+        client, answer = log_in("sven")
+        assert answer.status_code == 302 and client.get("/").status_code == 200
+        assert 0 < client.session.get_expiry_age() <= 2
+        directory.leave_group(dn, "lifecycle-operators")
+        stack.wait_for(lambda: client.get("/").status_code == 302, 10, "the directory session to end")
+        assert client.get("/")["Location"].startswith("/login/")
+        refused_with(log_in("sven")[1], problems.NO_ROLE)
+
+        make_user("lena-local", "operator")
+        local, answer = log_in("lena-local", "a-test-password-123")
+        assert answer.status_code == 302
+        assert local.session.get_expiry_age() == settings.SESSION_COOKIE_AGE  # two weeks
 
 
 @pytest.mark.django_db

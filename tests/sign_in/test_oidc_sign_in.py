@@ -102,6 +102,8 @@ def test_a_first_sign_in_makes_the_account_with_the_role_of_its_groups(site_sett
     answer = sign_in(client, "u-1001")
     assert answer.status_code == 302 and answer["Location"] == "/", answer
     assert client.get("/").status_code == 200
+    # It ends 12 hours after the sign-in (LIFECYCLE_DIRECTORY_SESSION_HOURS), when the groups are read again.
+    assert 12 * 3600 - 60 < client.session.get_expiry_age() <= 12 * 3600
     user = get_user_model().objects.get(directory_account__subject="u-1001")
     assert (user.username, user.email, user.first_name) == ("olga", "olga@plant.example", "Olga")
     assert not user.has_usable_password()

@@ -69,6 +69,14 @@ def test_ldap_always_checks_the_directory_certificate(tmp_path):
         config.ldap_settings({"LIFECYCLE_LDAP_URL": "ldaps://a", "LIFECYCLE_LDAP_USER_BASE": "ou=people"})
 
 
+def test_a_directory_session_lasts_a_shift_unless_told_otherwise():
+    assert config.directory_session_hours({}) == 12
+    assert config.directory_session_hours({"LIFECYCLE_DIRECTORY_SESSION_HOURS": "0.5"}) == 0.5
+    for bad in ("0", "-1", "337", "eight", "nan"):
+        with pytest.raises(SettingError, match="LIFECYCLE_DIRECTORY_SESSION_HOURS"):
+            config.directory_session_hours({"LIFECYCLE_DIRECTORY_SESSION_HOURS": bad})
+
+
 def test_origin_of_an_end_session_address():
     assert config.origin("https://idp.plant:8443/realms/x/logout?y=1") == "https://idp.plant:8443"
 
@@ -82,7 +90,7 @@ def test_the_compose_file_and_env_example_carry_every_sign_in_variable():
     import yaml
 
     root = Path(__file__).resolve().parents[2]
-    read = set(re.findall(r"LIFECYCLE_(?:OIDC|LDAP)_[A-Z_]+", Path(config.__file__).read_text()))
+    read = set(re.findall(r"LIFECYCLE_(?:OIDC|LDAP|DIRECTORY)_[A-Z_]+", Path(config.__file__).read_text()))
     web = yaml.safe_load((root / "docker" / "docker-compose.yml").read_text())["services"]["web"]["environment"]
     example = set(re.findall(r"^(LIFECYCLE_[A-Z_]+)=", (root / "docker" / "env.example").read_text(), re.M))
     assert len(read) > 20
