@@ -4,7 +4,8 @@ user's entry and creates or updates the account; this module adds what a plant n
 
 - a local account's name is never taken over by the directory (``clean_user_data``);
 - the role comes from the user's groups at every sign-in, and no mapped group means no login
-  (``give_role``, which searches the groups that name the user as ``member``);
+  (``give_role``, which searches the groups that name the user as ``member``, and the groups
+  that name those, as Active Directory nests them);
 - a directory that cannot be reached is told apart from a wrong password (``Backend``).
 """
 from __future__ import annotations
@@ -42,27 +43,50 @@ def clean_user_data(fields: dict) -> dict:
     return fields
 
 
+# Levels of groups within groups followed: Active Directory's usual nesting (AGDLP: a user in a
+# global group, that one in the domain local group that is mapped) is two.
+NESTING_DEPTH = 8
+MEMBERS_PER_SEARCH = 50  # member DNs named in one search filter
+
+
 def groups_of(connection: ldap3.Connection, dn: str, attributes: dict) -> list[str]:
-    """The names (cn) and DNs of the groups that list ``dn`` as a member, plus any memberOf."""
-    found: list[str] = [str(g) for g in (attributes.get("memberOf") or [])][:accounts.MAX_GROUPS]
-    try:
-        connection.search(search_base=settings.LIFECYCLE_LDAP_GROUP_BASE,
-                          search_filter=f"(member={escape_filter_chars(dn)})", search_scope=ldap3.SUBTREE,
-                          attributes=["cn"], size_limit=accounts.MAX_GROUPS)
-    except LDAPException as error:  # raised out of the library's connection(), which re-yields on its own errors
-        log.warning("company directory: the groups of %s could not be read: %s", dn, error)
-        raise Refused(problems.DIRECTORY_UNREACHABLE) from error
-    for entry in connection.response or []:
-        if entry.get("type") != "searchResEntry":
-            continue
-        found.append(str(entry.get("dn", "")))
-        found.extend(str(cn) for cn in (entry.get("attributes", {}).get("cn") or []))
-    names = set(found)
+    """The names (cn) and DNs of the groups that list ``dn`` as a member, plus any memberOf, and
+    the groups that list those, NESTING_DEPTH levels up (a loop of groups ends: each is read once)."""
+    member_of = [str(g) for g in (attributes.get("memberOf") or [])][:accounts.MAX_GROUPS]
+    groups: dict[str, list[str]] = {g.lower(): [g] for g in member_of}  # group DN (lower case) -> DN and cns
+    level = [dn, *member_of]
+    for _ in range(NESTING_DEPTH + 1):
+        found = _groups_listing(connection, level, room=accounts.MAX_GROUPS - len(groups))
+        level = [group_dn for group_dn in found if group_dn.lower() not in groups]
+        groups.update({group_dn.lower(): [group_dn, *found[group_dn]] for group_dn in level})
+        if not level or len(groups) >= accounts.MAX_GROUPS:
+            break
+    names = {name for dn_and_cns in groups.values() for name in dn_and_cns}
     for group_dn in list(names):  # "cn=operators,ou=groups,..." also counts as "operators"
         first = group_dn.split(",", 1)[0]
         if first.lower().startswith("cn="):
             names.add(first[3:])
     return sorted(names)
+
+
+def _groups_listing(connection: ldap3.Connection, members: list[str], room: int) -> dict[str, list[str]]:
+    """The groups under the group base that list any of ``members`` as a member: DN -> its cns
+    (at most ``room`` of them)."""
+    found: dict[str, list[str]] = {}
+    for start in range(0, len(members), MEMBERS_PER_SEARCH):
+        if len(found) >= room:
+            break
+        terms = "".join(f"(member={escape_filter_chars(m)})" for m in members[start:start + MEMBERS_PER_SEARCH])
+        try:
+            connection.search(search_base=settings.LIFECYCLE_LDAP_GROUP_BASE, search_filter=f"(|{terms})",
+                              search_scope=ldap3.SUBTREE, attributes=["cn"], size_limit=accounts.MAX_GROUPS)
+        except LDAPException as error:  # raised out of the library's connection(), which re-yields on its own errors
+            log.warning("company directory: the groups of %s could not be read: %s", members[0], error)
+            raise Refused(problems.DIRECTORY_UNREACHABLE) from error
+        for entry in connection.response or []:
+            if entry.get("type") == "searchResEntry" and entry.get("dn") and len(found) < room:
+                found[str(entry["dn"])] = [str(cn) for cn in (entry.get("attributes", {}).get("cn") or [])]
+    return found
 
 
 def give_role(user, attributes: dict, *, connection: ldap3.Connection, dn: str) -> None:

@@ -122,14 +122,21 @@ class Directory:
             attributes["givenName"] = given_name
         with self._admin_connection() as connection:
             connection.add(dn, ["inetOrgPerson"], attributes)
-            for name in groups:
-                group = f"cn={escape_rdn(name)},{self.groups}"
-                try:
-                    connection.modify(group, {"member": [(ldap3.MODIFY_ADD, [dn])]})
-                except LDAPNoSuchObjectResult:
-                    # A groupOfNames cannot be empty: the group is made with its first member.
-                    connection.add(group, ["groupOfNames"], {"cn": name, "member": [dn]})
+        for name in groups:
+            self.join_group(dn, name)
         return dn
+
+    def join_group(self, member: str, name: str) -> str:
+        """Make ``member`` (a user's DN, or a group's: groups within groups) a member of the
+        groupOfNames ``cn=<name>`` under groups, made when missing. Returns the group's DN."""
+        group = f"cn={escape_rdn(name)},{self.groups}"
+        with self._admin_connection() as connection:
+            try:
+                connection.modify(group, {"member": [(ldap3.MODIFY_ADD, [member])]})
+            except LDAPNoSuchObjectResult:
+                # A groupOfNames cannot be empty: the group is made with its first member.
+                connection.add(group, ["groupOfNames"], {"cn": name, "member": [member]})
+        return group
 
     def leave_group(self, dn: str, name: str) -> None:
         """Take ``dn`` out of the group ``cn=<name>`` (a group left without members is deleted)."""

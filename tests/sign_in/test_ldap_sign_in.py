@@ -116,6 +116,25 @@ def test_a_directory_session_ends_after_its_hours_and_the_next_sign_in_reads_the
 
 
 @pytest.mark.django_db
+def test_a_group_within_a_mapped_group_gives_its_role(directory):
+    """Active Directory's usual nesting (AGDLP): the user is in a shift's group, that one in the
+    group the site maps; groups that list each other end the search, and are each read once."""
+    dn = directory.add_user("nina", PASSWORD, groups=["shift-b"])
+    shift = directory.join_group(directory.join_group(directory.join_group(
+        f"cn=shift-b,{directory.groups}", "hall-3-team"), "hall-3"), "lifecycle-operators")
+    directory.join_group(shift, "hall-3-team")  # a loop: lifecycle-operators in hall-3-team
+    directory.add_user("oskar", PASSWORD, groups=["shift-c"])
+    with directory_settings(directory):
+        assert log_in("nina")[1].status_code == 302
+        account = DirectoryAccount.objects.get(subject="nina")
+        assert account.role == "operator"
+        assert {"shift-b", "hall-3-team", "hall-3", "lifecycle-operators"} <= set(account.groups.split(", "))
+        refused_with(log_in("oskar")[1], problems.NO_ROLE)  # a group in no mapped group
+        directory.leave_group(dn, "shift-b")
+        refused_with(log_in("nina")[1], problems.NO_ROLE)
+
+
+@pytest.mark.django_db
 def test_no_mapped_group_no_account(directory):
     directory.add_user("visitor", PASSWORD, groups=["visitors"])
     with directory_settings(directory):
