@@ -130,6 +130,14 @@ class FleetCollector(Collector):
         for status in (GroupRun.Status.QUEUED, GroupRun.Status.RUNNING):
             family.add_metric([status], active.get(status, 0))
         yield family
+        # Runs are never deleted, so the ended ones only grow: a counter (rate() of failed runs).
+        ended = CounterMetricFamily("lifecycle_group_runs_ended", "Group runs ended, by operation and verdict.",
+                                    labels=["operation", "status"])
+        done = (GroupRun.Status.SUCCEEDED, GroupRun.Status.FAILED, GroupRun.Status.PARTIAL)
+        for row in (GroupRun.objects.filter(status__in=done).values("operation", "status").annotate(n=Count("id"))
+                    .order_by("operation", "status")):
+            ended.add_metric([row["operation"], row["status"]], row["n"])
+        yield ended
 
     @staticmethod
     def modes() -> Iterator[Metric]:

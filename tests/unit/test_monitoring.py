@@ -11,7 +11,7 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from lifecycle_site.api.models import ApiToken
 from lifecycle_site.audit.models import TransitionRecord
-from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
+from lifecycle_site.fleet.models import Gateway, GroupRun, ManagedNode, Robot
 from tests import stack
 from tests.conftest import make_user
 
@@ -106,6 +106,14 @@ def test_metrics_count_nodes_gateways_and_transitions(fleet, client: Client, set
     assert samples[("lifecycle_transition_duration_seconds_bucket", (("le", "1.0"),))] == 3
     assert samples[("lifecycle_transition_duration_seconds_sum", ())] == pytest.approx(0.743)
     assert samples[("lifecycle_group_runs_active", (("status", "running"),))] == 0
+    for n, (operation, status) in enumerate([("bringup", "succeeded"), ("bringup", "succeeded"),
+                                             ("restart", "partial"), ("shutdown", "running")]):
+        GroupRun.objects.create(id=f"{n:032x}", robot=fleet, operation=operation, status=status)
+    samples = metrics(client.get("/metrics").content.decode())
+    assert samples[("lifecycle_group_runs_ended_total", (("operation", "bringup"), ("status", "succeeded")))] == 2
+    assert samples[("lifecycle_group_runs_ended_total", (("operation", "restart"), ("status", "partial")))] == 1
+    assert ("lifecycle_group_runs_ended_total", (("operation", "shutdown"), ("status", "running"))) not in samples
+    assert samples[("lifecycle_group_runs_active", (("status", "running"),))] == 1
 
 
 def test_a_bad_allow_list_stops_the_site_with_the_value_named(monkeypatch):
