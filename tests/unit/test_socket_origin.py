@@ -33,9 +33,9 @@ def opens(cookie: str, origin: str | None, host: str = SITE, **headers: str) -> 
         communicator = WebsocketCommunicator(application, "/ws/fleet/", headers=sent)
         communicator.scope["client"] = ("192.0.2.7", 50123)
         connected, _ = await communicator.connect(timeout=10)
-        # Closed or open, the consumer (the site's, or Channels' denier that answered 403) waits
-        # for the browser's goodbye, as daphne sends it: without it the loop's end would cancel a
-        # consumer inside a Redis channel read, which may never return (a hang seen in a worker).
+        # The browser's goodbye, as daphne sends it: an open consumer ends by itself (cancelled
+        # at the loop's end inside a Redis channel read, it may never return); a refused socket's
+        # application has ended already.
         await communicator.disconnect(timeout=10)
         return connected
 
