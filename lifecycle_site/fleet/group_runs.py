@@ -25,6 +25,8 @@ class GroupRun(models.Model):
         FAILED = "failed", gettext_lazy("failed")
         PARTIAL = "partial", gettext_lazy("partly failed")
 
+    ENDED = (Status.SUCCEEDED, Status.FAILED, Status.PARTIAL)  # a verdict: final
+
     id = models.CharField(primary_key=True, max_length=32, editable=False)
     robot = models.ForeignKey(Robot, on_delete=models.CASCADE, related_name="runs")
     # Read from the shared table when asked: a new operation needs no migration.
@@ -60,7 +62,7 @@ class GroupRun(models.Model):
 
     @property
     def done(self) -> bool:
-        return self.status in (self.Status.SUCCEEDED, self.Status.FAILED, self.Status.PARTIAL)
+        return self.status in self.ENDED
 
     def as_dict(self) -> dict:
         return {

@@ -36,7 +36,6 @@ GONE_REASONS = ("unreachable", protocol.PROCESS_LOST)
 # A transition record with this outcome moves the node's process status (a loss comes as node.gone).
 PROCESS_STATUS = {protocol.PROCESS_RESTARTED: "restarted"}
 
-DONE = (GroupRun.Status.SUCCEEDED, GroupRun.Status.FAILED, GroupRun.Status.PARTIAL)
 # PostgreSQL's codes for "your transaction lost a conflict with another; run it again".
 CONFLICT_STATES = {"40P01", "40001"}
 CONFLICT_ATTEMPTS = 3
@@ -338,10 +337,10 @@ def _run(known: KnownRecords, fact: dict, at: datetime, applied: Applied) -> Non
         return
     if not known.owns(run.robot.name):
         raise FactRejected(f"run {run_id} is for robot {run.robot.name}, not one of gateway {known.name}'s")
-    if run.status in DONE:
+    if run.status in GroupRun.ENDED:
         # A verdict is final (the site's or the gateway's own): a progress report that comes
         # after it is dropped, an end reported after it is kept as what it is, beside it.
-        if status in DONE:
+        if status in GroupRun.ENDED:
             _late_end(run, status, changes)
         return
     GroupRun.objects.filter(pk=run_id).update(**changes)

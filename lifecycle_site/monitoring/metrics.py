@@ -133,9 +133,8 @@ class FleetCollector(Collector):
         # Runs are never deleted, so the ended ones only grow: a counter (rate() of failed runs).
         ended = CounterMetricFamily("lifecycle_group_runs_ended", "Group runs ended, by operation and verdict.",
                                     labels=["operation", "status"])
-        done = (GroupRun.Status.SUCCEEDED, GroupRun.Status.FAILED, GroupRun.Status.PARTIAL)
-        for row in (GroupRun.objects.filter(status__in=done).values("operation", "status").annotate(n=Count("id"))
-                    .order_by("operation", "status")):
+        rows = GroupRun.objects.filter(status__in=GroupRun.ENDED).values("operation", "status").annotate(n=Count("id"))
+        for row in rows.order_by("operation", "status"):
             ended.add_metric([row["operation"], row["status"]], row["n"])
         yield ended
 
