@@ -130,6 +130,9 @@ def live_db(django_db_setup, django_db_blocker):
     django_db_blocker.restore()
 
 
+_session_ingest: list[stack.Restartable] = []  # the run's ingest process, once a test started it
+
+
 @pytest.fixture(scope="session")
 def ingest(redis_server, live_db):
     """The site's ingest process, one for the whole run (defined here, once, so that every
@@ -155,9 +158,6 @@ def ingest(redis_server, live_db):
     yield holder
     _session_ingest.clear()
     holder.stop()
-
-
-_session_ingest: list[stack.Restartable] = []  # the run's ingest process, once a test started it
 
 
 @pytest.fixture(scope="module")
