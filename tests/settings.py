@@ -68,10 +68,6 @@ os.environ.setdefault("DATABASE_URL", f"sqlite:///{os.environ['LIFECYCLE_DATA_DI
 from lifecycle_site.settings import *  # noqa: E402,F401,F403
 from lifecycle_site.settings import DATABASES  # noqa: E402
 
-# Test users' passwords quickly hashed (tests/password_hashing.py); Django's own hasher checks them.
-PASSWORD_HASHERS = ["tests.password_hashing.QuickPBKDF2PasswordHasher",
-                    "django.contrib.auth.hashers.PBKDF2PasswordHasher"]
-
 # pytest-django creates this file (not an in-memory DB), or this database on PostgreSQL, under the
 # name the URL gives: other processes share it.
 DATABASES["default"]["TEST"] = {"NAME": DATABASES["default"]["NAME"]}
