@@ -14,6 +14,7 @@ import asyncio
 import logging
 import time
 from datetime import datetime, timezone
+from typing import Awaitable, Callable
 
 from ros_gateway.groups import GroupRunner, Run
 from ros_gateway.registry import LiveNode, NodeRegistry
@@ -30,8 +31,11 @@ ENFORCE = "enforce"
 
 
 class DesiredKeeper:
-    def __init__(self, runner: GroupRunner, registry: NodeRegistry) -> None:
+    def __init__(self, runner: GroupRunner, registry: NodeRegistry,
+                 read_state: Callable[[LiveNode], Awaitable[bool | None]] | None = None) -> None:
         self.runner, self.registry, self.outbox = runner, registry, runner.outbox
+        # Discovery's read of a node's state into the registry (True: read).
+        self.read_state = read_state
         self.undone: dict[str, list[float]] = {}  # node key -> when its changes were undone (monotonic)
         # Left alone after a fight -> the site's "resumed" for it then: a later one resumes keeping it.
         self.stopped: dict[str, str] = {}
@@ -75,8 +79,11 @@ class DesiredKeeper:
             await asyncio.sleep(GRACE_S)
             keep, desired = self._keep(node)
             target = sm.DESIRED_STATES.get(desired)
-            if (keep != ENFORCE or target is None or not node.alive or node.in_transition
-                    or node.state_id == target or not sm.is_primary(node.state_id) or node.state_id == sm.FINALIZED):
+            if keep != ENFORCE or target is None or not node.alive or node.in_transition:
+                return
+            if node.state_id == target and not await self._elsewhere_after_all(node, target):
+                return
+            if not sm.is_primary(node.state_id) or node.state_id == sm.FINALIZED:
                 return
             now = time.monotonic()
             recent = [t for t in self.undone.get(node.key, []) if now - t < FIGHT_WINDOW_S]
@@ -97,6 +104,15 @@ class DesiredKeeper:
             if node.key in self.missed:  # another tool moved it while this one was undone
                 self.missed.discard(node.key)
                 self.on_external(node)
+
+    async def _elsewhere_after_all(self, node: LiveNode, target: int) -> bool:
+        """Whether the node, in ``target`` as far as the registry knows, is elsewhere: the reply to
+        our own last undo, handled after the other tool's next transition events, puts back the
+        state that undo left (seen once under load: the node stayed as the other tool left it,
+        neither undone nor given up). Read from the node."""
+        if self.read_state is None or not await self.read_state(node):
+            return False
+        return node.state_id != target
 
     def _stop(self, node: LiveNode, changes: int, changed_at: datetime) -> None:
         self.stopped[node.key] = self._resumed(node)

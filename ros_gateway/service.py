@@ -86,7 +86,7 @@ class Gateway:
         self.driver = NodeDriver(core, self.logs)
         self.runs = GroupRunner(core, self.driver, self.params)
         self.recovery = Recovery(self.runs)
-        self.keeper = DesiredKeeper(self.runs, self.registry)  # desired states kept against other tools
+        self.keeper = DesiredKeeper(self.runs, self.registry, self.discovery.read_state)  # kept against other tools
         self.rates = TopicRates(self.registry, self.domains, self.outbox)  # for the modes' readiness
         self.diagnostics = Diagnostics(self.registry, self.domains, self.outbox)  # the robots' /diagnostics
         self.discovery.on_external = self.keeper.on_external

@@ -150,3 +150,31 @@ def test_a_change_made_while_the_last_one_was_being_undone_is_not_lost(kept):
 
     asyncio.run(main())
     assert len(runner.runs) >= 2  # the second change was undone too (and so on, up to the fight limit)
+
+
+def test_a_state_put_back_by_a_late_reply_is_read_from_the_node(kept):
+    """The reply to the gateway's own undo, handled after the other tool's next transition events,
+    leaves the registry saying "inactive" while the node is active (seen once under load): the
+    node's state is read before the keeper decides there is nothing to undo."""
+    keeper, runner, node, _ = kept
+    really = {"state": sm.ACTIVE}
+    reads: list[str] = []
+
+    async def read_state(read_node: LiveNode) -> bool:
+        reads.append(read_node.name)
+        read_node.state_id = really["state"]
+        return True
+
+    keeper.read_state = read_state
+
+    async def main() -> None:
+        node.state_id = sm.INACTIVE  # what the late reply put back
+        keeper.on_external(node)
+        for _ in range(10):
+            await asyncio.sleep(0)
+
+    asyncio.run(main())
+    assert reads == ["/camera"] and runner.runs == [("/camera", sm.INACTIVE)]
+    really["state"] = sm.INACTIVE  # really in its desired state: left alone, not counted
+    asyncio.run(main())
+    assert reads == ["/camera"] * 2 and len(runner.runs) == 1 and len(keeper.undone[node.key]) == 1
