@@ -21,12 +21,21 @@
   // such a code by itself: the page does, the same way.
   var LINK_LOST = 4503;
   var linkRetries = 0;
+  // A page on its way elsewhere is not reloaded when its socket closes: Log out posts a form
+  // whose answer sends the browser on to the sign-in provider's logout page, and the session's
+  // end closes the socket meanwhile; a reload then won over that navigation (the provider's
+  // session stayed). Reset after a while, in case the navigation did not happen after all.
+  var leaving = false;
+  window.addEventListener("beforeunload", function () {
+    leaving = true;
+    setTimeout(function () { leaving = false; }, 10000);
+  });
   document.addEventListener("htmx:wsClose", function (e) {
     var event = e.detail && e.detail.event;
     var code = event ? event.code : 0;
     // Logged out, deactivated (4401) or no longer allowed to view (4403): the page itself
     // says what now (the login form, or the no-role page).
-    if (code === 4401 || code === 4403) { window.location.reload(); return; }
+    if (code === 4401 || code === 4403) { if (!leaving) window.location.reload(); return; }
     if (code === LINK_LOST) {
       banner(true, gettext("The site has lost its link to Redis; reconnecting when it is back…"));
       var socket = e.detail.socketWrapper;
