@@ -21,6 +21,7 @@ from lifecycle_site.fleet.models import Gateway, GroupRun, ManagedNode
 from lifecycle_site.gateway_link import gateways
 from lifecycle_site.modes import drift, readiness
 from lifecycle_site.modes.models import CurrentMode
+from ros_gateway.shared import operations
 
 # Seconds; a lifecycle transition takes milliseconds to a node's own timeout (at most 25 s here).
 DURATION_BUCKETS_S = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
@@ -134,8 +135,11 @@ class FleetCollector(Collector):
         ended = CounterMetricFamily("lifecycle_group_runs_ended", "Group runs ended, by operation and verdict.",
                                     labels=["operation", "status"])
         rows = GroupRun.objects.filter(status__in=GroupRun.ENDED).values("operation", "status").annotate(n=Count("id"))
-        for row in rows.order_by("operation", "status"):
-            ended.add_metric([row["operation"], row["status"]], row["n"])
+        counts = {(row["operation"], row["status"]): row["n"] for row in rows.order_by()}
+        # Every operation and verdict, 0 until one ends so (a series that appears late hides its first increase).
+        for operation in sorted({name for name, _ in operations.choices()} | {op for op, _ in counts}):
+            for status in GroupRun.ENDED:
+                ended.add_metric([operation, status], counts.get((operation, status), 0))
         yield ended
 
     @staticmethod

@@ -112,7 +112,7 @@ def test_metrics_count_nodes_gateways_and_transitions(fleet, client: Client, set
     samples = metrics(client.get("/metrics").content.decode())
     assert samples[("lifecycle_group_runs_ended_total", (("operation", "bringup"), ("status", "succeeded")))] == 2
     assert samples[("lifecycle_group_runs_ended_total", (("operation", "restart"), ("status", "partial")))] == 1
-    assert ("lifecycle_group_runs_ended_total", (("operation", "shutdown"), ("status", "running"))) not in samples
+    assert samples[("lifecycle_group_runs_ended_total", (("operation", "shutdown"), ("status", "failed")))] == 0
     assert samples[("lifecycle_group_runs_active", (("status", "running"),))] == 1
 
 
