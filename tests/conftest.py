@@ -191,18 +191,21 @@ def make_user(username: str, role: str | None):
     return user
 
 
+def client_of(username: str, role: str | None) -> Client:
+    """A test client of the site (this test process) logged in as ``username`` with ``role``."""
+    client = Client()
+    client.force_login(make_user(username, role))
+    return client
+
+
 @pytest.fixture
 def operator_client(db) -> Client:
-    client = Client()
-    client.force_login(make_user("olga-operator", "operator"))
-    return client
+    return client_of("olga-operator", "operator")
 
 
 @pytest.fixture
 def viewer_client(db) -> Client:
-    client = Client()
-    client.force_login(make_user("victor-viewer", "viewer"))
-    return client
+    return client_of("victor-viewer", "viewer")
 
 
 @pytest.fixture(scope="module")
@@ -220,6 +223,4 @@ def gateway(redis_server, live_db, ingest):
 @pytest.fixture(scope="module")
 def api(live_db) -> Client:
     """A logged-in operator's test client of the site (this test process)."""
-    client = Client()
-    client.force_login(make_user("ivan-operator", "operator"))
-    return client
+    return client_of("ivan-operator", "operator")

@@ -7,14 +7,13 @@ import sys
 
 import pytest
 import yaml
-from django.test import Client
 from django.utils import timezone
 
 from lifecycle_site.audit.models import ParameterRecord, TransitionRecord
 from lifecycle_site.fleet.models import ManagedNode, Robot
 from lifecycle_site.fleet.param_files import diff, load
 from tests import stack
-from tests.conftest import make_user
+from tests.conftest import client_of
 from tests.integration.conftest import register, transition, wait_node
 
 ROBOT = "it-ops"
@@ -38,9 +37,8 @@ def ops(gateway):
     # it has matched the client's reader ("failed to send response (timeout)" in its log; seen under
     # load). The gateway then says so, truthfully (no answer in time, the state read again), but the
     # runs below assert the failing node's own reason: its change_state path is used once first.
-    warm = Client()
-    warm.force_login(make_user("ivan-operator", "operator"))
-    transition(warm, f"{ROBOT}.bad.flaky_node", "configure")  # fails, as this node's configure always does
+    # (It fails, as this node's configure always does.)
+    transition(client_of("ivan-operator", "operator"), f"{ROBOT}.bad.flaky_node", "configure")
     wait_node(None, f"{ROBOT}.bad.flaky_node", alive=True, state="unconfigured")
     yield processes
     for process in processes.values():
