@@ -76,6 +76,7 @@ class NodeDriver:
                           vouching: dict, by_reply: bool) -> Driven:
         domain = self.domains[node.robot.domain_id]
         requested_at = datetime.now(timezone.utc)
+        foreign_before = node.tracker.foreign
         # A command of the site carries its grant, and the record the request's id (protocol.vouching).
         audit = dict(robot=node.robot.name, node=node.name, source=source, user_id=user_id, run_id=run_id,
                      requested_at=requested_at.isoformat(), **vouching)
@@ -103,14 +104,17 @@ class NodeDriver:
         if result.outcome in ("failed", protocol.PROCESS_LOST):
             result.message = await self._with_reason(node, requested_at, result.message)
         if result.result_state is not None:
-            change = self.registry.set_state(node, result.result_state)
+            # Another tool's transition seen meanwhile (its events handled before this reply) is
+            # newer than what our request left: the node's state stays as its events told.
+            overtaken = node.tracker.foreign != foreign_before and node.state_id is not None
+            change = None if overtaken else self.registry.set_state(node, result.result_state)
             state_fact = change.fact if change is not None else None
             if state_fact is None and by_reply:
                 # A reply carries the state even when a transition event reported it first, so that
                 # the site's record of the node is right before the requester hears back. A run's
                 # step has nobody waiting: the event's fact, in the stream before this, is enough.
                 state_fact = self.outbox.emit(protocol.NODE_STATE, robot=node.robot.name, node=node.name,
-                                              state_id=result.result_state)
+                                              state_id=node.state_id if overtaken else result.result_state)
             if state_fact is not None:
                 facts.append(state_fact)
         transition = result.transition

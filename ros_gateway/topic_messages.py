@@ -37,6 +37,9 @@ class TransitionTracker:
     commanded: int | None = None
     # Transition id of our last request whose reply has already set the node's state.
     settled: int | None = None
+    # Transitions seen begin (or only end) that were not ours: a reply handled after one of
+    # them must not put the node's state back to what our request left it in (NodeDriver).
+    foreign: int = 0
     _begun: tuple[sm.Transition, int, datetime, bool] | None = field(default=None, repr=False)
 
     def observe(self, start_state: int, goal_state: int, transition_id: int) -> tuple[Completed | None, bool]:
@@ -52,6 +55,8 @@ class TransitionTracker:
             late = ours and self.settled == transition.id
             if ours:
                 self.commanded = self.settled = None
+            else:
+                self.foreign += 1
             self._begun = (transition, start_state, now, ours) if transition else None
             return None, not late
         if not sm.is_primary(goal_state):
@@ -59,6 +64,7 @@ class TransitionTracker:
         begun, self._begun = self._begun, None
         if begun is None:
             # We missed the beginning (subscribed mid-transition): record what we know.
+            self.foreign += 1
             return Completed(None, None, goal_state, now, now, "observed"), True
         transition, start, started_at, ours = begun
         if ours:

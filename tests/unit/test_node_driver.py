@@ -5,6 +5,7 @@ which nobody waits on, does not report that state a second time."""
 from __future__ import annotations
 
 import asyncio
+import itertools
 import threading
 
 import pytest
@@ -21,6 +22,20 @@ from ros_gateway.shared import state_machine as sm
 from tests import stack
 
 DOMAIN_OFFSET = 3
+# Each test's node has a name of its own: a client made for a name whose previous node (the
+# test before, same domain) has just gone may see its first change_state go unanswered.
+_node_numbers = itertools.count(1)
+
+
+class DrivenNode(LifecycleNode):
+    """A lifecycle node that calls ``during`` (if set) inside its configure callback."""
+
+    during = None
+
+    def on_configure(self, state):
+        if self.during is not None:
+            self.during()
+        return super().on_configure(state)
 
 
 class Outbox:
@@ -44,7 +59,8 @@ def driven(gateway_environ):
     domain_id = stack.domain(DOMAIN_OFFSET)
     context = rclpy.Context()
     rclpy.init(context=context, domain_id=domain_id)
-    ros_node = LifecycleNode("driven_node", context=context)
+    name = f"driven_node_{next(_node_numbers)}"
+    ros_node = DrivenNode(name, context=context)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(ros_node)
     thread = threading.Thread(target=executor.spin, daemon=True)
@@ -55,11 +71,11 @@ def driven(gateway_environ):
     outbox = Outbox()
     registry = NodeRegistry(StateChanges(report=lambda change: outbox.emit(
         protocol.NODE_STATE, robot=change.node.robot.name, node=change.node.name, state_id=change.state_id)))
-    node = LiveNode(robot=RobotInfo(1, "agv", domain_id, ""), name="/driven_node", alive=True)
+    node = LiveNode(robot=RobotInfo(1, "agv", domain_id, ""), name=f"/{name}", alive=True)
     registry.nodes[(domain_id, node.name)] = node
     driver = NodeDriver(Core(registry, {domain_id: domain}, outbox, None, 5.0), logs=None)
     try:
-        yield driver, registry, node, outbox, loop
+        yield driver, registry, node, outbox, loop, ros_node
     finally:
         domain.stop()
         loop.close()
@@ -82,7 +98,7 @@ def states(outbox: Outbox) -> list[int]:
 
 
 def test_a_reply_carries_the_state_an_event_reported_first_and_a_runs_step_does_not_repeat_it(driven):
-    driver, registry, node, outbox, loop = driven
+    driver, registry, node, outbox, loop, _ = driven
     registry.set_state(node, sm.INACTIVE)  # the configure's transition event came before its answer
     before = len(outbox.facts)
     result = transition(driver, node, loop, "configure", sm.UNCONFIGURED, by_reply=True)
@@ -100,3 +116,25 @@ def test_a_reply_carries_the_state_an_event_reported_first_and_a_runs_step_does_
     result = transition(driver, node, loop, "deactivate", sm.ACTIVE, by_reply=False)
     assert [(fact["type"], fact.get("state_id")) for fact in outbox.facts[before:]] == [
         (protocol.NODE_STATE, sm.INACTIVE), (protocol.TRANSITION, None)]
+
+
+def test_a_reply_handled_after_another_tools_transition_leaves_the_state_its_events_told(driven):
+    """The reply to our configure is handled after the events of another tool's activate (the
+    keeper undoing a rival manager saw this): the node stays active, as its events said, in the
+    registry and in the state the reply carries; the record still says what configure did."""
+    driver, registry, node, outbox, loop, ros_node = driven
+    registry.set_state(node, sm.UNCONFIGURED)
+
+    def rival_activates() -> None:  # handed over to the gateway's loop, as discovery does events
+        for start, goal in ((sm.INACTIVE, sm.ACTIVATING), (sm.ACTIVATING, sm.ACTIVE)):
+            _, news = node.tracker.observe(start, goal, 0)
+            if news:
+                registry.set_state(node, goal)
+
+    ros_node.during = lambda: loop.call_soon_threadsafe(rival_activates)
+    result = transition(driver, node, loop, "configure", sm.UNCONFIGURED, by_reply=True)
+    assert result.result.outcome == "succeeded" and result.record["result_state"] == sm.INACTIVE
+    assert node.state_id == sm.ACTIVE
+    assert [(fact["type"], fact.get("state_id")) for fact in result.facts] == [
+        (protocol.NODE_STATE, sm.ACTIVE), (protocol.TRANSITION, None)]
+    assert states(outbox)[-1] == sm.ACTIVE

@@ -29,6 +29,17 @@ def test_transitions_the_gateway_sent_are_not_reported_as_external():
     assert tracker.observe(sm.ACTIVATING, sm.ACTIVE, 0)[0].outcome == "succeeded"
 
 
+def test_transitions_of_others_are_counted_and_ours_are_not():
+    tracker = TransitionTracker(commanded=sm.CONFIGURE)
+    tracker.observe(sm.UNCONFIGURED, sm.CONFIGURING, 0)
+    tracker.observe(sm.CONFIGURING, sm.INACTIVE, 0)
+    assert tracker.foreign == 0
+    tracker.observe(sm.INACTIVE, sm.ACTIVATING, 0)  # another tool's activate
+    tracker.observe(sm.ACTIVATING, sm.ACTIVE, 0)
+    tracker.observe(sm.DEACTIVATING, sm.INACTIVE, 0)  # only the end of one seen
+    assert tracker.foreign == 2
+
+
 def test_missed_beginning_is_recorded_as_observed():
     done, news = TransitionTracker().observe(sm.CONFIGURING, sm.INACTIVE, 0)
     assert done.outcome == "observed" and done.transition is None and news
