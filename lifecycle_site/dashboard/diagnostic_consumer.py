@@ -35,7 +35,7 @@ class DiagnosticsConsumer(GatheredDraws, LiveConsumer):
 
     async def draw(self) -> None:
         def render() -> tuple[list[tuple[str, str]], str, str]:
-            context = tree_context(self.robot)
+            context = {**tree_context(self.robot), "can_operate": self.can_operate}
             with script_prefix(self.prefix):
                 rows = [(row["id"], render_to_string("dashboard/_diagnostic_row.html", {**context, "row": row,
                                                                                            "oob": True}))

@@ -55,7 +55,7 @@ def tree_context(robot: Robot) -> dict:
         })
     intake = Intake.objects.filter(robot=robot).first()
     return {"robot": robot, "rows": rows, "counts": tree.counts(statuses), "intake": intake,
-            "symbols": SYMBOLS}
+            "symbols": SYMBOLS, "not_heard": sum(1 for status in statuses if status.stale)}
 
 
 @viewer_required
@@ -79,7 +79,8 @@ def forget_stale(request: HttpRequest, robot: str) -> HttpResponse:
     LevelChange.objects.filter(robot=robot_obj, name__in=names).delete()
     log.info("%s forgot %d stale diagnostic status(es) of %s: %s", request.user.get_username(), len(names),
              robot_obj.name, ", ".join(names[:20]))
-    return render(request, "dashboard/_diagnostic_forgotten.html", {**tree_context(robot_obj), "forgotten": names})
+    return render(request, "dashboard/_diagnostic_forgotten.html", {**tree_context(robot_obj), "forgotten": names,
+                                                                    "can_operate": True})
 
 
 @viewer_required

@@ -81,3 +81,14 @@ def test_an_operator_forgets_stale_statuses_a_viewer_may_not(robot, operator_cli
     assert list(Status.objects.filter(robot=robot).values_list("name", flat=True)) == ["alive: driver"]
     assert not LevelChange.objects.filter(robot=robot, name="gone: driver").exists()
     assert operator_client.get(url).status_code == 405
+
+
+def test_the_forget_button_shows_for_an_operator_while_a_status_is_stale(robot, operator_client, viewer_client):
+    page = f"/robots/{robot.name}/diagnostics/"
+    status(robot, "alive: driver")
+    assert "Forget" not in operator_client.get(page).content.decode()
+    status(robot, "gone: driver", stale=True)
+    status(robot, "gone: camera", stale=True)
+    status(robot, "reported stale: imu", STALE)  # a node's own STALE level is not forgotten
+    assert "Forget 2 stale statuses" in operator_client.get(page).content.decode()
+    assert "Forget" not in viewer_client.get(page).content.decode()
