@@ -144,8 +144,10 @@ if LDAP_ON:
     AUTHENTICATION_BACKENDS.append("lifecycle_site.sign_in.ldap.Backend")
 if OIDC_ON:
     AUTHENTICATION_BACKENDS.append("lifecycle_site.sign_in.oidc.Backend")
-    if OIDC_OP_END_SESSION_URL:  # noqa: F821 (set just above): Log out (a form) redirects there
-        CONTENT_SECURITY_POLICY["DIRECTIVES"]["form-action"].append(sign_in_config.origin(OIDC_OP_END_SESSION_URL))  # noqa: F821
+    # Log out (a form) redirects to the provider's logout: as set, else the discovered one on the issuer's origin.
+    if OIDC_OP_END_SESSION_URL or OIDC_OP_ISSUER:  # noqa: F821 (set just above)
+        CONTENT_SECURITY_POLICY["DIRECTIVES"]["form-action"].append(
+            sign_in_config.origin(OIDC_OP_END_SESSION_URL or OIDC_OP_ISSUER))  # noqa: F821
 AXES_FAILURE_LIMIT = env.whole("LIFECYCLE_LOGIN_FAILURES", 5, minimum=1, unit="failed logins")
 AXES_COOLOFF_TIME = timedelta(minutes=env.number("LIFECYCLE_LOGIN_LOCKOUT_MINUTES", 15, above=0, unit="minutes"))
 AXES_LOCKOUT_PARAMETERS = ["username", "ip_address"]

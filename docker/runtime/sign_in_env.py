@@ -21,6 +21,7 @@ LDAP_CA_FILE = Path(os.environ.get("LIFECYCLE_CONFIG_LDAP_CA_FILE", "/tmp/lifecy
 OIDC_KEYS = {
     "clientId": "LIFECYCLE_OIDC_CLIENT_ID",
     "clientSecret": "LIFECYCLE_OIDC_CLIENT_SECRET",
+    "issuerUrl": "LIFECYCLE_OIDC_ISSUER",
     "authorizationUrl": "LIFECYCLE_OIDC_AUTHORIZATION_URL",
     "tokenUrl": "LIFECYCLE_OIDC_TOKEN_URL",
     "userinfoUrl": "LIFECYCLE_OIDC_USERINFO_URL",
@@ -39,7 +40,7 @@ LDAP_KEYS = {
     "bindUser": "LIFECYCLE_LDAP_BIND_USER",
     "bindPassword": "LIFECYCLE_LDAP_BIND_PASSWORD",
 }
-OIDC_URL_KEYS = ("authorizationUrl", "tokenUrl", "userinfoUrl", "jwksUrl", "logoutUrl")
+OIDC_URL_KEYS = ("issuerUrl", "authorizationUrl", "tokenUrl", "userinfoUrl", "jwksUrl", "logoutUrl")
 
 
 def sign_in_env(config: dict, write_files: bool = False) -> dict[str, str]:
@@ -67,8 +68,15 @@ def sign_in_env(config: dict, write_files: bool = False) -> dict[str, str]:
     if hours not in (None, ""):
         env["LIFECYCLE_DIRECTORY_SESSION_HOURS"] = _session_hours(hours)
     if env.get("LIFECYCLE_OIDC_CLIENT_ID"):
-        _needed(env, OIDC_KEYS, "signIn.oidc", "clientId",
-                ("clientSecret", "authorizationUrl", "tokenUrl", "userinfoUrl", "jwksUrl", "roles"))
+        # The issuer stands for the four endpoints (read from its discovery document).
+        by_issuer = env.get(OIDC_KEYS["issuerUrl"]) or os.environ.get(OIDC_KEYS["issuerUrl"], "").strip()
+        _needed(env, OIDC_KEYS, "signIn.oidc", "clientId", ("clientSecret", "roles"))
+        if not by_issuer:
+            try:
+                _needed(env, OIDC_KEYS, "signIn.oidc", "clientId", ("authorizationUrl", "tokenUrl", "userinfoUrl",
+                                                                    "jwksUrl"))
+            except ConfigError as exc:
+                raise ConfigError(f"{exc}, or signIn.oidc.issuerUrl instead of the four endpoints") from None
     if env.get("LIFECYCLE_LDAP_URL"):
         _needed(env, LDAP_KEYS, "signIn.ldap", "url", ("userBase", "roles"))
     certificates = []

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping
+from urllib.parse import urlsplit
 
 from ros_gateway.shared import environment as env
 from ros_gateway.shared.environment import SettingError
@@ -41,13 +42,18 @@ def oidc_settings(environ: Mapping[str, str] | None = None) -> dict:
     """mozilla-django-oidc's settings, or {} when LIFECYCLE_OIDC_CLIENT_ID is not set."""
     if not env.text("LIFECYCLE_OIDC_CLIENT_ID", "", environ):
         return {}
-    _required(["LIFECYCLE_OIDC_CLIENT_SECRET", "LIFECYCLE_OIDC_AUTHORIZATION_URL", "LIFECYCLE_OIDC_TOKEN_URL",
-               "LIFECYCLE_OIDC_USERINFO_URL", "LIFECYCLE_OIDC_JWKS_URL", "LIFECYCLE_OIDC_ROLES"],
-              "Sign-in with OIDC (LIFECYCLE_OIDC_CLIENT_ID is set)", environ)
+    issuer = _issuer(environ)
+    endpoints = [] if issuer else ["LIFECYCLE_OIDC_AUTHORIZATION_URL", "LIFECYCLE_OIDC_TOKEN_URL",
+                                   "LIFECYCLE_OIDC_USERINFO_URL", "LIFECYCLE_OIDC_JWKS_URL"]
+    _required(["LIFECYCLE_OIDC_CLIENT_SECRET", *endpoints, "LIFECYCLE_OIDC_ROLES"],
+              "Sign-in with OIDC (LIFECYCLE_OIDC_CLIENT_ID is set)" + (
+                  "" if issuer else " without LIFECYCLE_OIDC_ISSUER (whose discovery document names the endpoints)"),
+              environ)
     ca_file = env.text("LIFECYCLE_OIDC_CA_FILE", "", environ)
     return {
         "OIDC_RP_CLIENT_ID": env.text("LIFECYCLE_OIDC_CLIENT_ID", "", environ),
         "OIDC_RP_CLIENT_SECRET": env.text("LIFECYCLE_OIDC_CLIENT_SECRET", "", environ),
+        "OIDC_OP_ISSUER": issuer,  # endpoints not set are read from its discovery document (sign_in.discovery)
         "OIDC_OP_AUTHORIZATION_ENDPOINT": env.text("LIFECYCLE_OIDC_AUTHORIZATION_URL", "", environ),
         "OIDC_OP_TOKEN_ENDPOINT": env.text("LIFECYCLE_OIDC_TOKEN_URL", "", environ),
         "OIDC_OP_USER_ENDPOINT": env.text("LIFECYCLE_OIDC_USERINFO_URL", "", environ),
@@ -64,6 +70,18 @@ def oidc_settings(environ: Mapping[str, str] | None = None) -> dict:
         "LIFECYCLE_OIDC_ROLES": role_mapping("LIFECYCLE_OIDC_ROLES", environ),
         "LIFECYCLE_OIDC_NAME": env.text("LIFECYCLE_OIDC_NAME", "", environ),  # "": "company account", translated
     }
+
+
+def _issuer(environ: Mapping[str, str] | None) -> str:
+    """LIFECYCLE_OIDC_ISSUER without a trailing slash ("" when not set), an http(s) URL."""
+    raw = env.text("LIFECYCLE_OIDC_ISSUER", "", environ).strip()
+    if not raw:
+        return ""
+    parts = urlsplit(raw)
+    if parts.scheme not in ("http", "https") or not parts.netloc or parts.query or parts.fragment:
+        raise SettingError(f"LIFECYCLE_OIDC_ISSUER={raw!r}: expected the provider's issuer, an https URL without a "
+                           "query, e.g. https://login.example.com/realms/plant")
+    return raw.rstrip("/")
 
 
 def ldap_settings(environ: Mapping[str, str] | None = None) -> dict:
@@ -132,7 +150,5 @@ def directory_session_hours(environ: Mapping[str, str] | None = None) -> float:
 
 def origin(url: str) -> str:
     """``https://idp.plant:8443/realms/x/logout`` -> ``https://idp.plant:8443`` (for a CSP source)."""
-    from urllib.parse import urlsplit
-
     parts = urlsplit(url)
     return f"{parts.scheme}://{parts.netloc}"

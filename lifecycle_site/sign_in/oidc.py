@@ -6,7 +6,8 @@ flow with PKCE and nonce). What this module adds:
 - the role comes from the groups claim (ID token or userinfo) at every sign-in; none mapped,
   no login;
 - every failure of the provider (unreachable, refusing, answering nonsense) is a refusal in
-  words on the login page and on record, never an error page.
+  words on the login page and on record, never an error page;
+- endpoints not set one by one come from the provider's discovery document (sign_in.discovery).
 """
 from __future__ import annotations
 
@@ -23,7 +24,7 @@ from django.shortcuts import redirect
 from mozilla_django_oidc.auth import OIDCAuthenticationBackend
 from mozilla_django_oidc.views import OIDCAuthenticationCallbackView, OIDCAuthenticationRequestView
 
-from lifecycle_site.sign_in import accounts, problems
+from lifecycle_site.sign_in import accounts, discovery, problems
 from lifecycle_site.sign_in.models import DirectoryAccount
 
 log = logging.getLogger("lifecycle.sign_in")
@@ -50,6 +51,14 @@ class Backend(OIDCAuthenticationBackend):
     def authenticate(self, request, **kwargs):
         if request is None or "code" not in request.GET:
             return None  # a password login: not ours
+        try:
+            found = discovery.endpoints()
+        except discovery.DiscoveryFailed as failed:
+            problems.note(request, failed.problem)
+            return None
+        self.OIDC_OP_TOKEN_ENDPOINT = found["OIDC_OP_TOKEN_ENDPOINT"]
+        self.OIDC_OP_USER_ENDPOINT = found["OIDC_OP_USER_ENDPOINT"]
+        self.OIDC_OP_JWKS_ENDPOINT = found["OIDC_OP_JWKS_ENDPOINT"]
         try:
             with transaction.atomic():
                 user = super().authenticate(request, **kwargs)
@@ -142,28 +151,45 @@ class CallbackView(OIDCAuthenticationCallbackView):
             return self.login_failure()
 
     def login_failure(self):
-        request = self.request
-        problem = problems.noted(request)
-        if problem is None:
-            if getattr(request, "axes_locked_out", False):
-                problem = problems.BLOCKED
-            elif request.GET.get("error"):  # the user declined, or the provider refused
-                problem = problems.PROVIDER_REFUSED
-            else:
-                problem = problems.SIGN_IN_EXPIRED
-        if not hasattr(self, "user"):  # authenticate() was not reached, so no user_login_failed recorded it
-            from lifecycle_site.audit import denials
+        return refused(self.request, hasattr(self, "user"))
 
-            denials.record(request, 401, "login_failed", problem.summary)
-        request.session[problems.SESSION_KEY] = problem.code
-        return redirect(settings.LOGIN_URL)
+
+class StartView(OIDCAuthenticationRequestView):
+    """To the provider's authorization endpoint (as set, or from its discovery document)."""
+
+    def get(self, request):
+        try:
+            self.OIDC_OP_AUTH_ENDPOINT = discovery.endpoints()["OIDC_OP_AUTHORIZATION_ENDPOINT"]
+        except discovery.DiscoveryFailed as failed:
+            problems.note(request, failed.problem)
+            return refused(request, recorded=False)
+        return super().get(request)
+
+
+def refused(request: HttpRequest, recorded: bool) -> HttpResponse:
+    """Back to the login page, which says why. ``recorded``: authenticate() ran, so its
+    user_login_failed put the refusal on record already."""
+    problem = problems.noted(request)
+    if problem is None:
+        if getattr(request, "axes_locked_out", False):
+            problem = problems.BLOCKED
+        elif request.GET.get("error"):  # the user declined, or the provider refused
+            problem = problems.PROVIDER_REFUSED
+        else:
+            problem = problems.SIGN_IN_EXPIRED
+    if not recorded:
+        from lifecycle_site.audit import denials
+
+        denials.record(request, 401, "login_failed", problem.summary)
+    request.session[problems.SESSION_KEY] = problem.code
+    return redirect(settings.LOGIN_URL)
 
 
 def start(request: HttpRequest) -> HttpResponse:
     """GET /oidc/authenticate/: to the provider, with state, nonce and the PKCE challenge."""
     if not settings.OIDC_ON:
         raise Http404("Sign-in with OpenID Connect is not configured on this site.")
-    return OIDCAuthenticationRequestView.as_view()(request)
+    return StartView.as_view()(request)
 
 
 def callback(request: HttpRequest) -> HttpResponse:

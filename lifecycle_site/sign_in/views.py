@@ -11,7 +11,7 @@ from django.shortcuts import resolve_url
 from django.utils.translation import gettext as _
 
 from lifecycle_site.login_form import LoginForm
-from lifecycle_site.sign_in import problems
+from lifecycle_site.sign_in import discovery, problems
 
 
 class Login(auth_views.LoginView):
@@ -32,8 +32,10 @@ class Logout(auth_views.LogoutView):
     def post(self, request, *args, **kwargs):
         id_token = request.session.get("oidc_id_token")
         response = super().post(request, *args, **kwargs)
-        end_session = getattr(settings, "OIDC_OP_END_SESSION_URL", "")
-        if not (id_token and end_session):
+        if not id_token:
+            return response
+        end_session = discovery.end_session_url()
+        if not end_session:
             return response
         back = request.build_absolute_uri(resolve_url(settings.LOGOUT_REDIRECT_URL))
         query = urlencode({"id_token_hint": id_token, "post_logout_redirect_uri": back,

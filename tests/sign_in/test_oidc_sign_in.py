@@ -4,16 +4,22 @@ browser's part (following redirects, choosing the user on the provider's page) i
 requests and Django's test client; tests/browser/test_company_sign_in.py plays it in Chromium."""
 from __future__ import annotations
 
+import json
+import socket
+import threading
 import time
+from contextlib import contextmanager
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from urllib.parse import parse_qs, urlsplit
 
 import pytest
 import requests
 from django.contrib.auth import get_user_model
 from django.test import Client, override_settings
+from django.utils.html import escape
 
 from lifecycle_site.audit.models import AccessDenial
-from lifecycle_site.sign_in import config, problems
+from lifecycle_site.sign_in import config, discovery, problems
 from lifecycle_site.sign_in.models import DirectoryAccount
 from tests.conftest import make_user
 from tests.sign_in.oidc_provider import Provider, start_provider
@@ -86,8 +92,9 @@ def sign_in(client: Client, sub: str):
 def login_page_says(client: Client, answer, problem: problems.Problem) -> None:
     assert answer.status_code == 302 and answer["Location"] == "/login/", answer
     page = client.get("/login/")
-    assert f'data-problem="{problem.code}"' in page.text and str(problem.words) in page.text, page.text
-    assert str(problem.words) not in client.get("/login/").text  # said once, not on every later visit
+    words = escape(str(problem.words))  # (as the page writes them: "site's" is "site&#x27;s")
+    assert f'data-problem="{problem.code}"' in page.text and words in page.text, page.text
+    assert words not in client.get("/login/").text  # said once, not on every later visit
 
 
 @pytest.mark.django_db
@@ -199,3 +206,100 @@ def test_axes_blocks_the_provider_path_too(site_settings, settings):
     assert answer.status_code == 429 and "Login blocked for now" in answer.text
     assert not DirectoryAccount.objects.filter(subject="u-1001").exists()
     assert AccessDenial.objects.order_by("-id").first().code == "login_blocked"
+
+
+@contextmanager
+def serving_documents():
+    """A web server on 127.0.0.1 whose discovery URL answers the next of ``documents`` (a dict as
+    JSON, bytes as they are, None: 404); yields (its issuer URL, documents)."""
+    documents: list = []
+
+    class Handler(BaseHTTPRequestHandler):
+        def do_GET(self):  # noqa: N802 (http.server's name)
+            document = documents.pop(0) if documents else None
+            if document is None or self.path != discovery.WELL_KNOWN:
+                self.send_error(404)
+                return
+            body = document if isinstance(document, bytes) else json.dumps(document).encode()
+            self.send_response(200)
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *args):
+            pass
+
+    server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{server.server_address[1]}", documents
+    finally:
+        server.shutdown()
+        server.server_close()
+        thread.join(5)
+
+
+@pytest.fixture
+def by_issuer(provider, site_settings):
+    """The same client, configured by the provider's issuer alone (its discovery document names the
+    endpoints); ``use(issuer)`` switches to another issuer."""
+    def use(issuer: str) -> None:
+        oidc = config.oidc_settings({
+            "LIFECYCLE_OIDC_CLIENT_ID": site_settings["OIDC_RP_CLIENT_ID"],
+            "LIFECYCLE_OIDC_CLIENT_SECRET": site_settings["OIDC_RP_CLIENT_SECRET"],
+            "LIFECYCLE_OIDC_ISSUER": issuer, "LIFECYCLE_OIDC_ROLES": ROLES, "LIFECYCLE_OIDC_TIMEOUT": str(TIMEOUT_S)})
+        overridden = override_settings(**oidc)
+        overridden.enable()
+        undo.append(overridden)
+        discovery.forget()
+
+    undo: list = []
+    try:
+        yield use
+    finally:
+        for overridden in reversed(undo):
+            overridden.disable()
+        discovery.forget()
+
+
+@pytest.mark.django_db
+def test_with_the_issuer_alone_the_endpoints_come_from_its_discovery_document(by_issuer, provider):
+    by_issuer(provider.issuer + "/")  # (as often copied, with a trailing slash)
+    client = Client()
+    answer = sign_in(client, "u-1001")
+    assert answer.status_code == 302 and answer["Location"] == "/", answer
+    user = get_user_model().objects.get(directory_account__subject="u-1001")
+    assert list(user.groups.values_list("name", flat=True)) == ["operator"]
+    location = urlsplit(client.post("/logout/")["Location"])  # the discovered end-session endpoint
+    assert f"{location.scheme}://{location.netloc}{location.path}" == provider.endpoints()["end_session_endpoint"]
+
+
+@pytest.mark.django_db
+def test_a_wrong_or_unreachable_issuer_is_a_refusal_in_words_and_on_record(by_issuer, provider):
+    client = Client()
+    with serving_documents() as (issuer, documents):
+        # A document naming another issuer than the one asked (a stranger's), one whose endpoint is
+        # not an http URL, one that is not JSON, none at all (404): none is used, each refused.
+        documents.extend([{**provider.endpoints(), "issuer": "https://idp.elsewhere"},
+                          {**provider.endpoints(), "issuer": issuer, "authorization_endpoint": "javascript:x"},
+                          b"<html>not here</html>", None])
+        by_issuer(issuer)
+        for _ in range(4):
+            discovery.forget()
+            login_page_says(client, client.get("/oidc/authenticate/"), problems.PROVIDER_ANSWER_INVALID)
+    assert AccessDenial.objects.filter(detail=problems.PROVIDER_ANSWER_INVALID.summary).count() == 4
+
+    with socket.socket() as closed:  # a port nobody listens on
+        closed.bind(("127.0.0.1", 0))
+        port = closed.getsockname()[1]
+    by_issuer(f"http://127.0.0.1:{port}")
+    started = time.monotonic()
+    answer = client.get("/oidc/authenticate/")
+    assert time.monotonic() - started < TIMEOUT_S + 2
+    login_page_says(client, answer, problems.PROVIDER_UNREACHABLE)
+    assert AccessDenial.objects.order_by("-id").first().detail == problems.PROVIDER_UNREACHABLE.summary
+    assert client.post("/logout/").status_code == 302  # nothing to end at the provider: the site's session only
+
+    by_issuer(provider.issuer)  # the right one again: read afresh
+    assert sign_in(Client(), "u-1001")["Location"] == "/"

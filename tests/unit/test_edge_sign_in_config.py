@@ -153,6 +153,7 @@ LDAP_ON = {"url": "ldaps://dir.plant.local", "userBase": "dc=plant", "roles": "a
     ({"signIn": {"oidc": {**OIDC_ON, "tokenUrl": "ftp://idp.plant.local/token"}}}, "signIn.oidc.tokenUrl"),
     ({"signIn": {"oidc": {**OIDC_ON, "jwksUrl": "idp.plant.local/certs"}}}, "signIn.oidc.jwksUrl"),
     ({"signIn": {"oidc": {**OIDC_ON, "logoutUrl": "javascript:alert(1)"}}}, "signIn.oidc.logoutUrl"),
+    ({"signIn": {"oidc": {**OIDC_ON, "issuerUrl": "idp.plant.local"}}}, "signIn.oidc.issuerUrl"),
     ({"signIn": {"ldap": {**LDAP_ON, "url": "https://dir.plant.local"}}}, "signIn.ldap.url"),
     ({"signIn": {"ldap": {**LDAP_ON, "url": "ldaps://a.plant:636,ldap://b.plant:389"}}}, "signIn.ldap.url"),
     ({"signIn": {"oidc": {**OIDC_ON, "roles": "superuser=plant-it"}}}, "signIn.oidc.roles"),
@@ -191,6 +192,15 @@ def test_the_language_message_names_the_choices():
 def test_read_config_checks_the_sign_in_parts_are_objects(config, says, monkeypatch, tmp_path):
     with pytest.raises(ConfigError, match=says):
         read(monkeypatch, tmp_path, config)
+
+
+def test_the_issuer_stands_for_the_four_endpoints(monkeypatch):
+    by_issuer = {k: v for k, v in OIDC_ON.items() if not k.endswith("Url")}
+    env = all_env({"signIn": {"oidc": {**by_issuer, "issuerUrl": f"{IDP}/"}}})
+    assert env["LIFECYCLE_OIDC_ISSUER"] == f"{IDP}/" and "LIFECYCLE_OIDC_TOKEN_URL" not in env
+    assert site_sign_in.oidc_settings(env)["OIDC_OP_ISSUER"] == IDP  # the site reads it
+    with pytest.raises(ConfigError, match=r"signIn\.oidc\.authorizationUrl.*or signIn\.oidc\.issuerUrl instead"):
+        all_env({"signIn": {"oidc": by_issuer}})
 
 
 def test_what_the_environment_gives_completes_the_configuration(monkeypatch):

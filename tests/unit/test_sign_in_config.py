@@ -77,6 +77,21 @@ def test_a_directory_session_lasts_a_shift_unless_told_otherwise():
             config.directory_session_hours({"LIFECYCLE_DIRECTORY_SESSION_HOURS": bad})
 
 
+def test_the_issuer_alone_stands_for_the_endpoints_and_must_be_an_http_url():
+    only_issuer = {k: v for k, v in OIDC.items() if not k.endswith("_URL")}
+    settings = config.oidc_settings({**only_issuer, "LIFECYCLE_OIDC_ISSUER": " https://idp.plant/realms/x/ "})
+    assert settings["OIDC_OP_ISSUER"] == "https://idp.plant/realms/x"
+    assert settings["OIDC_OP_TOKEN_ENDPOINT"] == settings["OIDC_OP_AUTHORIZATION_ENDPOINT"] == ""  # discovered
+    with_one = config.oidc_settings({**only_issuer, "LIFECYCLE_OIDC_ISSUER": "https://idp.plant",
+                                     "LIFECYCLE_OIDC_TOKEN_URL": "https://idp.plant/t"})
+    assert with_one["OIDC_OP_TOKEN_ENDPOINT"] == "https://idp.plant/t"  # set: it wins over the document's
+    with pytest.raises(SettingError, match="without LIFECYCLE_OIDC_ISSUER.*needs LIFECYCLE_OIDC_AUTHORIZATION_URL"):
+        config.oidc_settings(only_issuer)
+    for wrong in ("idp.plant", "ftp://idp.plant", "https://idp.plant/?realm=x", "https:///x"):
+        with pytest.raises(SettingError, match="LIFECYCLE_OIDC_ISSUER=.*an https URL"):
+            config.oidc_settings({**only_issuer, "LIFECYCLE_OIDC_ISSUER": wrong})
+
+
 def test_origin_of_an_end_session_address():
     assert config.origin("https://idp.plant:8443/realms/x/logout?y=1") == "https://idp.plant:8443"
 
@@ -96,3 +111,23 @@ def test_the_compose_file_and_env_example_carry_every_sign_in_variable():
     assert len(read) > 20
     assert read - set(web) == set(), "not passed to the web service"
     assert read - example == set(), "not in docker/env.example"
+
+
+def test_log_out_may_go_to_the_issuers_origin_when_its_logout_is_discovered():
+    """The page's Content-Security-Policy lets Log out's form go to the provider's origin: the
+    logout URL's when set, else the issuer's (sign_in.discovery uses a discovered end-session
+    endpoint only on that origin)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    only_issuer = {k: v for k, v in OIDC.items() if not k.endswith("_URL")}
+    environ = {**os.environ, **only_issuer, "LIFECYCLE_OIDC_ISSUER": "https://idp.plant:8443/realms/x",
+               "DJANGO_SETTINGS_MODULE": "lifecycle_site.settings"}
+    done = subprocess.run([sys.executable, "-c", "from django.conf import settings; "
+                           "print(settings.CONTENT_SECURITY_POLICY['DIRECTIVES']['form-action'])"],
+                          cwd=Path(__file__).resolve().parents[2], env=environ, capture_output=True, text=True,
+                          timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[\"'self'\", 'https://idp.plant:8443']"
