@@ -138,6 +138,7 @@ _LDAP = sign_in_config.ldap_settings()
 _OIDC = sign_in_config.oidc_settings()
 LDAP_ON, OIDC_ON = bool(_LDAP), bool(_OIDC)
 LIFECYCLE_DIRECTORY_SESSION_HOURS = sign_in_config.directory_session_hours()
+LIFECYCLE_DIRECTORY_TOKEN_DAYS = sign_in_config.directory_token_days()
 globals().update(_LDAP)
 globals().update(_OIDC)
 if LDAP_ON:

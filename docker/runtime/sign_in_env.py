@@ -66,7 +66,11 @@ def sign_in_env(config: dict, write_files: bool = False) -> dict[str, str]:
                 env[name] = value
     hours = sign_in.get("sessionHours")
     if hours not in (None, ""):
-        env["LIFECYCLE_DIRECTORY_SESSION_HOURS"] = _session_hours(hours)
+        env["LIFECYCLE_DIRECTORY_SESSION_HOURS"] = _bounded(hours, "signIn.sessionHours", 336, "hours",
+                                                            "336 (two weeks), e.g. 8")
+    days = sign_in.get("tokenDays")
+    if days not in (None, ""):
+        env["LIFECYCLE_DIRECTORY_TOKEN_DAYS"] = _bounded(days, "signIn.tokenDays", 3650, "days", "3650, e.g. 30")
     if env.get("LIFECYCLE_OIDC_CLIENT_ID"):
         # The issuer stands for the four endpoints (read from its discovery document).
         by_issuer = env.get(OIDC_KEYS["issuerUrl"]) or os.environ.get(OIDC_KEYS["issuerUrl"], "").strip()
@@ -94,16 +98,15 @@ def sign_in_env(config: dict, write_files: bool = False) -> dict[str, str]:
     return env
 
 
-def _session_hours(value) -> str:
-    """signIn.sessionHours: how long a directory account's session lasts (as the site reads it)."""
+def _bounded(value, key: str, most: float, unit: str, example: str) -> str:
+    """signIn.sessionHours, signIn.tokenDays: a number more than 0 and at most ``most`` (as the site reads it)."""
     try:
-        hours = float(value)
-        if isinstance(value, bool) or not 0 < hours <= 336:
+        number = float(value)
+        if isinstance(value, bool) or not 0 < number <= most:
             raise ValueError
     except (TypeError, ValueError):
-        raise ConfigError("signIn.sessionHours must be a number of hours, more than 0 and at most 336 "
-                          "(two weeks), e.g. 8") from None
-    return f"{hours:g}"
+        raise ConfigError(f"{key} must be a number of {unit}, more than 0 and at most {example}") from None
+    return f"{number:g}"
 
 
 def _object(value, where: str) -> dict:

@@ -172,7 +172,28 @@ def refusal_response(refusal: Refusal) -> JsonResponse:
     return JsonResponse(refusal.as_json(), status=refusal.status)
 
 
+class DormantToken(Exception):
+    """A directory account's token, used longer than LIFECYCLE_DIRECTORY_TOKEN_DAYS after the
+    account last signed in (its role may be gone in the directory since)."""
+
+    def __init__(self, username: str, days: float) -> None:
+        self.values = {"user": username, "days": f"{days:g}"}
+        super().__init__(self.english)
+
+    @property
+    def english(self) -> str:
+        return ("token of directory account %(user)s, which has not signed in for %(days)s days" % self.values)
+
+    @property
+    def message(self) -> str:
+        return _("This token belongs to %(user)s, a company account that has not signed in here for %(days)s days "
+                 "(its role comes from the company directory at sign-in). Its tokens work again once it signs in "
+                 "on the site.") % self.values
+
+
 def _token_user(request: HttpRequest):
+    """The token's user; None for no or an unknown token, DormantToken for one of a directory
+    account not signed in for LIFECYCLE_DIRECTORY_TOKEN_DAYS."""
     header = request.headers.get("Authorization", "")
     scheme, _, token = header.partition(" ")
     if scheme.lower() != "bearer" or not token.strip():
@@ -181,8 +202,11 @@ def _token_user(request: HttpRequest):
     grant = grants.cached(digest) or grants.load(digest)
     if grant is None or not grant.is_active:
         return None
-    # Cheap enough once a minute, and tells an admin which tokens are still in use.
     now = timezone.now()
+    days = settings.LIFECYCLE_DIRECTORY_TOKEN_DAYS
+    if grant.directory and (grant.signed_in is None or (now - grant.signed_in).total_seconds() > days * 86400):
+        raise DormantToken(grant.user().get_username(), days)
+    # Cheap enough once a minute, and tells an admin which tokens are still in use.
     if grant.last_used is None or (now - grant.last_used).total_seconds() > grants.LAST_USED_EVERY_S:
         grant.last_used = now
         ApiToken.objects.filter(pk=grant.token_id).update(last_used=now)
@@ -242,7 +266,11 @@ def api_view(methods: tuple[str, ...] = ("GET",), permission: str = VIEW_PERMISS
                 until = denials.token_block_until(request)
                 if until is not None:
                     return _token_blocked(request, until)
-            user = _token_user(request)
+            try:
+                user = _token_user(request)
+            except DormantToken as dormant:  # not a guess: not counted toward the address's block
+                denials.record(request, 401, "token_dormant", dormant.english)
+                return error("token_dormant", dormant.message, 401)
             if user is None and "Authorization" in request.headers:
                 denials.record(request, 401, "bad_token", "the bearer token is not valid (or revoked)")
                 return error("unauthorized", _("The bearer token is not valid."), 401)

@@ -30,7 +30,8 @@ LAST_USED_EVERY_S = 60
 class _Grant:
     """A token's user, as loaded, and what the user may do."""
 
-    __slots__ = ("expires", "token_id", "user_id", "db", "user_values", "is_active", "permissions", "last_used")
+    __slots__ = ("expires", "token_id", "user_id", "db", "user_values", "is_active", "permissions", "last_used",
+                 "directory", "signed_in")
 
     def __init__(self, record: ApiToken) -> None:
         user = record.user
@@ -43,6 +44,10 @@ class _Grant:
         # Every backend's answer for an active user (none for an inactive one).
         self.permissions = frozenset(user.get_all_permissions()) if user.is_active else frozenset()
         self.last_used: datetime | None = record.last_used
+        # A company directory's account (sign_in): its tokens work for a while after its last sign-in.
+        account = getattr(user, "directory_account", None)
+        self.directory = account is not None
+        self.signed_in: datetime | None = account.last_sign_in if account is not None else None
 
     def user(self):
         """A fresh user object per request, its permissions filled in (has_perm asks no query)."""
@@ -70,7 +75,7 @@ def cached(digest: str) -> _Grant | None:
 
 def load(digest: str) -> _Grant | None:
     generation = _generation
-    record = ApiToken.objects.select_related("user").filter(digest=digest).first()
+    record = ApiToken.objects.select_related("user", "user__directory_account").filter(digest=digest).first()
     if record is None:
         return None  # unknown tokens are not kept: nothing to gain, and they would crowd out real ones
     grant = _Grant(record)

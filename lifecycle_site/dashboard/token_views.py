@@ -4,6 +4,9 @@ user has, and nothing without a role. The new token is shown once, in the answer
 that made it (not stored, not in a message or a redirect)."""
 from __future__ import annotations
 
+from datetime import timedelta
+
+from django.conf import settings
 from django.contrib import messages
 from django.contrib.auth.decorators import login_required
 from django.http import HttpRequest, HttpResponse, HttpResponseRedirect
@@ -18,7 +21,12 @@ VIA = "API tokens page"  # (stored in the token's audit record: in English)
 
 
 def _page(request: HttpRequest, status: int = 200, **extra) -> HttpResponse:
+    account = getattr(request.user, "directory_account", None)  # a company directory's account (sign_in)
+    days = settings.LIFECYCLE_DIRECTORY_TOKEN_DAYS
     context = {
+        # Its tokens work until then (api/auth.py, DormantToken); each sign-in moves it on.
+        "directory_until": account.last_sign_in + timedelta(days=days) if account and account.last_sign_in else None,
+        "directory_days": f"{days:g}",
         "tokens": ApiToken.objects.filter(user=request.user),
         "max_tokens": MAX_TOKENS_PER_USER,
         "has_role": request.user.has_perm("fleet.view_managednode"),

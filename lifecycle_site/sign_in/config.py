@@ -148,6 +148,14 @@ def directory_session_hours(environ: Mapping[str, str] | None = None) -> float:
                       environ=environ)
 
 
+def directory_token_days(environ: Mapping[str, str] | None = None) -> float:
+    """How long the API tokens of a directory account keep working after its last sign-in: the
+    directory is not asked when a token is used (an OpenID provider cannot be), so a person who
+    left, or lost a group, is cut off by then at the latest. 30 days by default."""
+    return env.number("LIFECYCLE_DIRECTORY_TOKEN_DAYS", 30.0, above=0, maximum=3650, unit="days", example=30,
+                      environ=environ)
+
+
 def origin(url: str) -> str:
     """``https://idp.plant:8443/realms/x/logout`` -> ``https://idp.plant:8443`` (for a CSP source)."""
     parts = urlsplit(url)

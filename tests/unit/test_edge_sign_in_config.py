@@ -41,6 +41,7 @@ def full_config() -> dict:
         "site": {"language": "DE"},
         "signIn": {
             "sessionHours": 8,
+            "tokenDays": 14,
             "oidc": {
                 "clientId": "lifecycle", "clientSecret": "s3cret-Value",
                 "authorizationUrl": f"{IDP}/auth", "tokenUrl": f"{IDP}/token", "userinfoUrl": f"{IDP}/userinfo",
@@ -85,6 +86,7 @@ def test_a_full_sign_in_part_becomes_the_variables_of_docs_sign_in(monkeypatch, 
     assert env == {
         "LIFECYCLE_LANGUAGE": "de",
         "LIFECYCLE_DIRECTORY_SESSION_HOURS": "8",
+        "LIFECYCLE_DIRECTORY_TOKEN_DAYS": "14",
         "LIFECYCLE_OIDC_CLIENT_ID": "lifecycle",
         "LIFECYCLE_OIDC_CLIENT_SECRET": "s3cret-Value",
         "LIFECYCLE_OIDC_AUTHORIZATION_URL": f"{IDP}/auth",
@@ -110,7 +112,7 @@ def test_a_full_sign_in_part_becomes_the_variables_of_docs_sign_in(monkeypatch, 
     oidc = site_sign_in.oidc_settings(env)
     assert oidc["OIDC_VERIFY_SSL"] == str(oidc_ca) and oidc["LIFECYCLE_OIDC_ROLES"] == {
         "lifecycle-operators": "operator", "plant-it": "admin"}
-    assert site_sign_in.directory_session_hours(env) == 8
+    assert site_sign_in.directory_session_hours(env) == 8 and site_sign_in.directory_token_days(env) == 14
     ldap = site_sign_in.ldap_settings(env)
     assert ldap["LDAP_AUTH_URL"] == ["ldaps://dir1.plant.local:636", "ldaps://dir2.plant.local:636"]
     assert ldap["LDAP_AUTH_TLS_ARGS"]["ca_certs_file"] == str(ldap_ca)
@@ -170,6 +172,10 @@ LDAP_ON = {"url": "ldaps://dir.plant.local", "userBase": "dc=plant", "roles": "a
     ({"signIn": {"sessionHours": 337}}, "signIn.sessionHours"),
     ({"signIn": {"sessionHours": True}}, "signIn.sessionHours"),
     ({"signIn": {"sessionHours": float("nan")}}, "signIn.sessionHours"),
+    ({"signIn": {"tokenDays": 0}}, "signIn.tokenDays"),
+    ({"signIn": {"tokenDays": "a month"}}, "signIn.tokenDays"),
+    ({"signIn": {"tokenDays": 3651}}, "signIn.tokenDays"),
+    ({"signIn": {"tokenDays": False}}, "signIn.tokenDays"),
 ])
 def test_what_cannot_work_is_refused_naming_the_key(config, key, monkeypatch, tmp_path, ca_files):
     with pytest.raises(ConfigError) as refused:

@@ -77,6 +77,14 @@ def test_a_directory_session_lasts_a_shift_unless_told_otherwise():
             config.directory_session_hours({"LIFECYCLE_DIRECTORY_SESSION_HOURS": bad})
 
 
+def test_a_directory_accounts_tokens_last_a_month_after_its_sign_in_unless_told_otherwise():
+    assert config.directory_token_days({}) == 30
+    assert config.directory_token_days({"LIFECYCLE_DIRECTORY_TOKEN_DAYS": "7"}) == 7
+    for bad in ("0", "-1", "3651", "a month", "nan"):
+        with pytest.raises(SettingError, match="LIFECYCLE_DIRECTORY_TOKEN_DAYS"):
+            config.directory_token_days({"LIFECYCLE_DIRECTORY_TOKEN_DAYS": bad})
+
+
 def test_the_issuer_alone_stands_for_the_endpoints_and_must_be_an_http_url():
     only_issuer = {k: v for k, v in OIDC.items() if not k.endswith("_URL")}
     settings = config.oidc_settings({**only_issuer, "LIFECYCLE_OIDC_ISSUER": " https://idp.plant/realms/x/ "})

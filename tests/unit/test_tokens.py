@@ -156,3 +156,45 @@ def test_deleting_a_user_puts_the_revocation_of_their_tokens_on_record(db):
     assert events() == [("created", "olga-operator", "olga-operator", "API tokens page"),
                         ("revoked", "olga-operator", "", "deleted with its user")]
     assert set(TokenEvent.objects.values_list("owner", flat=True)) == {None}  # the user's row is gone
+
+
+def test_a_directory_accounts_token_works_for_a_while_after_its_last_sign_in(db, settings):
+    """The directory is not asked when a token is used: a company account's tokens stop working
+    LIFECYCLE_DIRECTORY_TOKEN_DAYS after its last sign-in (a person who left, or lost the group),
+    say why, are on record, and work again once it signs in. A local account's are not bounded."""
+    from datetime import timedelta
+
+    from django.utils import timezone
+
+    from lifecycle_site.api import grants
+    from lifecycle_site.audit.models import AccessDenial
+    from lifecycle_site.sign_in.models import DirectoryAccount
+
+    settings.LIFECYCLE_DIRECTORY_TOKEN_DAYS = 30
+    olga = make_user("olga.k", "operator")
+    account = DirectoryAccount.objects.create(user=olga, source=DirectoryAccount.LDAP, subject="olga.k",
+                                              role="operator", last_sign_in=timezone.now() - timedelta(days=29))
+    _, token = ApiToken.issue(olga, "line PC")
+    _, local_token = ApiToken.issue(make_user("line-pc", "viewer"), "kiosk")
+    ApiToken.objects.filter(user__username="line-pc").update(created=timezone.now() - timedelta(days=400))
+    assert api_status(token) == 200
+
+    account.last_sign_in = timezone.now() - timedelta(days=31)
+    account.save()
+    grants.forget()  # (another process's change: within the grants' few seconds)
+    answer = Client().get("/api/v1/robots", HTTP_AUTHORIZATION=f"Bearer {token}")
+    assert answer.status_code == 401 and answer.json()["error"]["code"] == "token_dormant"
+    assert "olga.k, a company account that has not signed in here for 30 days" in answer.json()["error"]["message"]
+    denial = AccessDenial.objects.order_by("-id").first()
+    assert (denial.code, denial.status) == ("token_dormant", 401) and "olga.k" in denial.detail
+    assert api_status(local_token) == 200
+
+    signed_in = timezone.now()
+    DirectoryAccount.objects.filter(pk=account.pk).update(last_sign_in=signed_in)  # she signs in
+    grants.forget()
+    assert api_status(token) == 200
+    until = (signed_in + timedelta(days=30)).strftime("%Y-%m-%d %H:%M")
+    assert f"its tokens work until {until} UTC, 30 days after your last sign-in" in \
+        logged_in(olga).get("/tokens/").content.decode()
+    assert "company directory" not in logged_in(get_user_model().objects.get(username="line-pc")).get(
+        "/tokens/").content.decode()
