@@ -18,7 +18,6 @@ from urllib.parse import urlparse
 
 import pytest
 from axes.models import AccessAttempt
-from django.test import Client
 from django.utils import timezone
 from django.utils.crypto import get_random_string
 
@@ -27,7 +26,7 @@ from lifecycle_site.api.models import ApiToken
 from lifecycle_site.audit.models import AccessDenial, ParameterRecord, TransitionRecord
 from lifecycle_site.serve import HEADERS_LIMIT, LINE_LIMIT
 from tests import stack
-from tests.conftest import make_user
+from tests.conftest import client_of, make_user
 from tests.integration import fuzz_cases
 from tests.integration.conftest import register, wait_node
 
@@ -57,8 +56,7 @@ def site(gateway):
 @pytest.fixture(scope="module")
 def who(live_db) -> fuzz_cases.Credentials:
     def session(username: str, role: str) -> str:
-        client = Client()
-        client.force_login(make_user(username, role))
+        client = client_of(username, role)
         return client.cookies["sessionid"].value
 
     return fuzz_cases.Credentials(

@@ -14,7 +14,7 @@ from lifecycle_site.audit.models import ParameterRecord, TransitionRecord
 from lifecycle_site.fleet.models import GroupRun, ManagedNode, Robot
 from lifecycle_site.modes.models import CurrentMode
 from tests import stack
-from tests.conftest import make_user
+from tests.conftest import client_of
 from tests.integration.conftest import register, wait_node
 from tests.integration.test_cli import cli
 
@@ -58,8 +58,7 @@ def robot(gateway):
 
 @pytest.fixture(scope="module")
 def admin_api(live_db) -> Client:
-    client = Client()
-    client.force_login(make_user("ada-admin", "admin"))
+    client = client_of("ada-admin", "admin")
     return client
 
 

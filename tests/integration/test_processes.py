@@ -16,7 +16,7 @@ from lifecycle_site.audit.models import ProcessRecord, TransitionRecord
 from lifecycle_site.fleet.models import ManagedNode, ProcessProfile, Robot
 from lifecycle_site.gateway_link.gateway_client import GatewayError, call_gateway
 from tests import stack
-from tests.conftest import make_user
+from tests.conftest import client_of, make_user
 from tests.integration.conftest import register, wait_node
 from tests.integration.test_cli import cli
 
@@ -140,8 +140,7 @@ def test_what_cannot_be_done_is_refused_plainly(api, supervised):
         unknown.json()["error"]["message"]
     action = control(api, "reboot")
     assert action.status_code == 400 and action.json()["error"]["code"] == "unknown_action"
-    viewer = Client()
-    viewer.force_login(make_user("vera-processes", "viewer"))
+    viewer = client_of("vera-processes", "viewer")
     assert control(viewer, "restart").status_code == 403
     # The gateway itself acts only on its own profiles, whatever it is sent.
     with pytest.raises(GatewayError) as refused:
@@ -213,10 +212,8 @@ def test_a_hung_process_is_restarted_with_sigkill_after_its_grace(api, hanging):
 
 
 def test_the_page_shows_each_running_process_cpu_and_memory_as_its_gateway_measures_them(supervised, gateway):
-    from django.test import Client
 
-    client = Client()
-    client.force_login(make_user("ivan-viewer", "viewer"))
+    client = client_of("ivan-viewer", "viewer")
     profile_id = profile().pk
     answer = client.get(f"/robots/{ROBOT}/processes/usage")  # the first ask measures over 0.3 s
     assert answer.status_code == 200, answer.status_code

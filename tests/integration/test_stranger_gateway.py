@@ -26,7 +26,7 @@ from lifecycle_site.ingest import shares
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 from tests import stack
-from tests.conftest import make_user
+from tests.conftest import client_of, make_user
 from tests.gateway_part import iso
 from tests.integration.conftest import register, transition, wait_node
 
@@ -60,8 +60,7 @@ def cell(redis_server, live_db, ingest, tmp_path_factory):
 
 @pytest.fixture
 def api(live_db) -> Client:
-    client = Client()
-    client.force_login(make_user("sg-operator", "operator"))
+    client = client_of("sg-operator", "operator")
     return client
 
 

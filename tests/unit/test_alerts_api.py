@@ -12,13 +12,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from lifecycle_site.alerts.engine import Evaluator
 from lifecycle_site.alerts.models import Alert, Receiver, Rule
 from lifecycle_site.fleet.models import Gateway, ManagedNode, Robot
-from tests.conftest import make_user
-
-
-def client_of(username: str, role: str | None) -> Client:
-    client = Client()
-    client.force_login(make_user(username, role))
-    return client
+from tests.conftest import client_of
 
 
 @pytest.fixture

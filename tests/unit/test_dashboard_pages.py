@@ -13,7 +13,7 @@ from lifecycle_site.fleet.models import Gateway, LogRecord, ManagedNode, Robot
 from lifecycle_site.gateway_link import gateways
 from ros_gateway.shared import state_machine as sm
 from tests import stack
-from tests.conftest import make_user
+from tests.conftest import client_of
 
 
 @pytest.fixture
@@ -70,8 +70,7 @@ def test_unknown_node_page_is_404(viewer_client, db):
 def test_pages_need_a_login_and_a_role(db):
     assert Client().get("/").status_code == 302
     assert Client().get("/audit/").status_code == 302
-    nobody = Client()
-    nobody.force_login(make_user("no-role-nina", None))
+    nobody = client_of("no-role-nina", None)
     response = nobody.get("/")
     assert response.status_code == 403 and b"no role yet" in response.content
 

@@ -9,7 +9,7 @@ from lifecycle_site.audit import denials
 from lifecycle_site.audit.models import AccessDenial
 from lifecycle_site.fleet.models import ManagedNode, Robot
 from ros_gateway.shared import state_machine as sm
-from tests.conftest import make_user
+from tests.conftest import client_of, make_user
 
 
 @pytest.fixture
@@ -83,15 +83,13 @@ def test_the_record_is_bounded(db):
 
 def test_admins_review_them_in_the_admin_and_cannot_change_them(db):
     denials.record(None, 401, "bad_token", username="mallory")
-    admin = Client()
-    admin.force_login(make_user("ada-admin", "admin"))
+    admin = client_of("ada-admin", "admin")
     page = admin.get("/admin/audit/accessdenial/")
     assert page.status_code == 200 and "mallory" in page.content.decode()
     row = AccessDenial.objects.get()
     assert admin.post(f"/admin/audit/accessdenial/{row.pk}/delete/", {"post": "yes"}).status_code == 403
     assert AccessDenial.objects.filter(username="mallory").count() == 1
     assert AccessDenial.objects.filter(username="ada-admin", code="forbidden").exists()  # that try, too
-    viewer = Client()
-    viewer.force_login(make_user("victor-viewer", "viewer"))
+    viewer = client_of("victor-viewer", "viewer")
     assert viewer.get("/admin/audit/accessdenial/").status_code == 302  # not staff: to the admin login
 

@@ -16,7 +16,7 @@ from lifecycle_site.fleet.models import Gateway, GroupRun, ManagedNode, Robot
 from lifecycle_site.gateway_link import gateways
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
-from tests.conftest import make_user
+from tests.conftest import client_of
 from tests.gateway_part import GatewayPart, clear_streams
 
 
@@ -34,8 +34,7 @@ def cells(transactional_db, redis_server):
         parts[name] = GatewayPart(name)
     parts["cell-a"].beat(at=time.time() - 125)  # silent for two minutes
     parts["cell-b"].beat()
-    client = Client()
-    client.force_login(make_user("rita-router", "operator"))
+    client = client_of("rita-router", "operator")
     return parts, client
 
 

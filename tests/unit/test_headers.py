@@ -13,7 +13,7 @@ from django.test import Client, override_settings
 
 from lifecycle_site.fleet.models import ManagedNode, Robot
 from ros_gateway.shared import state_machine as sm
-from tests.conftest import make_user
+from tests.conftest import client_of, make_user
 
 
 def test_pages_and_api_answers_are_not_stored_by_browsers(viewer_client):
@@ -35,8 +35,7 @@ def directives(policy: str) -> dict[str, list[str]]:
 
 
 def test_every_page_has_a_strict_content_security_policy(db):
-    client = Client()
-    client.force_login(make_user("ada-admin", "admin"))
+    client = client_of("ada-admin", "admin")
     for path in PAGES:
         answer = client.get(path)
         policy = directives(answer["Content-Security-Policy"])

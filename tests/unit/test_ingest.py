@@ -11,7 +11,6 @@ import time
 import pytest
 from asgiref.sync import sync_to_async
 from channels.layers import get_channel_layer
-from django.test import Client
 
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.fleet.models import Gateway, LogRecord, ManagedNode, Robot
@@ -22,7 +21,7 @@ from lifecycle_site.ingest.management.commands.ingest import Ingest
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
 from tests import stack
-from tests.conftest import make_user
+from tests.conftest import client_of
 from tests.gateway_part import GatewayPart, clear_streams, forget_ingest_processes, iso
 
 
@@ -155,8 +154,7 @@ def test_trimmed_facts_are_counted_as_lost_and_shown(cell):
     assert row.facts_lost == 4
     assert sorted(robot.nodes.values_list("name", flat=True)) == ["/n0", "/n1", "/n2", "/n7", "/n8", "/n9"]
 
-    client = Client()
-    client.force_login(make_user("lost-viewer", "viewer"))
+    client = client_of("lost-viewer", "viewer")
     listed = {g["name"]: g for g in client.get("/api/v1/gateways").json()["gateways"]}
     assert listed["cell-i"]["facts_lost"] == 4 and listed["cell-i"]["robots"] == ["ingest-agv"]
     page = client.get("/").content.decode()

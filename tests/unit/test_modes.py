@@ -22,7 +22,7 @@ from lifecycle_site.modes.models import CurrentMode, Mode, TopicRate
 from ros_gateway import mode_plan
 from ros_gateway.shared import protocol
 from ros_gateway.shared import state_machine as sm
-from tests.conftest import make_user
+from tests.conftest import client_of, make_user
 from tests.gateway_part import GatewayPart
 
 PLAN = {"mode": "mapping", "targets": {"/lidar": "active", "/cam": None},
@@ -256,13 +256,10 @@ def test_modes_go_out_and_come_back_as_yaml_unchanged():
 
 @pytest.mark.django_db
 def test_an_import_is_shown_before_it_is_saved_and_only_admins_save(operator_client):
-    from django.test import Client
 
-    from tests.conftest import make_user
 
     Robot.objects.create(name="yaml-agv", domain_id=43)
-    admin = Client()
-    admin.force_login(make_user("ada-yaml", "admin"))
+    admin = client_of("ada-yaml", "admin")
     body = {"yaml": SYSTEM_MODES_FILE, "robots": ["yaml-agv"], "save": True}
     assert operator_client.post("/api/v1/modes/import", body, content_type="application/json").status_code == 403
     answer = admin.post("/api/v1/modes/import", body, content_type="application/json")
@@ -283,9 +280,7 @@ def test_an_import_is_shown_before_it_is_saved_and_only_admins_save(operator_cli
 @pytest.mark.django_db
 def test_the_modes_page_offers_apply_to_operators_files_to_admins_and_polls_quietly(operator_client, viewer_client):
     from django.core.files.uploadedfile import SimpleUploadedFile
-    from django.test import Client
 
-    from tests.conftest import make_user
 
     robot = Robot.objects.create(name="page-agv", domain_id=44)
     Mode.objects.create(name="page-mapping", nodes={"/lidar": {"state": "active"}}).robots.add(robot)
@@ -294,8 +289,7 @@ def test_the_modes_page_offers_apply_to_operators_files_to_admins_and_polls_quie
     assert 'ws-connect="/ws/robots/page-agv/modes/"' in page
     viewer = viewer_client.get("/robots/page-agv/modes/").content.decode()
     assert "Apply page-mapping" not in viewer and "applying one needs the operator role" in viewer
-    admin = Client()
-    admin.force_login(make_user("ada-page", "admin"))
+    admin = client_of("ada-page", "admin")
     assert "Import modes" in admin.get("/robots/page-agv/modes/").content.decode()
     upload = SimpleUploadedFile("modes.yaml", SYSTEM_MODES_FILE.encode())
     preview = admin.post("/robots/page-agv/modes/import", {"file": upload}, HTTP_HX_REQUEST="true").content.decode()

@@ -15,7 +15,7 @@ from lifecycle_site.fleet.models import ProcessProfile, Robot
 from lifecycle_site.gateway_link import gateways
 from ros_gateway.shared import protocol
 from tests import stack
-from tests.conftest import make_user
+from tests.conftest import client_of
 
 ROBOT = "proc-page-agv"
 PAGE = f"/robots/{ROBOT}/processes/"
@@ -166,8 +166,7 @@ def test_the_polled_part_answers_204_until_something_changes(viewer_client, driv
 def test_the_polled_part_reloads_a_page_whose_session_has_ended(drivers):
     answer = Client().get(ROWS)
     assert (answer.status_code, answer["HX-Refresh"]) == (204, "true")
-    nobody = Client()
-    nobody.force_login(make_user("no-role-nora", None))
+    nobody = client_of("no-role-nora", None)
     assert nobody.get(ROWS)["HX-Refresh"] == "true"
     assert nobody.get(PAGE).status_code == 403
 
@@ -177,8 +176,7 @@ def test_a_robot_without_profiles_says_who_registers_them(viewer_client, robot):
     assert f"{ROBOT} has no launch profiles yet" in page and "An admin registers them in the admin (Launch profiles)" \
         in page
     assert "/admin/fleet/processprofile/add/" not in page
-    admin = Client()
-    admin.force_login(make_user("ada-processes-admin", "admin"))
+    admin = client_of("ada-processes-admin", "admin")
     assert f'href="/admin/fleet/processprofile/add/?robot={robot.pk}"' in page_of(admin)
 
 

@@ -6,13 +6,12 @@ import re
 from datetime import timedelta
 
 import pytest
-from django.test import Client
 from django.utils import timezone
 
 from lifecycle_site.audit.models import TransitionRecord
 from lifecycle_site.fleet.models import ManagedNode, Robot
 from ros_gateway.shared import state_machine as sm
-from tests.conftest import make_user
+from tests.conftest import client_of
 
 
 def record(node: ManagedNode, minutes_ago: float, start: int, result: int | None, outcome: str = "succeeded"):
@@ -79,12 +78,10 @@ def test_robot_timeline_page_lists_each_node(viewer_client, nodes, django_assert
 
 
 def test_timeline_pages_need_a_role_and_an_existing_node(client, db, nodes):
-    no_role = Client()
-    no_role.force_login(make_user("nora-norole", None))
+    no_role = client_of("nora-norole", None)
     assert no_role.get(f"/nodes/{nodes[0].key}/timeline/").status_code == 403
     assert client.get(f"/nodes/{nodes[0].key}/timeline/").status_code == 302  # to the login page
-    viewer = Client()
-    viewer.force_login(make_user("vera-viewer", "viewer"))
+    viewer = client_of("vera-viewer", "viewer")
     assert viewer.get("/nodes/tl-page-agv.nothing/timeline/").status_code == 404
     assert viewer.get("/robots/no-such-robot/timeline/").status_code == 404
 

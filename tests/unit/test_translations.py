@@ -11,7 +11,7 @@ import pytest
 from django.test import Client
 
 from tests import translations
-from tests.conftest import make_user
+from tests.conftest import client_of, make_user
 
 CATALOGUES = translations.LOCALE / "de" / "LC_MESSAGES"
 
@@ -90,8 +90,7 @@ def test_the_catalogues_are_utf8_and_german():
 @pytest.mark.django_db
 def test_the_api_keeps_its_codes_and_answers_in_the_askers_language():
     make_user("ines-operator", "operator")
-    client = Client()
-    client.force_login(make_user("ines-operator", "operator"))
+    client = client_of("ines-operator", "operator")
     german = client.get("/api/v1/nodes/no-robot.no-node", HTTP_ACCEPT_LANGUAGE="de")
     english = client.get("/api/v1/nodes/no-robot.no-node", HTTP_ACCEPT_LANGUAGE="en")
     assert german.status_code == english.status_code == 404
