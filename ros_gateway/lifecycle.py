@@ -62,11 +62,18 @@ async def available_transitions(domain: RosDomain, fqn: str, timeout: float, gra
     ]
 
 
-# While a transition runs, how often the node's process is looked at (processes.py).
+# While a transition runs, how often the node's process (processes.py) and its transition events
+# are looked at.
 PROCESS_POLL_S = 0.1
+# How long the answer to change_state is still awaited once the node's transition events told its
+# end (it follows them within milliseconds): after that it counts as lost on the way, which DDS
+# does to a response when the node has not yet matched the caller's answer reader (domain.py).
+ANSWER_AFTER_EVENTS_S = 0.5
 LEFT_GRAPH = "its node left the ROS graph"
 # () -> how the node's process went ("exited", ...), or None while it is there.
 ProcessGone = Callable[[], "str | None"]
+# (transition id) -> the state our request's transition events say it ended in, or None yet.
+EndedAs = Callable[[int], "int | None"]
 
 
 @dataclass
@@ -90,6 +97,7 @@ async def perform_transition(
     known_state: int | None = None,
     process_gone: ProcessGone | None = None,
     read_timeout: float | None = None,
+    ended_as: EndedAs | None = None,
 ) -> TransitionResult:
     """Check, call and verify one transition. Raises NodeUnreachable and sm.UnknownTransition.
 
@@ -100,6 +108,9 @@ async def perform_transition(
     ``process_gone``: looked at while the call runs; once it says the node's process went,
     the call ends at once as ``process_lost`` (its answer would never come).
     ``read_timeout``: the first state read's own bound, when it is not ``timeout``.
+    ``ended_as``: what the node's transition events say our request ended in; once they told it,
+    an answer that does not follow within ANSWER_AFTER_EVENTS_S is taken as lost, and the
+    outcome is the events' (not a time-out ANSWER_AFTER_EVENTS_S later).
     """
     if known_state is not None:
         start_state = known_state
@@ -122,8 +133,9 @@ async def perform_transition(
         on_send(transition)
     request = ChangeState.Request(transition=TransitionMsg(id=transition.id, label=transition.label))
     began = time.perf_counter()
+    told = (lambda: ended_as(transition.id)) if ended_as is not None else None
     try:
-        response, gone = await _call_watching(domain, fqn, request, timeout, process_gone)
+        response, gone, ended = await _call_watching(domain, fqn, request, timeout, process_gone, told)
     except (ServiceTimeout, ServiceUnavailable):
         gone = process_gone() if process_gone is not None else None
         if gone is None:
@@ -137,8 +149,15 @@ async def perform_transition(
                 "timed_out", transition, start_state, now_state, duration,
                 f"{transition.label} did not answer within {timeout:g} s; {where}.",
             )
-        response = None
+        response, ended = None, None
     duration = (time.perf_counter() - began) * 1000
+    if ended is not None:
+        lost = (f"Its answer was lost on the way (the node's transition events told the outcome; "
+                f"{transition.label} ended {sm.state_label(ended)}).")
+        if ended == sm.SUCCESS_GOAL[transition.id]:
+            return TransitionResult("succeeded", transition, start_state, ended, duration, lost)
+        return TransitionResult("failed", transition, start_state, ended, duration,
+                                f"{_failure_message(transition, start_state, ended)} {lost}")
     if gone is not None:
         message = (f"The node's process ended during {transition.label} ({gone}, {duration / 1000:.1f} s after "
                    "the request): the transition's answer will never come. Its supervisor may start it again; "
@@ -154,20 +173,29 @@ async def perform_transition(
 
 
 async def _call_watching(domain: RosDomain, fqn: str, request: Any, timeout: float,
-                         process_gone: ProcessGone | None) -> tuple[Any, str | None]:
-    """change_state's answer, or (None, how it went) as soon as the node's process is seen gone.
-    Raises ServiceTimeout and ServiceUnavailable as RosDomain.call does."""
+                         process_gone: ProcessGone | None,
+                         told: Callable[[], int | None] | None) -> tuple[Any, str | None, int | None]:
+    """(change_state's answer, None, None); or (None, how it went, None) as soon as the node's
+    process is seen gone; or (None, None, the end state) when the node's transition events told
+    it and the answer did not follow within ANSWER_AFTER_EVENTS_S. Raises ServiceTimeout and
+    ServiceUnavailable as RosDomain.call does."""
     call = asyncio.ensure_future(domain.call(fqn, "change_state", ChangeState, request, timeout))
-    if process_gone is None:
-        return await call, None
+    if process_gone is None and told is None:
+        return await call, None, None
+    told_at: float | None = None
     try:
         while True:
             done, _ = await asyncio.wait({call}, timeout=PROCESS_POLL_S)
             if done:
-                return call.result(), None
-            gone = process_gone()
+                return call.result(), None, None
+            gone = process_gone() if process_gone is not None else None
             if gone is not None:
-                return None, gone
+                return None, gone, None
+            ended = told() if told is not None else None
+            if ended is not None:
+                told_at = time.monotonic() if told_at is None else told_at
+                if time.monotonic() - told_at >= ANSWER_AFTER_EVENTS_S:
+                    return None, None, ended
     finally:
         if not call.done():
             call.cancel()

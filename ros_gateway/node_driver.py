@@ -84,7 +84,7 @@ class NodeDriver:
             result = await perform_transition(domain, node.name, requested, timeout,
                                               on_send=lambda t: self._claim(node, t), known_state=known_state,
                                               process_gone=self._process_gone(node, domain),
-                                              read_timeout=read_timeout)
+                                              read_timeout=read_timeout, ended_as=node.tracker.ended_as)
         except NodeUnreachable as exc:
             message = f"{node.name} on {node.robot.name} did not answer ({exc}); nothing was sent to it."
             fact = self.outbox.emit(
@@ -150,6 +150,7 @@ class NodeDriver:
     def _claim(self, node: LiveNode, transition: sm.Transition) -> None:
         """Mark the transition about to be sent as ours, so its events are not 'external'."""
         node.tracker.commanded = transition.id
+        node.tracker.ended = None  # (its events will tell this one's end)
         loop = asyncio.get_running_loop()
 
         def release() -> None:

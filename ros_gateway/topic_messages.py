@@ -40,6 +40,9 @@ class TransitionTracker:
     # Transitions seen begin (or only end) that were not ours: a reply handled after one of
     # them must not put the node's state back to what our request left it in (NodeDriver).
     foreign: int = 0
+    # (transition id, end state) of our last request whose beginning and end were both seen: the
+    # outcome its answer will tell, should that answer be lost on the way (NodeDriver).
+    ended: tuple[int, int] | None = None
     _begun: tuple[sm.Transition, int, datetime, bool] | None = field(default=None, repr=False)
 
     def observe(self, start_state: int, goal_state: int, transition_id: int) -> tuple[Completed | None, bool]:
@@ -68,9 +71,15 @@ class TransitionTracker:
             return Completed(None, None, goal_state, now, now, "observed"), True
         transition, start, started_at, ours = begun
         if ours:
+            self.ended = (transition.id, goal_state)
             return None, True
         outcome = "succeeded" if sm.SUCCESS_GOAL.get(transition.id) == goal_state else "failed"
         return Completed(transition, start, goal_state, started_at, now, outcome), True
+
+
+    def ended_as(self, transition_id: int) -> int | None:
+        """The state our request for ``transition_id`` ended in, once its events told it."""
+        return self.ended[1] if self.ended is not None and self.ended[0] == transition_id else None
 
 
 def logger_to_node_name(logger: str) -> str:

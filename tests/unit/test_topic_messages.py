@@ -40,6 +40,20 @@ def test_transitions_of_others_are_counted_and_ours_are_not():
     assert tracker.foreign == 2
 
 
+def test_the_end_of_our_request_is_kept_for_its_answer_that_may_be_lost():
+    tracker = TransitionTracker(commanded=sm.ACTIVATE)
+    tracker.observe(sm.INACTIVE, sm.ACTIVATING, 0)
+    assert tracker.ended_as(sm.ACTIVATE) is None  # under way
+    tracker.observe(sm.ACTIVATING, sm.ERRORPROCESSING, 0)
+    assert tracker.ended_as(sm.ACTIVATE) is None  # still under way
+    tracker.observe(sm.ERRORPROCESSING, sm.UNCONFIGURED, 0)
+    assert tracker.ended_as(sm.ACTIVATE) == sm.UNCONFIGURED and tracker.ended_as(sm.CONFIGURE) is None
+    tracker.ended = None
+    tracker.observe(sm.UNCONFIGURED, sm.CONFIGURING, 0)  # another tool's: not ours
+    tracker.observe(sm.CONFIGURING, sm.INACTIVE, 0)
+    assert tracker.ended is None
+
+
 def test_missed_beginning_is_recorded_as_observed():
     done, news = TransitionTracker().observe(sm.CONFIGURING, sm.INACTIVE, 0)
     assert done.outcome == "observed" and done.transition is None and news
