@@ -16,6 +16,7 @@ import time
 from urllib.parse import urlsplit
 
 import requests
+import urllib3
 from django.conf import settings
 
 from lifecycle_site.sign_in import problems
@@ -70,7 +71,7 @@ def end_session_url() -> str:
         return configured
     try:
         url = _endpoint(_document(), END_SESSION, required=False)
-    except DiscoveryFailed as exc:
+    except Exception as exc:  # noqa: BLE001 - whatever the provider does, Log out still ends the site's session
         log.warning("Log out ends the site's session only: %s", exc)
         return ""
     if url and origin(url) != origin(issuer):
@@ -103,16 +104,13 @@ def _document() -> dict:
 def _read(issuer: str) -> dict:
     url = issuer + WELL_KNOWN
     try:
-        with requests.get(url, timeout=settings.OIDC_TIMEOUT, verify=settings.OIDC_VERIFY_SSL, stream=True,
-                          allow_redirects=False) as answer:
-            answer.raise_for_status()
-            body = answer.raw.read(MAX_DOCUMENT_BYTES + 1, decode_content=True)
+        body = _download(url)
     except requests.exceptions.HTTPError as exc:
         if exc.response is not None and exc.response.status_code >= 500:  # the provider is down or starting
             log.warning("OIDC discovery document %s could not be read: %s", url, exc)
             raise DiscoveryFailed(problems.PROVIDER_UNREACHABLE, f"{url} answered {exc}") from None
         raise _invalid(url, f"it answered {exc}") from None
-    except (requests.exceptions.RequestException, OSError) as exc:
+    except (requests.exceptions.RequestException, urllib3.exceptions.HTTPError, OSError) as exc:
         log.warning("OIDC discovery document %s could not be read: %s", url, exc)
         raise DiscoveryFailed(problems.PROVIDER_UNREACHABLE, f"{url} could not be read: {exc}") from None
     if len(body) > MAX_DOCUMENT_BYTES:
@@ -123,10 +121,32 @@ def _read(issuer: str) -> dict:
         raise _invalid(url, "it is not JSON") from None
     if not isinstance(document, dict):
         raise _invalid(url, "it is not a JSON object")
-    if document.get("issuer") != issuer:
+    named = document.get("issuer")
+    # Exactly the issuer configured (section 4.3), but for a trailing slash, which the setting
+    # does not keep and some providers' issuers have (Auth0's).
+    if not isinstance(named, str) or named.rstrip("/") != issuer:
         raise _invalid(url, f"it names the issuer {str(document.get('issuer'))[:200]!r}, not {issuer!r} "
                             "(LIFECYCLE_OIDC_ISSUER must be exactly the provider's issuer)")
     return document
+
+
+def _download(url: str) -> bytes:
+    """The document's bytes (decompressed), at most MAX_DOCUMENT_BYTES + 1 of them, within
+    OIDC_TIMEOUT in all (a provider that drips its answer is cut off, not waited for)."""
+    timeout = settings.OIDC_TIMEOUT
+    deadline = time.monotonic() + timeout
+    with requests.get(url, timeout=timeout, verify=settings.OIDC_VERIFY_SSL, stream=True,
+                      allow_redirects=False) as answer:
+        answer.raise_for_status()
+        body = bytearray()
+        while len(body) <= MAX_DOCUMENT_BYTES:
+            if time.monotonic() > deadline:
+                raise requests.exceptions.Timeout(f"the document took longer than {timeout:g} s")
+            chunk = answer.raw.read1(64 * 1024, decode_content=True)
+            if not chunk:
+                break
+            body += chunk
+    return bytes(body)
 
 
 def _endpoint(document: dict, field: str, required: bool = True) -> str:
@@ -135,7 +155,11 @@ def _endpoint(document: dict, field: str, required: bool = True) -> str:
     if url is None and not required:
         return ""
     schemes = ("https",) if issuer.startswith("https://") else ("http", "https")
-    if not isinstance(url, str) or urlsplit(url).scheme not in schemes or not urlsplit(url).netloc:
+    try:
+        parts = urlsplit(url) if isinstance(url, str) else None
+    except ValueError:  # e.g. "https://[::1/x"
+        parts = None
+    if parts is None or parts.scheme not in schemes or not parts.netloc:
         raise _invalid(issuer + WELL_KNOWN, f"its {field} is not an {' or '.join(schemes)} URL: "
                                             f"{str(url)[:200]!r}")
     return url

@@ -9,6 +9,7 @@ import socket
 import threading
 import time
 from contextlib import contextmanager
+from functools import partial
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from urllib.parse import parse_qs, urlsplit
 
@@ -211,12 +212,16 @@ def test_axes_blocks_the_provider_path_too(site_settings, settings):
 @contextmanager
 def serving_documents():
     """A web server on 127.0.0.1 whose discovery URL answers the next of ``documents`` (a dict as
-    JSON, bytes as they are, None: 404); yields (its issuer URL, documents)."""
+    JSON, bytes as they are, None: 404, a function: it answers, given the handler); yields (its
+    issuer URL, documents)."""
     documents: list = []
 
     class Handler(BaseHTTPRequestHandler):
         def do_GET(self):  # noqa: N802 (http.server's name)
             document = documents.pop(0) if documents else None
+            if callable(document):
+                document(self)
+                return
             if document is None or self.path != discovery.WELL_KNOWN:
                 self.send_error(404)
                 return
@@ -238,6 +243,20 @@ def serving_documents():
         server.shutdown()
         server.server_close()
         thread.join(5)
+
+
+def answer_slowly(handler, length: int, pause: float) -> None:
+    """Headers for a body of ``length`` bytes, then fewer, a byte every ``pause`` s (0: at once)."""
+    handler.send_response(200)
+    handler.send_header("Content-Length", str(length))
+    handler.end_headers()
+    try:
+        for _ in range(length // 4):
+            handler.wfile.write(b" ")
+            handler.wfile.flush()
+            time.sleep(pause)
+    except (BrokenPipeError, ConnectionResetError):  # the site stopped reading
+        pass
 
 
 @pytest.fixture
@@ -283,12 +302,27 @@ def test_a_wrong_or_unreachable_issuer_is_a_refusal_in_words_and_on_record(by_is
         # not an http URL, one that is not JSON, none at all (404): none is used, each refused.
         documents.extend([{**provider.endpoints(), "issuer": "https://idp.elsewhere"},
                           {**provider.endpoints(), "issuer": issuer, "authorization_endpoint": "javascript:x"},
+                          {**provider.endpoints(), "issuer": issuer, "token_endpoint": "https://[::1/token"},
                           b"<html>not here</html>", None])
         by_issuer(issuer)
-        for _ in range(4):
+        for _ in range(5):
             discovery.forget()
             login_page_says(client, client.get("/oidc/authenticate/"), problems.PROVIDER_ANSWER_INVALID)
-    assert AccessDenial.objects.filter(detail=problems.PROVIDER_ANSWER_INVALID.summary).count() == 4
+        assert AccessDenial.objects.filter(detail=problems.PROVIDER_ANSWER_INVALID.summary).count() == 5
+
+        # A body cut short, and one dripped a byte at a time: not reached, within the time-out in all.
+        documents.extend([partial(answer_slowly, length=500, pause=0), partial(answer_slowly, length=400, pause=0.2)])
+        for _ in range(2):
+            discovery.forget()
+            started = time.monotonic()
+            answer = client.get("/oidc/authenticate/")
+            assert time.monotonic() - started < TIMEOUT_S + 1.5
+            login_page_says(client, answer, problems.PROVIDER_UNREACHABLE)
+
+        # The provider's issuer ends in a slash (Auth0's do), the setting does not keep it: the same.
+        documents.append({**provider.endpoints(), "issuer": issuer + "/"})
+        discovery.forget()
+        assert client.get("/oidc/authenticate/")["Location"].startswith(provider.endpoints()["authorization_endpoint"])
 
     with socket.socket() as closed:  # a port nobody listens on
         closed.bind(("127.0.0.1", 0))
