@@ -86,6 +86,7 @@ class TransitionResult:
     message: str = ""
     valid: list[dict] = field(default_factory=list)
     process_gone: str | None = None  # process_lost: how (LEFT_GRAPH, or it is known to have ended)
+    read: bool = False  # result_state was read from the node after the call (the newest there is then)
 
 
 async def perform_transition(
@@ -147,7 +148,7 @@ async def perform_transition(
             )
             return TransitionResult(
                 "timed_out", transition, start_state, now_state, duration,
-                f"{transition.label} did not answer within {timeout:g} s; {where}.",
+                f"{transition.label} did not answer within {timeout:g} s; {where}.", read=True,
             )
         response, ended = None, None
     duration = (time.perf_counter() - began) * 1000
@@ -168,7 +169,8 @@ async def perform_transition(
         return TransitionResult("succeeded", transition, start_state, sm.SUCCESS_GOAL[transition.id], duration)
     now_state = await _reread(domain, fqn, timeout)
     return TransitionResult(
-        "failed", transition, start_state, now_state, duration, _failure_message(transition, start_state, now_state)
+        "failed", transition, start_state, now_state, duration, _failure_message(transition, start_state, now_state),
+        read=True,
     )
 
 

@@ -76,7 +76,6 @@ class NodeDriver:
                           vouching: dict, by_reply: bool) -> Driven:
         domain = self.domains[node.robot.domain_id]
         requested_at = datetime.now(timezone.utc)
-        foreign_before = node.tracker.foreign
         # A command of the site carries its grant, and the record the request's id (protocol.vouching).
         audit = dict(robot=node.robot.name, node=node.name, source=source, user_id=user_id, run_id=run_id,
                      requested_at=requested_at.isoformat(), **vouching)
@@ -95,7 +94,8 @@ class NodeDriver:
             )
             raise NodeUnreachableRecorded(message, fact) from None
         if result.transition is not None and node.tracker.commanded == result.transition.id:
-            node.tracker.settled = result.transition.id  # its beginning is yet to come
+            # Its beginning is yet to come: known as ours by ``settled`` (the next may be claimed meanwhile).
+            node.tracker.settled, node.tracker.commanded = result.transition.id, None
         facts = []
         if result.outcome == protocol.PROCESS_LOST and node.alive:
             domain.forget_node(node.name, keep=True)
@@ -104,9 +104,11 @@ class NodeDriver:
         if result.outcome in ("failed", protocol.PROCESS_LOST):
             result.message = await self._with_reason(node, requested_at, result.message)
         if result.result_state is not None:
-            # Another tool's transition seen meanwhile (its events handled before this reply) is
-            # newer than what our request left: the node's state stays as its events told.
-            overtaken = node.tracker.foreign != foreign_before and node.state_id is not None
+            # Another tool's transition that began after ours ended (its events handled before this
+            # reply) is newer than what our request left: the state stays as the events told. A
+            # state read after the call is the newest there is, whatever came before.
+            overtaken = (not result.read and result.transition is not None
+                         and node.tracker.overtaken(result.transition.id))
             change = None if overtaken else self.registry.set_state(node, result.result_state)
             state_fact = change.fact if change is not None else None
             if state_fact is None and by_reply:

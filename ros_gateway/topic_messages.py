@@ -37,12 +37,12 @@ class TransitionTracker:
     commanded: int | None = None
     # Transition id of our last request whose reply has already set the node's state.
     settled: int | None = None
-    # Transitions seen begin (or only end) that were not ours: a reply handled after one of
-    # them must not put the node's state back to what our request left it in (NodeDriver).
-    foreign: int = 0
     # (transition id, end state) of our last request whose beginning and end were both seen: the
     # outcome its answer will tell, should that answer be lost on the way (NodeDriver).
     ended: tuple[int, int] | None = None
+    # Transitions of others seen begin (or only end) since then: newer than our request, so a
+    # reply handled after them must not put the node's state back (NodeDriver).
+    foreign_since_ended: int = 0
     _begun: tuple[sm.Transition, int, datetime, bool] | None = field(default=None, repr=False)
 
     def observe(self, start_state: int, goal_state: int, transition_id: int) -> tuple[Completed | None, bool]:
@@ -56,10 +56,12 @@ class TransitionTracker:
             transition = sm.TRANSITIONS_BY_ID.get(transition_id) or sm.transition_between(start_state, goal_state)
             ours = transition is not None and transition.id in (self.commanded, self.settled)
             late = ours and self.settled == transition.id
-            if ours:
-                self.commanded = self.settled = None
+            if late:  # the beginning of a request whose reply came first; the next may be claimed already
+                self.settled = None
+            elif ours:
+                self.commanded = None
             else:
-                self.foreign += 1
+                self.foreign_since_ended += 1
             self._begun = (transition, start_state, now, ours) if transition else None
             return None, not late
         if not sm.is_primary(goal_state):
@@ -67,15 +69,20 @@ class TransitionTracker:
         begun, self._begun = self._begun, None
         if begun is None:
             # We missed the beginning (subscribed mid-transition): record what we know.
-            self.foreign += 1
+            self.foreign_since_ended += 1
             return Completed(None, None, goal_state, now, now, "observed"), True
         transition, start, started_at, ours = begun
         if ours:
-            self.ended = (transition.id, goal_state)
+            self.ended, self.foreign_since_ended = (transition.id, goal_state), 0
             return None, True
         outcome = "succeeded" if sm.SUCCESS_GOAL.get(transition.id) == goal_state else "failed"
         return Completed(transition, start, goal_state, started_at, now, outcome), True
 
+
+    def overtaken(self, transition_id: int) -> bool:
+        """Whether another tool's transition began after our request for ``transition_id`` ended
+        (both seen in the node's own order): the state that request left is no longer current."""
+        return self.ended_as(transition_id) is not None and self.foreign_since_ended > 0
 
     def ended_as(self, transition_id: int) -> int | None:
         """The state our request for ``transition_id`` ended in, once its events told it."""

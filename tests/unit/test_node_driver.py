@@ -128,10 +128,12 @@ def test_a_reply_carries_the_state_an_event_reported_first_and_a_runs_step_does_
 
 
 def test_a_reply_handled_after_another_tools_transition_leaves_the_state_its_events_told(driven):
-    """The reply to our configure is handled after the events of another tool's activate (the
-    keeper undoing a rival manager saw this): the node stays active, as its events said, in the
-    registry and in the state the reply carries; the record still says what configure did."""
+    """The node's events of our configure, then of another tool's activate, are handled before
+    our configure's reply (the keeper undoing a rival manager saw this): the node stays active, as
+    its events said, in the registry and in the state the reply carries; the record still says
+    what configure did."""
     driver, registry, node, outbox, loop, ros_node = driven
+    events_flowing(driver, registry, node, loop)
     registry.set_state(node, sm.UNCONFIGURED)
 
     def rival_activates() -> None:  # handed over to the gateway's loop, as discovery does events
@@ -140,7 +142,15 @@ def test_a_reply_handled_after_another_tools_transition_leaves_the_state_its_eve
             if news:
                 registry.set_state(node, goal)
 
-    ros_node.during = lambda: loop.call_soon_threadsafe(rival_activates)
+    def answered_after_a_rival(request, response):
+        done = answer_it(request, response)  # our configure: its events go out
+        time.sleep(0.3)  # (they reach the gateway)
+        loop.call_soon_threadsafe(rival_activates)
+        time.sleep(0.1)
+        return done
+
+    service = next(s for s in ros_node.services if s.srv_name.endswith("/change_state"))
+    answer_it, service.callback = service.callback, answered_after_a_rival
     result = transition(driver, node, loop, "configure", sm.UNCONFIGURED, by_reply=True)
     assert result.result.outcome == "succeeded" and result.record["result_state"] == sm.INACTIVE
     assert node.state_id == sm.ACTIVE
@@ -149,20 +159,29 @@ def test_a_reply_handled_after_another_tools_transition_leaves_the_state_its_eve
     assert states(outbox)[-1] == sm.ACTIVE
 
 
+def events_flowing(driver: NodeDriver, registry: NodeRegistry, node: LiveNode, loop) -> None:
+    """Watch the node's transition events, and return once they reach the tracker (a configure
+    and cleanup until one's end is seen); the node is unconfigured again."""
+    driver.domains[node.robot.domain_id].watch_node(node.name)
+    registry.set_state(node, sm.UNCONFIGURED)
+    deadline = time.monotonic() + 10
+    while True:
+        result = transition(driver, node, loop, "configure", sm.UNCONFIGURED, by_reply=True)
+        assert result.result.outcome == "succeeded" and result.result.message == ""  # answered: as ever
+        seen = node.tracker.ended_as(sm.CONFIGURE) == sm.INACTIVE
+        transition(driver, node, loop, "cleanup", sm.INACTIVE, by_reply=True)
+        if seen:
+            return
+        assert time.monotonic() < deadline, "the node's transition events never arrived"
+
+
 def test_an_answer_lost_on_the_way_is_settled_by_the_nodes_transition_events(driven):
     """DDS loses a change_state answer when the node has not yet matched the caller's answer
     reader (domain.py). The node's transition events tell the outcome all the same: the driver
     takes it from them shortly after, instead of reporting a time-out 5 s later."""
     driver, registry, node, outbox, loop, ros_node = driven
-    driver.domains[node.robot.domain_id].watch_node(node.name)
-    deadline = time.monotonic() + 10
-    while True:  # until the node's events reach us (our subscription matched its publisher)
-        result = transition(driver, node, loop, "configure", sm.UNCONFIGURED, by_reply=True)
-        if node.tracker.ended_as(sm.CONFIGURE) == sm.INACTIVE:
-            break
-        assert time.monotonic() < deadline, "the node's transition events never arrived"
-        transition(driver, node, loop, "cleanup", sm.INACTIVE, by_reply=True)
-    assert result.result.outcome == "succeeded" and result.result.message == ""  # answered: as ever
+    events_flowing(driver, registry, node, loop)
+    transition(driver, node, loop, "configure", sm.UNCONFIGURED, by_reply=True)
 
     service = next(s for s in ros_node.services if s.srv_name.endswith("/change_state"))
     answer_it, release = service.callback, threading.Event()

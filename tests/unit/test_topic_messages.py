@@ -29,15 +29,30 @@ def test_transitions_the_gateway_sent_are_not_reported_as_external():
     assert tracker.observe(sm.ACTIVATING, sm.ACTIVE, 0)[0].outcome == "succeeded"
 
 
-def test_transitions_of_others_are_counted_and_ours_are_not():
-    tracker = TransitionTracker(commanded=sm.CONFIGURE)
-    tracker.observe(sm.UNCONFIGURED, sm.CONFIGURING, 0)
+def test_a_transition_of_others_after_ours_ended_overtakes_it_and_one_before_does_not():
+    tracker = TransitionTracker()
+    tracker.observe(sm.UNCONFIGURED, sm.CONFIGURING, 0)  # another tool's configure, before our request
     tracker.observe(sm.CONFIGURING, sm.INACTIVE, 0)
-    assert tracker.foreign == 0
-    tracker.observe(sm.INACTIVE, sm.ACTIVATING, 0)  # another tool's activate
+    tracker.commanded = sm.ACTIVATE  # ours
+    tracker.observe(sm.INACTIVE, sm.ACTIVATING, 0)
     tracker.observe(sm.ACTIVATING, sm.ACTIVE, 0)
-    tracker.observe(sm.DEACTIVATING, sm.INACTIVE, 0)  # only the end of one seen
-    assert tracker.foreign == 2
+    assert not tracker.overtaken(sm.ACTIVATE)  # what came before it does not count
+    tracker.observe(sm.ACTIVE, sm.DEACTIVATING, 0)  # another tool's deactivate, after it
+    tracker.observe(sm.DEACTIVATING, sm.INACTIVE, 0)
+    assert tracker.overtaken(sm.ACTIVATE) and not tracker.overtaken(sm.CONFIGURE)
+    tracker.observe(sm.CONFIGURING, sm.INACTIVE, 0)  # only the end of one seen counts too
+    assert tracker.foreign_since_ended == 2
+
+
+def test_the_late_beginning_of_one_request_leaves_the_next_one_ours():
+    """A group run: configure's reply came before its beginning, and the step's activate is
+    claimed when configure's beginning arrives. The activate stays ours (not 'external')."""
+    tracker = TransitionTracker(settled=sm.CONFIGURE, commanded=sm.ACTIVATE)
+    assert tracker.observe(sm.UNCONFIGURED, sm.CONFIGURING, 0) == (None, False)
+    assert tracker.observe(sm.CONFIGURING, sm.INACTIVE, 0) == (None, True)
+    assert tracker.observe(sm.INACTIVE, sm.ACTIVATING, 0) == (None, True)
+    assert tracker.observe(sm.ACTIVATING, sm.ACTIVE, 0) == (None, True)  # no external record
+    assert tracker.ended_as(sm.ACTIVATE) == sm.ACTIVE
 
 
 def test_the_end_of_our_request_is_kept_for_its_answer_that_may_be_lost():
@@ -61,7 +76,7 @@ def test_missed_beginning_is_recorded_as_observed():
 
 def test_late_beginning_of_our_own_request_does_not_roll_the_state_back():
     # The reply said "active" already; the event "inactive -> activating" arrives after it.
-    tracker = TransitionTracker(commanded=sm.ACTIVATE, settled=sm.ACTIVATE)
+    tracker = TransitionTracker(settled=sm.ACTIVATE)
     assert tracker.observe(sm.INACTIVE, sm.ACTIVATING, 0) == (None, False)
     assert tracker.observe(sm.ACTIVATING, sm.ACTIVE, 0) == (None, True)
 
