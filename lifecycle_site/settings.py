@@ -270,7 +270,11 @@ LOCALE_PATHS = [BASE_DIR / "locale"]
 FORMAT_MODULE_PATH = ["lifecycle_site.formats"]  # German numbers keep the decimal point (formats/de)
 LANGUAGE_COOKIE_HTTPONLY = True
 LANGUAGE_COOKIE_SAMESITE = "Lax"
-TIME_ZONE = os.environ.get("TZ", "UTC")
+# The pages, the API, the audit history and the CLI show UTC and say so ("When (UTC)"), whatever
+# TZ says (the Edge form's site.timeZone): Django would otherwise render |date in that zone beside
+# times its own filters convert to UTC. (Django sets this process's TZ from it, so the site's log
+# lines are in UTC too; TZ still sets the zone of the other containers' logs.)
+TIME_ZONE = "UTC"
 USE_I18N = True
 USE_TZ = True
 

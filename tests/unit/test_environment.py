@@ -47,3 +47,17 @@ def test_the_site_stops_at_start_naming_the_variable():
                           capture_output=True, text=True, timeout=60)
     assert done.returncode != 0
     assert "LIFECYCLE_ALERT_WORKERS='two': expected a whole number of workers" in done.stderr
+
+
+def test_pages_show_utc_as_they_say_whatever_tz_says():
+    """An Edge device set to Europe/Berlin (site.timeZone: TZ): the pages' "When (UTC)" columns,
+    and the dates Django's |date filter writes beside them, are UTC all the same."""
+    environ = {**os.environ, "DJANGO_SETTINGS_MODULE": "lifecycle_site.settings", "TZ": "Europe/Berlin"}
+    script = ("import django; django.setup(); from datetime import datetime, timezone; "
+              "from django.template import Context, Template; "
+              "print(Template('{{ t|date:\"Y-m-d H:i\" }}').render(Context("
+              "{'t': datetime(2026, 7, 1, 12, 0, tzinfo=timezone.utc)})))")
+    done = subprocess.run([sys.executable, "-c", script], cwd=ROOT, env=environ, capture_output=True, text=True,
+                          timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "2026-07-01 12:00"  # not 14:00, Berlin's summer time
