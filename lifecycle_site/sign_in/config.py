@@ -126,8 +126,10 @@ def ldap_settings(environ: Mapping[str, str] | None = None) -> dict:
         "LDAP_AUTH_CLEAN_USER_DATA": "lifecycle_site.sign_in.ldap.clean_user_data",
         "LDAP_AUTH_SYNC_USER_RELATIONS": "lifecycle_site.sign_in.ldap.give_role",
         "LDAP_AUTH_ACTIVE_DIRECTORY_DOMAIN": ad_domain or None,
-        "LDAP_AUTH_FORMAT_USERNAME": ("django_python3_ldap.utils.format_username_active_directory_principal"
-                                      if ad_domain else "django_python3_ldap.utils.format_username_openldap"),
+        # The service account is bound as it is set (a DN or NAME@DOMAIN); users as the library forms it.
+        "LDAP_AUTH_FORMAT_USERNAME": "lifecycle_site.sign_in.ldap.bind_name",
+        "SIGN_IN_LDAP_USER_FORMAT": ("django_python3_ldap.utils.format_username_active_directory_principal"
+                                           if ad_domain else "django_python3_ldap.utils.format_username_openldap"),
         "LDAP_AUTH_CONNECTION_USERNAME": env.text("LIFECYCLE_LDAP_BIND_USER", "", environ) or None,
         "LDAP_AUTH_CONNECTION_PASSWORD": env.text("LIFECYCLE_LDAP_BIND_PASSWORD", "", environ) or None,
         # One pass over the servers, then give up: ldap3's default (True) retries for ever when all are down.

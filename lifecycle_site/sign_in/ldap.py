@@ -18,6 +18,7 @@ from django.db import transaction
 from django.http import HttpRequest
 from django_python3_ldap import ldap as library
 from django_python3_ldap.auth import LDAPBackend
+from django_python3_ldap.utils import import_func
 from ldap3.core.exceptions import LDAPException
 from ldap3.utils.conv import escape_filter_chars
 
@@ -41,6 +42,19 @@ def clean_user_data(fields: dict) -> dict:
     if accounts.is_local(fields.get("username", "")):
         raise Refused(problems.LOCAL_NAME)
     return fields
+
+
+def bind_name(fields: dict) -> str:
+    """LDAP_AUTH_FORMAT_USERNAME: the name a user binds with (``uid=NAME,USER_BASE``, or
+    ``NAME@DOMAIN`` for Active Directory). The service account (LIFECYCLE_LDAP_BIND_USER), which
+    the library passes through the same function, binds as it is set when that is a DN or
+    NAME@DOMAIN, as the settings describe it (formed like a user's, a DN became
+    ``uid=cn\\3Dlookup...``: its bind failed, and so did every sign-in, as a wrong password)."""
+    service = settings.LDAP_AUTH_CONNECTION_USERNAME
+    name = next(iter(fields.values()), None) if len(fields) == 1 else None
+    if service and name == service and ("=" in service or "@" in service):
+        return service
+    return import_func(settings.SIGN_IN_LDAP_USER_FORMAT)(fields)
 
 
 # Levels of groups within groups followed: Active Directory's usual nesting (AGDLP: a user in a

@@ -32,12 +32,14 @@ def directory(tmp_path_factory) -> Directory:
         directory.stop()
 
 
-def directory_settings(directory: Directory, *, url: str | None = None, ca_file: str | None = None):
-    """The site's settings for ``directory``, read from environment variables as in production."""
+def directory_settings(directory: Directory, *, url: str | None = None, ca_file: str | None = None,
+                       **more: str):
+    """The site's settings for ``directory``, read from environment variables as in production
+    (``more``: other LIFECYCLE_LDAP_* variables)."""
     ldap = config.ldap_settings({
         "LIFECYCLE_LDAP_URL": url or directory.url, "LIFECYCLE_LDAP_CA_FILE": ca_file or directory.ca_file,
         "LIFECYCLE_LDAP_USER_BASE": directory.people, "LIFECYCLE_LDAP_GROUP_BASE": directory.groups,
-        "LIFECYCLE_LDAP_ROLES": ROLES, "LIFECYCLE_LDAP_TIMEOUT": str(TIMEOUT_S)})
+        "LIFECYCLE_LDAP_ROLES": ROLES, "LIFECYCLE_LDAP_TIMEOUT": str(TIMEOUT_S), **more})
     return override_settings(**ldap, LDAP_ON=True, AUTHENTICATION_BACKENDS=[
         "axes.backends.AxesStandaloneBackend", "django.contrib.auth.backends.ModelBackend",
         "lifecycle_site.sign_in.ldap.Backend"])
@@ -204,3 +206,18 @@ def test_a_directory_certificate_not_signed_by_the_given_ca_is_refused(directory
         with directory_settings(directory, url=url, ca_file=system_cas):
             refused_with(log_in("theo")[1], problems.DIRECTORY_UNREACHABLE)
     assert not get_user_model().objects.filter(username="theo").exists()
+
+
+@pytest.mark.django_db
+def test_a_service_account_set_as_a_dn_or_by_its_name_does_the_lookups(directory):
+    """LIFECYCLE_LDAP_BIND_USER as the Edge form describes it (a DN), or as a name under the user
+    base: the library rebinds as it after the user's own bind. A DN used to be formed like a
+    user's name (uid=cn\\3D...), its bind failed, and every sign-in with it."""
+    lookup_dn = directory.add_user("lookup", "lookup-secret")
+    directory.add_user("emil", PASSWORD, groups=["lifecycle-operators"])
+    for service in (lookup_dn, "lookup"):
+        with directory_settings(directory, LIFECYCLE_LDAP_BIND_USER=service,
+                                LIFECYCLE_LDAP_BIND_PASSWORD="lookup-secret"):
+            client, answer = log_in("emil")
+            assert answer.status_code == 302 and answer["Location"] == "/", (service, answer)
+    assert list(get_user_model().objects.get(username="emil").groups.values_list("name", flat=True)) == ["operator"]
