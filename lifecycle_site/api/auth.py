@@ -24,6 +24,7 @@ from lifecycle_site.api.models import ApiToken, hash_token
 from lifecycle_site.audit import denials
 from lifecycle_site.database_input import MESSAGE as DATA_ERROR_MESSAGE
 from lifecycle_site.refusal import Refusal, cut, in_english
+from lifecycle_site.sign_in import directory_check
 from ros_gateway.shared import param_types as pt
 
 UNSAFE_METHODS = {"POST", "PUT", "PATCH", "DELETE"}
@@ -191,9 +192,21 @@ class DormantToken(Exception):
                  "on the site.") % self.values
 
 
+class DirectoryRefused(Exception):
+    """A directory account's token, whose account the directory no longer has or has switched off
+    (sign_in.directory_check): switched off here too."""
+
+    def __init__(self, gone: directory_check.Gone) -> None:
+        super().__init__(str(gone))
+        self.english = f"token of {gone}; switched off here"
+        self.message = _("This token belongs to %(user)s, a company account that the company directory no longer "
+                         "has or has switched off: it was switched off here too.") % {"user": gone.username}
+
+
 def _token_user(request: HttpRequest):
     """The token's user; None for no or an unknown token, DormantToken for one of a directory
-    account not signed in for LIFECYCLE_DIRECTORY_TOKEN_DAYS."""
+    account not signed in for LIFECYCLE_DIRECTORY_TOKEN_DAYS, DirectoryRefused for one the
+    directory no longer has (asked now and then: sign_in.directory_check)."""
     header = request.headers.get("Authorization", "")
     scheme, _, token = header.partition(" ")
     if scheme.lower() != "bearer" or not token.strip():
@@ -202,9 +215,17 @@ def _token_user(request: HttpRequest):
     grant = grants.cached(digest) or grants.load(digest)
     if grant is None or not grant.is_active:
         return None
+    if directory_check.due(grant.user_id, grant.directory, grant.vouched):
+        try:
+            directory_check.check(grant.user_id)
+        except directory_check.Gone as gone:
+            raise DirectoryRefused(gone) from None
+        grant = grants.load(digest)  # with the role the directory gives now
+        if grant is None or not grant.is_active:
+            return None
     now = timezone.now()
     days = settings.LIFECYCLE_DIRECTORY_TOKEN_DAYS
-    if grant.directory and (grant.signed_in is None or (now - grant.signed_in).total_seconds() > days * 86400):
+    if grant.directory and (grant.vouched is None or (now - grant.vouched).total_seconds() > days * 86400):
         raise DormantToken(grant.user().get_username(), days)
     # Cheap enough once a minute, and tells an admin which tokens are still in use.
     if grant.last_used is None or (now - grant.last_used).total_seconds() > grants.LAST_USED_EVERY_S:
@@ -271,6 +292,9 @@ def api_view(methods: tuple[str, ...] = ("GET",), permission: str = VIEW_PERMISS
             except DormantToken as dormant:  # not a guess: not counted toward the address's block
                 denials.record(request, 401, "token_dormant", dormant.english)
                 return error("token_dormant", dormant.message, 401)
+            except DirectoryRefused as refused:
+                denials.record(request, 401, "directory_refused", refused.english)
+                return error("directory_refused", refused.message, 401)
             if user is None and "Authorization" in request.headers:
                 denials.record(request, 401, "bad_token", "the bearer token is not valid (or revoked)")
                 return error("unauthorized", _("The bearer token is not valid."), 401)

@@ -31,7 +31,7 @@ class _Grant:
     """A token's user, as loaded, and what the user may do."""
 
     __slots__ = ("expires", "token_id", "user_id", "db", "user_values", "is_active", "permissions", "last_used",
-                 "directory", "signed_in")
+                 "directory", "vouched")
 
     def __init__(self, record: ApiToken) -> None:
         user = record.user
@@ -44,10 +44,12 @@ class _Grant:
         # Every backend's answer for an active user (none for an inactive one).
         self.permissions = frozenset(user.get_all_permissions()) if user.is_active else frozenset()
         self.last_used: datetime | None = record.last_used
-        # A company directory's account (sign_in): its tokens work for a while after its last sign-in.
+        # A company directory's account (sign_in): its source ("" for a local account), and when the
+        # directory last vouched for it (a sign-in, or a lookup): its tokens work for a while after.
         account = getattr(user, "directory_account", None)
-        self.directory = account is not None
-        self.signed_in: datetime | None = account.last_sign_in if account is not None else None
+        self.directory: str = account.source if account is not None else ""
+        moments = [m for m in (account.last_sign_in, account.confirmed) if m] if account is not None else []
+        self.vouched: datetime | None = max(moments, default=None)
 
     def user(self):
         """A fresh user object per request, its permissions filled in (has_perm asks no query)."""

@@ -22,10 +22,11 @@ VIA = "API tokens page"  # (stored in the token's audit record: in English)
 
 def _page(request: HttpRequest, status: int = 200, **extra) -> HttpResponse:
     account = getattr(request.user, "directory_account", None)  # a company directory's account (sign_in)
+    vouched = max([m for m in (account.last_sign_in, account.confirmed) if m], default=None) if account else None
     days = settings.LIFECYCLE_DIRECTORY_TOKEN_DAYS
     context = {
         # Its tokens work until then (api/auth.py, DormantToken); each sign-in moves it on.
-        "directory_until": account.last_sign_in + timedelta(days=days) if account and account.last_sign_in else None,
+        "directory_until": vouched + timedelta(days=days) if vouched else None,
         "directory_days": f"{days:g}",
         "tokens": ApiToken.objects.filter(user=request.user),
         "max_tokens": MAX_TOKENS_PER_USER,

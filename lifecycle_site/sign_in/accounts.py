@@ -46,15 +46,32 @@ def signed_in(user: AbstractBaseUser, source: str, subject: str, role: str, grou
     """Record the sign-in and give ``user`` exactly ``role`` among the product's roles (its other
     groups stay). admins_are_staff (fleet/roles.py) follows the admin role with the staff flag."""
     DirectoryAccount.objects.update_or_create(
-        user=user, defaults={"source": source, "subject": subject, "role": role,
-                             "groups": ", ".join(sorted(str(g) for g in groups))[:GROUPS_KEPT],
+        user=user, defaults={"source": source, "subject": subject, "role": role, "groups": _listed(groups),
                              "last_sign_in": timezone.now()})
-    wanted = Group.objects.get(name=role)
+    _give_role(user, role)
+
+
+@transaction.atomic
+def confirmed(user: AbstractBaseUser, role: str | None, groups: Iterable[str]) -> None:
+    """The directory confirmed the account without a sign-in (sign_in.directory_check): its role
+    is now ``role``, none at all for None (no mapped group any more)."""
+    DirectoryAccount.objects.filter(user=user).update(role=role or "", groups=_listed(groups),
+                                                      confirmed=timezone.now())
+    _give_role(user, role)
+
+
+def _listed(groups: Iterable[str]) -> str:
+    return ", ".join(sorted(str(g) for g in groups))[:GROUPS_KEPT]
+
+
+def _give_role(user: AbstractBaseUser, role: str | None) -> None:
     others = list(user.groups.filter(name__in=[r for r in ROLES if r != role]))
     if others:
         user.groups.remove(*others)
-    if not user.groups.filter(pk=wanted.pk).exists():
-        user.groups.add(wanted)
+    if role is not None:
+        wanted = Group.objects.get(name=role)
+        if not user.groups.filter(pk=wanted.pk).exists():
+            user.groups.add(wanted)
 
 
 def bound_session(sender, request, user, **kwargs) -> None:

@@ -28,6 +28,10 @@ class DirectoryAccount(models.Model):
         help_text=gettext_lazy("the groups it had at the last sign-in (at most 2,000 characters)")
     )
     last_sign_in = models.DateTimeField(gettext_lazy("last sign in"), null=True, blank=True)
+    confirmed = models.DateTimeField(
+        gettext_lazy("confirmed by the directory"), null=True, blank=True,
+        help_text=gettext_lazy("when the directory last confirmed the account and its role without a sign-in "
+                               "(LDAP, when one of its API tokens is used)"))
 
     class Meta:
         constraints = [models.UniqueConstraint(fields=["source", "subject"], name="one_account_per_directory_subject")]

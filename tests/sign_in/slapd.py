@@ -149,6 +149,11 @@ class Directory:
             else:
                 connection.modify(group, {"member": [(ldap3.MODIFY_DELETE, [dn])]})
 
+    def delete(self, dn: str) -> None:
+        """Remove the entry ``dn`` (a user who left; their group memberships are left as they are)."""
+        with self._admin_connection() as connection:
+            connection.delete(dn)
+
     @property
     def pid(self) -> int:
         assert self._process is not None, "the test directory is not running"

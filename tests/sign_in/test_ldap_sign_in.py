@@ -221,3 +221,66 @@ def test_a_service_account_set_as_a_dn_or_by_its_name_does_the_lookups(directory
             client, answer = log_in("emil")
             assert answer.status_code == 302 and answer["Location"] == "/", (service, answer)
     assert list(get_user_model().objects.get(username="emil").groups.values_list("name", flat=True)) == ["operator"]
+
+
+@pytest.mark.django_db
+def test_a_token_follows_the_directory_which_the_service_account_asks_now_and_then(directory):
+    """A token works without a sign-in; with a service account the site asks the directory about
+    its account when it is used (at most every 15 minutes): the role follows the groups, and an
+    account the directory no longer has is switched off here, its token refused saying why."""
+    from datetime import timedelta
+
+    from django.utils import timezone
+
+    from lifecycle_site.api import grants
+    from lifecycle_site.api.models import ApiToken
+    from lifecycle_site.sign_in import directory_check
+
+    lookup = directory.add_user("lookup-tokens", "lookup-secret")
+    dn = directory.add_user("tara", PASSWORD, groups=["lifecycle-operators"])
+    service = {"LIFECYCLE_LDAP_BIND_USER": lookup, "LIFECYCLE_LDAP_BIND_PASSWORD": "lookup-secret"}
+
+    def used():
+        return Client().get("/api/v1/robots", HTTP_AUTHORIZATION=f"Bearer {token}")
+
+    def roles() -> list[str]:
+        return list(get_user_model().objects.get(username="tara").groups.values_list("name", flat=True))
+
+    def a_while_later() -> None:  # the last word of the directory is older than 15 minutes
+        DirectoryAccount.objects.filter(user__username="tara").update(
+            last_sign_in=timezone.now() - timedelta(minutes=20), confirmed=None)
+        directory_check.forget()
+        grants.forget()
+
+    with directory_settings(directory, **service):
+        assert log_in("tara")[1].status_code == 302
+        _, token = ApiToken.issue(get_user_model().objects.get(username="tara"), "line PC")
+        assert used().status_code == 200 and roles() == ["operator"]
+
+        directory.leave_group(dn, "lifecycle-operators")
+        directory.join_group(dn, "plant-it")
+        a_while_later()
+        assert used().status_code == 200 and roles() == ["admin"]  # the role the directory gives now
+        assert DirectoryAccount.objects.get(user__username="tara").confirmed is not None
+
+        directory.leave_group(dn, "plant-it")
+        a_while_later()
+        answer = used()
+        assert answer.status_code == 403 and roles() == []  # no mapped group: no role, nothing allowed
+
+    with directory_settings(directory, url=f"ldap://127.0.0.1:{stack.free_port()}", **service):
+        directory.join_group(dn, "lifecycle-operators")  # back in the group, but the site cannot ask
+        a_while_later()
+        started = time.monotonic()
+        assert used().status_code == 403 and roles() == []  # nothing changes until it can
+        assert time.monotonic() - started < 2 * TIMEOUT_S + 2
+
+    with directory_settings(directory, **service):
+        directory.delete(dn)
+        a_while_later()
+        answer = used()
+        assert answer.status_code == 401 and answer.json()["error"]["code"] == "directory_refused", answer.content
+        assert "tara, a company account that the company directory no longer has" in answer.json()["error"]["message"]
+        assert not get_user_model().objects.get(username="tara").is_active
+        assert last_denial().code == "directory_refused"
+        assert used().status_code == 401  # switched off: its token is no longer valid
