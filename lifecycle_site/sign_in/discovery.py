@@ -131,18 +131,19 @@ def _read(issuer: str) -> dict:
 
 
 def _download(url: str) -> bytes:
-    """The document's bytes (decompressed), at most MAX_DOCUMENT_BYTES + 1 of them, within
-    OIDC_TIMEOUT in all (a provider that drips its answer is cut off, not waited for)."""
+    """The document's bytes, at most MAX_DOCUMENT_BYTES + 1 of them, within OIDC_TIMEOUT in all (a
+    provider that drips its answer is cut off, not waited for; a compressed one is not JSON)."""
     timeout = settings.OIDC_TIMEOUT
     deadline = time.monotonic() + timeout
-    with requests.get(url, timeout=timeout, verify=settings.OIDC_VERIFY_SSL, stream=True,
-                      allow_redirects=False) as answer:
+    # Asked plain (identity): decoding a compressed answer could read on without returning a byte.
+    with requests.get(url, timeout=timeout, verify=settings.OIDC_VERIFY_SSL, stream=True, allow_redirects=False,
+                      headers={"Accept-Encoding": "identity"}) as answer:
         answer.raise_for_status()
         body = bytearray()
         while len(body) <= MAX_DOCUMENT_BYTES:
             if time.monotonic() > deadline:
                 raise requests.exceptions.Timeout(f"the document took longer than {timeout:g} s")
-            chunk = answer.raw.read1(64 * 1024, decode_content=True)
+            chunk = answer.raw.read1(64 * 1024, decode_content=False)
             if not chunk:
                 break
             body += chunk
