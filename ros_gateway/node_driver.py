@@ -101,8 +101,6 @@ class NodeDriver:
             domain.forget_node(node.name, keep=True)
             ended = result.process_gone != LEFT_GRAPH  # exited, or replaced: the old one lingers dead
             facts.append(self.registry.vanished(node, reason=protocol.PROCESS_LOST, ended=ended).fact)
-        if result.outcome in ("failed", protocol.PROCESS_LOST):
-            result.message = await self._with_reason(node, requested_at, result.message)
         if result.result_state is not None:
             # Another tool's transition that began after ours ended (its events handled before this
             # reply) is newer than what our request left: the state stays as the events told. A
@@ -119,6 +117,8 @@ class NodeDriver:
                                               state_id=node.state_id if overtaken else result.result_state)
             if state_fact is not None:
                 facts.append(state_fact)
+        if result.outcome in ("failed", protocol.PROCESS_LOST):  # (after the state: this waits up to 0.5 s)
+            result.message = await self._with_reason(node, requested_at, result.message)
         transition = result.transition
         fact = self.outbox.emit(
             protocol.TRANSITION, **audit,
