@@ -193,14 +193,15 @@ class DormantToken(Exception):
 
 
 class DirectoryRefused(Exception):
-    """A directory account's token, whose account the directory no longer has or has switched off
-    (sign_in.directory_check): switched off here too."""
+    """A directory account's token, whose account the directory no longer vouches for: it said it
+    has no such account or has it switched off (sign_in.directory_check), until a sign-in."""
 
-    def __init__(self, gone: directory_check.Gone) -> None:
-        super().__init__(str(gone))
-        self.english = f"token of {gone}; switched off here"
+    def __init__(self, username: str, why: str = "is no longer vouched for by the directory") -> None:
+        super().__init__(username)
+        self.english = f"token of directory account {username}, which {why}; refused until it signs in again"
         self.message = _("This token belongs to %(user)s, a company account that the company directory no longer "
-                         "has or has switched off: it was switched off here too.") % {"user": gone.username}
+                         "has or has switched off. Its tokens work again once it signs in on the site (which the "
+                         "directory must allow).") % {"user": username}
 
 
 def _token_user(request: HttpRequest):
@@ -216,16 +217,21 @@ def _token_user(request: HttpRequest):
     if grant is None or not grant.is_active:
         return None
     if directory_check.due(grant.user_id, grant.directory, grant.vouched):
+        owner = grant.user_id
         try:
-            directory_check.check(grant.user_id)
+            directory_check.check(owner)
         except directory_check.Gone as gone:
-            raise DirectoryRefused(gone) from None
+            raise DirectoryRefused(gone.username, gone.why) from None
+        finally:  # the account as the directory left it, for every token of it (not all changes signal)
+            grants.forget(lambda _digest, kept: kept.user_id == owner)
         grant = grants.load(digest)  # with the role the directory gives now
         if grant is None or not grant.is_active:
             return None
     now = timezone.now()
     days = settings.LIFECYCLE_DIRECTORY_TOKEN_DAYS
-    if grant.directory and (grant.vouched is None or (now - grant.vouched).total_seconds() > days * 86400):
+    if grant.directory and grant.vouched is None:  # disowned by the directory (directory_check)
+        raise DirectoryRefused(grant.user().get_username())
+    if grant.directory and (now - grant.vouched).total_seconds() > days * 86400:
         raise DormantToken(grant.user().get_username(), days)
     # Cheap enough once a minute, and tells an admin which tokens are still in use.
     if grant.last_used is None or (now - grant.last_used).total_seconds() > grants.LAST_USED_EVERY_S:

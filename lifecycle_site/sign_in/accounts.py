@@ -53,11 +53,22 @@ def signed_in(user: AbstractBaseUser, source: str, subject: str, role: str, grou
 
 @transaction.atomic
 def confirmed(user: AbstractBaseUser, role: str | None, groups: Iterable[str]) -> None:
-    """The directory confirmed the account without a sign-in (sign_in.directory_check): its role
-    is now ``role``, none at all for None (no mapped group any more)."""
-    DirectoryAccount.objects.filter(user=user).update(role=role or "", groups=_listed(groups),
-                                                      confirmed=timezone.now())
+    """The directory answered for the account without a sign-in (sign_in.directory_check): its
+    role is now ``role``. None (no mapped group any more): no role, and no confirmation either
+    (sign-in would refuse it), so its tokens' days keep counting from before."""
+    changes = {"role": role or "", "groups": _listed(groups)}
+    if role is not None:
+        changes["confirmed"] = timezone.now()
+    DirectoryAccount.objects.filter(user=user).update(**changes)
     _give_role(user, role)
+
+
+@transaction.atomic
+def disowned(user: AbstractBaseUser) -> None:
+    """The directory no longer has the account, or has it switched off: no role, and nothing the
+    directory vouches for, so its tokens are refused until it signs in again."""
+    DirectoryAccount.objects.filter(user=user).update(role="", last_sign_in=None, confirmed=None)
+    _give_role(user, None)
 
 
 def _listed(groups: Iterable[str]) -> str:
