@@ -204,18 +204,31 @@ class DirectoryRefused(Exception):
                          "directory must allow).") % {"user": username}
 
 
+class AccountOff(Exception):
+    """A token of an account an admin switched off (Admin → Users, "active")."""
+
+    def __init__(self, username: str) -> None:
+        super().__init__(username)
+        self.english = f"token of switched-off account {username}"
+        self.message = _("This token belongs to %(user)s, whose account is switched off. Ask an administrator.") % {
+            "user": username}
+
+
 def _token_user(request: HttpRequest):
-    """The token's user; None for no or an unknown token, DormantToken for one of a directory
-    account not signed in for LIFECYCLE_DIRECTORY_TOKEN_DAYS, DirectoryRefused for one the
-    directory no longer has (asked now and then: sign_in.directory_check)."""
+    """The token's user; None for no or an unknown token, AccountOff for one of a switched-off
+    account, DormantToken for one of a directory account not signed in for
+    LIFECYCLE_DIRECTORY_TOKEN_DAYS, DirectoryRefused for one the directory no longer has (asked
+    now and then: sign_in.directory_check)."""
     header = request.headers.get("Authorization", "")
     scheme, _, token = header.partition(" ")
     if scheme.lower() != "bearer" or not token.strip():
         return None
     digest = hash_token(token.strip())
     grant = grants.cached(digest) or grants.load(digest)
-    if grant is None or not grant.is_active:
+    if grant is None:
         return None
+    if not grant.is_active:  # a real token: not a guess (not counted toward the address's block), and said so
+        raise AccountOff(grant.user().get_username())
     if directory_check.due(grant.user_id, grant.directory, grant.vouched):
         owner = grant.user_id
         try:
@@ -225,8 +238,10 @@ def _token_user(request: HttpRequest):
         finally:  # the account as the directory left it, for every token of it (not all changes signal)
             grants.forget(lambda _digest, kept: kept.user_id == owner)
         grant = grants.load(digest)  # with the role the directory gives now
-        if grant is None or not grant.is_active:
+        if grant is None:
             return None
+        if not grant.is_active:
+            raise AccountOff(grant.user().get_username())
     now = timezone.now()
     days = settings.LIFECYCLE_DIRECTORY_TOKEN_DAYS
     if grant.directory and grant.vouched is None:  # disowned by the directory (directory_check)
@@ -301,6 +316,9 @@ def api_view(methods: tuple[str, ...] = ("GET",), permission: str = VIEW_PERMISS
             except DirectoryRefused as refused:
                 denials.record(request, 401, "directory_refused", refused.english)
                 return error("directory_refused", refused.message, 401)
+            except AccountOff as off:
+                denials.record(request, 401, "account_off", off.english)
+                return error("account_off", off.message, 401)
             if user is None and "Authorization" in request.headers:
                 denials.record(request, 401, "bad_token", "the bearer token is not valid (or revoked)")
                 return error("unauthorized", _("The bearer token is not valid."), 401)

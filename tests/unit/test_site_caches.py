@@ -88,13 +88,20 @@ def test_a_deleted_token_stops_at_once(db):
     assert client.get("/api/v1/robots").status_code == 401
 
 
-def test_a_deactivated_user_stops_at_once(db):
+def test_a_deactivated_user_stops_at_once(db, settings):
+    from lifecycle_site.audit.models import AccessDenial
+
     user = make_user("tess-token", "viewer")
     client, _ = token_client(user)
     assert client.get("/api/v1/robots").status_code == 200
     user.is_active = False
     user.save()
-    assert client.get("/api/v1/robots").status_code == 401
+    for _ in range(settings.AXES_FAILURE_LIMIT * 4 + 1):  # a line PC that keeps trying: said why, never blocked
+        answer = client.get("/api/v1/robots")
+        assert answer.status_code == 401 and answer.json()["error"]["code"] == "account_off", answer.content
+    assert "tess-token, whose account is switched off" in answer.json()["error"]["message"]
+    assert AccessDenial.objects.filter(code="account_off").exists()
+    assert not AccessDenial.objects.filter(code="bad_token").exists()
     user.is_active = True
     user.save()
     assert client.get("/api/v1/robots").status_code == 200
