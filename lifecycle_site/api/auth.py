@@ -173,52 +173,44 @@ def refusal_response(refusal: Refusal) -> JsonResponse:
     return JsonResponse(refusal.as_json(), status=refusal.status)
 
 
-class DormantToken(Exception):
+class TokenRefused(Refusal):
+    """A real token refused for what became of its account: said why, on record, and not counted
+    as a guessed token toward the address's block. ``english``: the record's summary."""
+
+    status = 401
+
+
+def _switched_off(username: str) -> TokenRefused:
+    """A token of an account an admin switched off (Admin → Users, "active")."""
+    return TokenRefused("account_off", _("This token belongs to %(user)s, whose account is switched off. Ask an "
+                                         "administrator.") % {"user": username},
+                        english=f"token of switched-off account {username}")
+
+
+def _dormant(username: str, days: float) -> TokenRefused:
     """A directory account's token, used longer than LIFECYCLE_DIRECTORY_TOKEN_DAYS after the
     account last signed in (its role may be gone in the directory since)."""
-
-    def __init__(self, username: str, days: float) -> None:
-        self.values = {"user": username, "days": f"{days:g}"}
-        super().__init__(self.english)
-
-    @property
-    def english(self) -> str:
-        return ("token of directory account %(user)s, which has not signed in for %(days)s days" % self.values)
-
-    @property
-    def message(self) -> str:
-        return _("This token belongs to %(user)s, a company account that has not signed in here for %(days)s days "
-                 "(its role comes from the company directory at sign-in). Its tokens work again once it signs in "
-                 "on the site.") % self.values
+    values = {"user": username, "days": f"{days:g}"}
+    return TokenRefused("token_dormant", _(
+        "This token belongs to %(user)s, a company account that has not signed in here for %(days)s days (its role "
+        "comes from the company directory at sign-in). Its tokens work again once it signs in on the site.") % values,
+        english="token of directory account %(user)s, which has not signed in for %(days)s days" % values)
 
 
-class DirectoryRefused(Exception):
+def _disowned(username: str, why: str = "is no longer vouched for by the directory") -> TokenRefused:
     """A directory account's token, whose account the directory no longer vouches for: it said it
     has no such account or has it switched off (sign_in.directory_check), until a sign-in."""
-
-    def __init__(self, username: str, why: str = "is no longer vouched for by the directory") -> None:
-        super().__init__(username)
-        self.english = f"token of directory account {username}, which {why}; refused until it signs in again"
-        self.message = _("This token belongs to %(user)s, a company account that the company directory no longer "
-                         "has or has switched off. Its tokens work again once it signs in on the site (which the "
-                         "directory must allow).") % {"user": username}
-
-
-class AccountOff(Exception):
-    """A token of an account an admin switched off (Admin → Users, "active")."""
-
-    def __init__(self, username: str) -> None:
-        super().__init__(username)
-        self.english = f"token of switched-off account {username}"
-        self.message = _("This token belongs to %(user)s, whose account is switched off. Ask an administrator.") % {
-            "user": username}
+    return TokenRefused("directory_refused", _(
+        "This token belongs to %(user)s, a company account that the company directory no longer has or has switched "
+        "off. Its tokens work again once it signs in on the site (which the directory must allow).") % {
+        "user": username}, english=f"token of directory account {username}, which {why}; refused until it signs in "
+                                   "again")
 
 
 def _token_user(request: HttpRequest):
-    """The token's user; None for no or an unknown token, AccountOff for one of a switched-off
-    account, DormantToken for one of a directory account not signed in for
-    LIFECYCLE_DIRECTORY_TOKEN_DAYS, DirectoryRefused for one the directory no longer has (asked
-    now and then: sign_in.directory_check)."""
+    """The token's user; None for no or an unknown token; TokenRefused for one of a switched-off
+    account, of a directory account not signed in for LIFECYCLE_DIRECTORY_TOKEN_DAYS, or of one
+    the directory no longer has (asked now and then: sign_in.directory_check)."""
     header = request.headers.get("Authorization", "")
     scheme, _, token = header.partition(" ")
     if scheme.lower() != "bearer" or not token.strip():
@@ -227,27 +219,27 @@ def _token_user(request: HttpRequest):
     grant = grants.cached(digest) or grants.load(digest)
     if grant is None:
         return None
-    if not grant.is_active:  # a real token: not a guess (not counted toward the address's block), and said so
-        raise AccountOff(grant.user().get_username())
+    if not grant.is_active:
+        raise _switched_off(grant.user().get_username())
     if directory_check.due(grant.user_id, grant.directory, grant.vouched):
         owner = grant.user_id
         try:
             directory_check.check(owner)
         except directory_check.Gone as gone:
-            raise DirectoryRefused(gone.username, gone.why) from None
+            raise _disowned(gone.username, gone.why) from None
         finally:  # the account as the directory left it, for every token of it (not all changes signal)
             grants.forget(lambda _digest, kept: kept.user_id == owner)
         grant = grants.load(digest)  # with the role the directory gives now
         if grant is None:
             return None
         if not grant.is_active:
-            raise AccountOff(grant.user().get_username())
+            raise _switched_off(grant.user().get_username())
     now = timezone.now()
     days = settings.LIFECYCLE_DIRECTORY_TOKEN_DAYS
     if grant.directory and grant.vouched is None:  # disowned by the directory (directory_check)
-        raise DirectoryRefused(grant.user().get_username())
+        raise _disowned(grant.user().get_username())
     if grant.directory and (now - grant.vouched).total_seconds() > days * 86400:
-        raise DormantToken(grant.user().get_username(), days)
+        raise _dormant(grant.user().get_username(), days)
     # Cheap enough once a minute, and tells an admin which tokens are still in use.
     if grant.last_used is None or (now - grant.last_used).total_seconds() > grants.LAST_USED_EVERY_S:
         grant.last_used = now
@@ -310,15 +302,9 @@ def api_view(methods: tuple[str, ...] = ("GET",), permission: str = VIEW_PERMISS
                     return _token_blocked(request, until)
             try:
                 user = _token_user(request)
-            except DormantToken as dormant:  # not a guess: not counted toward the address's block
-                denials.record(request, 401, "token_dormant", dormant.english)
-                return error("token_dormant", dormant.message, 401)
-            except DirectoryRefused as refused:
-                denials.record(request, 401, "directory_refused", refused.english)
-                return error("directory_refused", refused.message, 401)
-            except AccountOff as off:
-                denials.record(request, 401, "account_off", off.english)
-                return error("account_off", off.message, 401)
+            except TokenRefused as refused:  # (on record under its own code: not a guessed token)
+                denials.record(request, refused.status, refused.code, refused.english)
+                return refusal_response(refused)
             if user is None and "Authorization" in request.headers:
                 denials.record(request, 401, "bad_token", "the bearer token is not valid (or revoked)")
                 return error("unauthorized", _("The bearer token is not valid."), 401)

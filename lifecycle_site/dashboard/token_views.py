@@ -25,7 +25,7 @@ def _page(request: HttpRequest, status: int = 200, **extra) -> HttpResponse:
     vouched = max([m for m in (account.last_sign_in, account.confirmed) if m], default=None) if account else None
     days = settings.LIFECYCLE_DIRECTORY_TOKEN_DAYS
     context = {
-        # Its tokens work until then (api/auth.py, DormantToken); each sign-in moves it on.
+        # Its tokens work until then (api/auth.py, _dormant); each sign-in moves it on.
         "directory_until": vouched + timedelta(days=days) if vouched else None,
         "directory_days": f"{days:g}",
         "tokens": ApiToken.objects.filter(user=request.user),
