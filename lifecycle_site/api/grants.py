@@ -48,8 +48,7 @@ class _Grant:
         # directory last vouched for it (a sign-in, or a lookup): its tokens work for a while after.
         account = getattr(user, "directory_account", None)
         self.directory: str = account.source if account is not None else ""
-        moments = [m for m in (account.last_sign_in, account.confirmed) if m] if account is not None else []
-        self.vouched: datetime | None = max(moments, default=None)
+        self.vouched: datetime | None = account.vouched if account is not None else None
 
     def user(self):
         """A fresh user object per request, its permissions filled in (has_perm asks no query)."""

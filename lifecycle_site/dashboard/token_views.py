@@ -22,7 +22,7 @@ VIA = "API tokens page"  # (stored in the token's audit record: in English)
 
 def _page(request: HttpRequest, status: int = 200, **extra) -> HttpResponse:
     account = getattr(request.user, "directory_account", None)  # a company directory's account (sign_in)
-    vouched = max([m for m in (account.last_sign_in, account.confirmed) if m], default=None) if account else None
+    vouched = account.vouched if account is not None else None
     days = settings.LIFECYCLE_DIRECTORY_TOKEN_DAYS
     context = {
         # Its tokens work until then (api/auth.py, _dormant); each sign-in moves it on.

@@ -38,5 +38,11 @@ class DirectoryAccount(models.Model):
         verbose_name = gettext_lazy("directory account")
         verbose_name_plural = gettext_lazy("directory accounts")
 
+    @property
+    def vouched(self):
+        """When the directory last vouched for the account: its last sign-in or its last
+        confirmation, whichever is later (None for neither); its API tokens count their days from it."""
+        return max((m for m in (self.last_sign_in, self.confirmed) if m), default=None)
+
     def __str__(self) -> str:
         return f"{self.user} ({self.get_source_display()})"
